@@ -72,6 +72,12 @@ def _u(address: int, name: str, size: int, access: str, default: Optional[int],
                     description, 'uint', address_only)
 
 
+def _command(address: int, name: str, description: str) -> Register:
+    return Register(address, name, size=0, signed=False, access='w', minimum=None, maximum=None,
+                    unit='', default=None, persisted=False, description=description,
+                    kind='command', address_only=True)
+
+
 REGISTERS: tuple[Register, ...] = (
     Register(0x03, 'firmware_version', 2, False, 'r', None, None, '', None, True,
              'Firmware version vA.B: byte 0x03 = A, byte 0x04 = B (v1.28 = 0x01 0x1C).',
@@ -117,12 +123,9 @@ REGISTERS: tuple[Register, ...] = (
     _u(0x38, 'present_position', 2, 'r', None, 'Present position.', unit='ticks',
        lo=POSITION_MIN, hi=POSITION_MAX),
     _u(0x3A, 'present_speed', 2, 'r', None, 'Present speed; unit not documented (raw).'),
-    Register(0x3C, 'run_preset_1', 0, 'w', None, None, '', None, False,
-             'Command: move to preset position 1 (address only).', 'command', True),
-    Register(0x3D, 'run_preset_2', 0, 'w', None, None, '', None, False,
-             'Command: move to preset position 2 (address only).', 'command', True),
-    Register(0x3E, 'run_preset_3', 0, 'w', None, None, '', None, False,
-             'Command: move to preset position 3 (address only).', 'command', True),
+    _command(0x3C, 'run_preset_1', 'Command: move to preset position 1 (address only).'),
+    _command(0x3D, 'run_preset_2', 'Command: move to preset position 2 (address only).'),
+    _command(0x3E, 'run_preset_3', 'Command: move to preset position 3 (address only).'),
     _u(0x3F, 'temperature', 1, 'r', None, 'Servo temperature.', unit='degC'),
     _u(0x40, 'reg_write_flag', 1, 'r', None,
        'REG WRITE flag; values not documented (raw; nonzero = write staged, S16).'),
