@@ -1,0 +1,29 @@
+# uav_serial_drivers: `make demo` and `make test` work on a fresh machine (they build first).
+SHELL := /bin/bash
+ENV := source tools/env.sh
+PYTEST_ARGS ?=
+
+.PHONY: all build test demo bench lint clean distclean
+
+all: build
+
+build:
+	@flock .build.lock bash tools/bootstrap.sh
+
+test: build
+	@$(ENV) && python -m pytest test -p no:cacheprovider $(PYTEST_ARGS)
+
+lint: build
+	@$(ENV) && python -m pytest test/test_lint.py -p no:cacheprovider $(PYTEST_ARGS)
+
+demo: build
+	@$(ENV) && python tools/demo.py
+
+bench: build
+	@$(ENV) && python bench/run_all.py
+
+clean:
+	rm -rf build install log .build.lock
+
+distclean: clean
+	rm -rf "$$(readlink -f .venv)" .venv

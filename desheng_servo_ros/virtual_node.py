@@ -1,0 +1,13 @@
+"""Placeholder entry point until its issue lands."""
+
+import sys
+
+
+def main(args=None) -> int:
+    """Say that this executable is not implemented yet."""
+    print('virtual_node: not implemented yet', file=sys.stderr)
+    return 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

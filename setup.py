@@ -1,0 +1,4 @@
+"""Setuptools shim: everything is declared in setup.cfg."""
+from setuptools import setup
+
+setup()

@@ -1,0 +1,92 @@
+"""Test harness: real rclpy, a private ROS domain per session, nodes as real processes.
+
+- Every pytest session claims its own ``ROS_DOMAIN_ID`` (with a lock file, so parallel sessions on
+  one machine never share one) and keeps discovery on localhost.
+- `ros` gives a test its own rclpy Context, a node in it and an executor spinning in a thread,
+  with helpers to wait for messages and call services with timeouts.
+- `launch` starts an installed executable as a subprocess with parameters, waits for a topic or
+  service of it, and stops it by PID at the end of the test (stderr goes into failure messages).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import random
+import sys
+
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+_DOMAIN_LOCK = None
+
+
+def _claim_domain_id() -> int:
+    """Lock a domain id no other test session on this machine holds; keep it until exit."""
+    global _DOMAIN_LOCK
+    ids = list(range(20, 101))
+    random.Random(os.getpid()).shuffle(ids)
+    for domain in ids:
+        path = f'/tmp/uav_serial_drivers-ros-domain-{domain}.lock'
+        handle = open(path, 'w')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _DOMAIN_LOCK = handle
+        return domain
+    raise RuntimeError('no free ROS_DOMAIN_ID in 20..100 for this test session')
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Isolate this session's ROS traffic before anything imports rclpy."""
+    if not hasattr(config, 'workerinput'):
+        os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
+    os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
+    os.environ.setdefault('PYTHONUNBUFFERED', '1')
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    """Show the domain id, to tell parallel sessions' logs apart."""
+    return f'ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID")} (localhost discovery)'
+
+
+from ros_harness import LaunchedProcesses, RosTestHarness  # noqa: E402
+
+
+@pytest.fixture
+def ros():
+    """Give a test its own rclpy context, node and spinning executor."""
+    harness = RosTestHarness()
+    try:
+        yield harness
+    finally:
+        harness.close()
+
+
+@pytest.fixture
+def launch(request, tmp_path):
+    """Start installed executables as processes; all are stopped at the end of the test."""
+    processes = LaunchedProcesses(tmp_path, request.node.name)
+    try:
+        yield processes
+    finally:
+        processes.stop_all()
+        report = getattr(request.node, 'rep_call', None)
+        if report is not None and report.failed:
+            for proc in processes.processes:
+                print(f'--- {proc.name} (pid {proc.pid}, exit {proc.popen.returncode}) ---')
+                print(proc.output())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Keep each phase's report on the item, so fixtures can tell that a test failed."""
+    outcome = yield
+    report = outcome.get_result()
+    setattr(item, f'rep_{report.when}', report)

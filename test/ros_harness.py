@@ -1,0 +1,260 @@
+"""Helpers behind the conftest fixtures: an rclpy harness and a process launcher."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+import rclpy
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+import yaml
+
+PACKAGE = 'uav_serial_drivers'
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.01,
+             what: str = 'condition') -> Any:
+    """Poll `predicate` until it returns something truthy; fail the test after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout:.1f} s waiting for {what}')
+        time.sleep(interval)
+
+
+def executable_path(name: str) -> str:
+    """Return the installed path of one of the package's executables."""
+    from ament_index_python.packages import get_package_prefix
+    path = Path(get_package_prefix(PACKAGE), 'lib', PACKAGE, name)
+    if not path.exists():
+        raise FileNotFoundError(f'{path} is not installed: run `make build`')
+    return str(path)
+
+
+class MessageLog:
+    """Every message received on one subscription, with a condition to wait on."""
+
+    def __init__(self) -> None:
+        self.messages: List[Any] = []
+        self._cond = threading.Condition()
+
+    def append(self, msg: Any) -> None:
+        """Record one message (subscription callback)."""
+        with self._cond:
+            self.messages.append(msg)
+            self._cond.notify_all()
+
+    def wait(self, predicate: Callable[[Any], bool] = lambda m: True, timeout: float = 5.0,
+             what: str = 'a matching message', start: int = 0) -> Any:
+        """Return the first message from index `start` that satisfies `predicate`."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for msg in self.messages[start:]:
+                    if predicate(msg):
+                        return msg
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    last = self.messages[-1] if self.messages else None
+                    raise AssertionError(
+                        f'timed out after {timeout:.1f} s waiting for {what}; '
+                        f'{len(self.messages)} received, last: {last}')
+                self._cond.wait(remaining)
+
+    @property
+    def last(self) -> Any:
+        """Return the newest message, or None."""
+        with self._cond:
+            return self.messages[-1] if self.messages else None
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self.messages)
+
+
+class RosTestHarness:
+    """A private rclpy Context with one node and a multi-threaded executor in a thread."""
+
+    def __init__(self, node_name: str = 'test_client') -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = Node(node_name, context=self.context)
+        self.group = ReentrantCallbackGroup()
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - shutdown while spinning
+            pass
+
+    def subscribe(self, msg_type: Any, topic: str, latched: bool = False,
+                  reliable: bool = True, depth: int = 100) -> MessageLog:
+        """Record every message of `topic`; `latched` matches transient-local publishers."""
+        qos = QoSProfile(depth=depth)
+        qos.reliability = ReliabilityPolicy.RELIABLE if reliable else \
+            ReliabilityPolicy.BEST_EFFORT
+        if latched:
+            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
+        log = MessageLog()
+        self.node.create_subscription(msg_type, topic, log.append, qos,
+                                      callback_group=self.group)
+        return log
+
+    def publisher(self, msg_type: Any, topic: str, wait_subscribers: int = 1,
+                  timeout: float = 10.0) -> Any:
+        """Create a publisher and wait until `wait_subscribers` subscribers match it."""
+        pub = self.node.create_publisher(msg_type, topic, 10)
+        if wait_subscribers:
+            wait_for(lambda: pub.get_subscription_count() >= wait_subscribers, timeout,
+                     what=f'a subscriber on {topic}')
+        return pub
+
+    def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
+        """Call a service and return its response; fail the test on timeout."""
+        client = self.node.create_client(srv_type, name, callback_group=self.group)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise AssertionError(f'service {name} not available after {timeout:.0f} s')
+            future = client.call_async(request if request is not None else srv_type.Request())
+            done = threading.Event()
+            future.add_done_callback(lambda _f: done.set())
+            if not done.wait(timeout):
+                raise AssertionError(f'service {name} did not answer within {timeout:.0f} s')
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def wait_for_service(self, name: str, timeout: float = 15.0) -> None:
+        """Wait until a service of that (fully qualified) name exists."""
+        wait_for(lambda: any(n == name for n, _ in self.node.get_service_names_and_types()),
+                 timeout, interval=0.05, what=f'service {name}')
+
+    def wait_for_topic(self, name: str, timeout: float = 15.0) -> None:
+        """Wait until a publisher of that (fully qualified) topic exists."""
+        wait_for(lambda: self.node.count_publishers(name) > 0, timeout, interval=0.05,
+                 what=f'a publisher on {name}')
+
+    def close(self) -> None:
+        """Stop spinning and shut the context down."""
+        try:
+            self.executor.shutdown(timeout_sec=2.0)
+        finally:
+            self.node.destroy_node()
+            if self.context.ok():
+                rclpy.shutdown(context=self.context)
+            self._thread.join(timeout=2.0)
+
+
+class LaunchedProcess:
+    """One executable started by the `launch` fixture."""
+
+    def __init__(self, name: str, popen: subprocess.Popen, stderr_path: Path,
+                 stdout_path: Path) -> None:
+        self.name = name
+        self.popen = popen
+        self.stderr_path = stderr_path
+        self.stdout_path = stdout_path
+
+    @property
+    def pid(self) -> int:
+        """Return the process id."""
+        return self.popen.pid
+
+    def output(self) -> str:
+        """Return what the process wrote to stdout and stderr so far."""
+        text = ''
+        for path in (self.stdout_path, self.stderr_path):
+            try:
+                text += path.read_text(errors='replace')
+            except FileNotFoundError:
+                pass
+        return text
+
+    def alive(self) -> bool:
+        """Return whether the process still runs."""
+        return self.popen.poll() is None
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
+        """Send `sig`, wait up to `timeout` s, then kill; returns the exit code."""
+        if self.popen.poll() is None:
+            try:
+                os.kill(self.popen.pid, sig)
+            except ProcessLookupError:
+                pass
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait(5)
+        return self.popen.returncode
+
+
+class LaunchedProcesses:
+    """Starts installed executables for one test and stops them all afterwards."""
+
+    def __init__(self, tmp_path: Path, test_name: str) -> None:
+        self.tmp_path = tmp_path
+        self.test_name = test_name
+        self.processes: List[LaunchedProcess] = []
+
+    def start(self, executable: str, parameters: Optional[Dict[str, Any]] = None,
+              node_name: Optional[str] = None, namespace: Optional[str] = None,
+              wait_service: Optional[str] = None, wait_topic: Optional[str] = None,
+              ros: Optional[RosTestHarness] = None, timeout: float = 20.0,
+              extra_env: Optional[Dict[str, str]] = None) -> LaunchedProcess:
+        """Start `executable` with `parameters`; wait for a service or topic via `ros`."""
+        index = len(self.processes)
+        args = [executable_path(executable), '--ros-args']
+        if node_name:
+            args += ['-r', f'__node:={node_name}']
+        if namespace:
+            args += ['-r', f'__ns:={namespace}']
+        if parameters:
+            params_file = self.tmp_path / f'{executable}-{index}.params.yaml'
+            params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+            args += ['--params-file', str(params_file)]
+        stdout_path = self.tmp_path / f'{executable}-{index}.stdout'
+        stderr_path = self.tmp_path / f'{executable}-{index}.stderr'
+        env = dict(os.environ)
+        env.update(extra_env or {})
+        with open(stdout_path, 'wb') as out, open(stderr_path, 'wb') as err:
+            popen = subprocess.Popen(args, stdout=out, stderr=err, env=env,
+                                     start_new_session=True)
+        proc = LaunchedProcess(executable, popen, stderr_path, stdout_path)
+        self.processes.append(proc)
+        try:
+            if ros is not None and wait_service:
+                wait_for(lambda: not proc.alive() or any(
+                    n == wait_service for n, _ in ros.node.get_service_names_and_types()),
+                    timeout, interval=0.05, what=f'service {wait_service} of {executable}')
+            if ros is not None and wait_topic:
+                wait_for(lambda: not proc.alive() or ros.node.count_publishers(wait_topic) > 0,
+                         timeout, interval=0.05, what=f'topic {wait_topic} of {executable}')
+        except AssertionError as exc:
+            raise AssertionError(f'{exc}\n--- output of {executable} ---\n{proc.output()}') \
+                from None
+        if not proc.alive():
+            raise AssertionError(f'{executable} exited with {proc.popen.returncode}\n'
+                                 f'--- output ---\n{proc.output()}')
+        return proc
+
+    def stop_all(self) -> None:
+        """Stop every process this test started (SIGINT, then SIGKILL)."""
+        for proc in reversed(self.processes):
+            proc.stop()

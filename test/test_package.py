@@ -1,0 +1,162 @@
+"""The package as a ROS user gets it: manifest, interfaces, installed modules and executables."""
+
+import ast
+import configparser
+import importlib
+import re
+import sys
+from pathlib import Path
+
+from catkin_pkg.package import parse_package
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MODULES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros']
+CONTRACT_MESSAGES = {
+    'ParachuteStatus': ['header', 'online', 'armed', 'triggered', 'tilt_deg', 'accel_g',
+                        'streaming', 'light_level_v', 'bay_open', 'charging', 'cell_voltage_v',
+                        'attitude_trigger_enabled', 'freefall_trigger_enabled'],
+    'ParachuteConfig': [],
+    'TriggerEvent': [],
+    'TriggerRequest': [],
+    'TriggerRecord': [],
+    'ServoState': ['id', 'name', 'online', 'position_ticks', 'position_rad', 'speed_raw',
+                   'current_ma', 'temperature_c', 'status', 'overload', 'over_temperature',
+                   'voltage_fault', 'torque_enabled', 'error_count'],
+    'ServoStateArray': [],
+    'ServoCommand': ['names', 'ids', 'positions', 'move_time_ms'],
+}
+CONTRACT_SERVICES = {
+    'Deploy': (['confirm', 'arm_if_locked'], ['success', 'message', 'latency_ms']),
+    'SetThresholds': (['attitude_deg', 'freefall_g', 'freefall_time_s', 'light_threshold_v'],
+                      ['success', 'message', 'config']),
+    'SetAutoTriggers': (['attitude_enabled', 'freefall_enabled'],
+                        ['success', 'message', 'config']),
+    'GetParachuteConfig': ([], ['config']),
+    'GetTriggerRecords': ([], ['success', 'message', 'records']),
+    'Confirmed': (['confirm'], ['success', 'message']),
+    'WritePositions': (['names', 'ids', 'positions', 'move_time_ms', 'staged'],
+                       ['success', 'message']),
+    'SetTorque': (['ids', 'enable'], ['success', 'message']),
+    'ReadRegister': (['id', 'register_name', 'address', 'length'], ['success', 'message']),
+    'WriteRegister': (['id', 'register_name'], ['success', 'message']),
+    'ScanBus': (['first_id', 'last_id'], ['ids']),
+    'GoToPreset': (['ids', 'preset'], ['success', 'message']),
+    'SetId': (['id', 'new_id'], ['success', 'message']),
+    'FactoryReset': (['id', 'confirm'], ['success', 'message']),
+}
+# Imports that are not ROS packages of the same name, mapped to their rosdep keys.
+ROSDEP_KEYS = {'serial': 'python3-serial', 'yaml': 'python3-yaml'}
+
+
+def setup_cfg() -> configparser.ConfigParser:
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / 'setup.cfg')
+    return cfg
+
+
+def test_package_xml_is_format_3_with_the_contract_name_and_build_type():
+    package = parse_package(str(ROOT / 'package.xml'))
+    package.validate()
+    assert package.package_format == 3
+    assert package.name == 'uav_serial_drivers'
+    assert package.get_build_type() == 'ament_cmake'
+    assert 'rosidl_interface_packages' in [g.name for g in package.member_of_groups]
+
+
+def test_package_xml_declares_the_runtime_dependencies():
+    package = parse_package(str(ROOT / 'package.xml'))
+    runtime = {d.name for d in package.exec_depends + package.build_export_depends}
+    runtime |= {d.name for d in package.build_depends} & runtime
+    for key in ['rclpy', 'std_msgs', 'std_srvs', 'sensor_msgs', 'diagnostic_msgs',
+                'python3-serial', 'rosidl_default_runtime']:
+        assert key in runtime, f'package.xml does not declare {key}'
+    build = {d.name for d in package.buildtool_depends}
+    assert {'ament_cmake', 'rosidl_default_generators'} <= build
+
+
+def _imports(path: Path):
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name.split('.')[0]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            yield node.module.split('.')[0]
+
+
+def test_every_imported_ros_package_is_declared_in_package_xml():
+    package = parse_package(str(ROOT / 'package.xml'))
+    declared = {d.name for d in package.exec_depends + package.build_export_depends}
+    own = set(MODULES) | {'uav_serial_drivers'}
+    sources = [p for m in MODULES for p in (ROOT / m).rglob('*.py')]
+    sources += list((ROOT / 'launch').glob('*.py'))
+    missing = set()
+    for path in sources:
+        for name in _imports(path):
+            if name in sys.stdlib_module_names or name in own or name == '__future__':
+                continue
+            if ROSDEP_KEYS.get(name, name) not in declared:
+                missing.add(f'{name} (in {path.relative_to(ROOT)})')
+    assert not missing, f'imported but not declared in package.xml: {sorted(missing)}'
+
+
+def test_cmake_installs_exactly_the_modules_setup_cfg_declares():
+    declared = setup_cfg()['options']['packages'].split()
+    cmake = (ROOT / 'CMakeLists.txt').read_text()
+    installed = re.findall(r'ament_python_install_package\((\w+)', cmake)
+    assert sorted(installed) == sorted(declared)
+    assert sorted(declared) == sorted(MODULES)
+
+
+def test_installed_executables_are_the_console_scripts_of_setup_cfg():
+    from ament_index_python.packages import get_package_prefix
+    scripts = setup_cfg()['options.entry_points']['console_scripts'].split('\n')
+    names = sorted(line.split('=')[0].strip() for line in scripts if line.strip())
+    assert names == ['parachute_node', 'servo_bus_node', 'virtual_parachute',
+                     'virtual_servo_bus']
+    lib = Path(get_package_prefix('uav_serial_drivers'), 'lib', 'uav_serial_drivers')
+    assert sorted(p.name for p in lib.iterdir()) == names
+    for line in scripts:
+        if line.strip():
+            target = line.split('=')[1].strip()
+            module, func = target.split(':')
+            assert callable(getattr(importlib.import_module(module), func)), target
+
+
+@pytest.mark.parametrize('name,fields', sorted(CONTRACT_MESSAGES.items()))
+def test_contract_message_is_generated_with_its_fields(name, fields):
+    msg_type = getattr(importlib.import_module('uav_serial_drivers.msg'), name)
+    slots = msg_type.get_fields_and_field_types()
+    for field in fields:
+        assert field in slots, f'{name} lacks {field}'
+
+
+@pytest.mark.parametrize('name,fields', sorted(CONTRACT_SERVICES.items()))
+def test_contract_service_is_generated_with_its_fields(name, fields):
+    srv_type = getattr(importlib.import_module('uav_serial_drivers.srv'), name)
+    request_fields, response_fields = fields
+    for field in request_fields:
+        assert field in srv_type.Request.get_fields_and_field_types(), f'{name} request: {field}'
+    for field in response_fields:
+        assert field in srv_type.Response.get_fields_and_field_types(), \
+            f'{name} response: {field}'
+
+
+def test_every_interface_field_documents_itself():
+    undocumented = []
+    for path in sorted((ROOT / 'msg_defs').rglob('*.*')):
+        for line in path.read_text().splitlines():
+            text = line.strip()
+            if not text or text.startswith('#') or text == '---':
+                continue
+            if '#' not in text and not text.startswith('std_msgs/Header'):
+                undocumented.append(f'{path.name}: {text}')
+    # Header, arrays of documented messages and self-explanatory success/message fields aside.
+    undocumented = [u for u in undocumented
+                    if not re.search(r': (bool success|string message|string confirm|'
+                                     r'ServoState\[\] servos|TriggerRecord record|'
+                                     r'ParachuteConfig config|TriggerRecord\[\] records|'
+                                     r'bool enable|bool attitude_enabled|'
+                                     r'bool freefall_enabled)$', u)]
+    assert not undocumented, undocumented

@@ -1,0 +1,158 @@
+"""The shared serial link: reader thread, request matching, timeouts, retries, reconnect."""
+
+import threading
+import time
+
+import pytest
+
+from ros_harness import wait_for
+from uav_serial_common.pty_port import VirtualSerialPort
+from uav_serial_common.serial_link import LinkDown, LinkTimeout, SerialLink
+
+
+class LineDecoder:
+    """A toy protocol for these tests: frames are newline-terminated lines."""
+
+    def __init__(self):
+        self.buffer = b''
+
+    def feed(self, data):
+        self.buffer += data
+        *lines, self.buffer = self.buffer.split(b'\n')
+        return lines
+
+    def reset(self):
+        self.buffer = b''
+
+
+class Echo:
+    """A device on a pty that answers `ask X` with `re X` and can be made silent."""
+
+    def __init__(self, port):
+        self.port = port
+        self.silent = False
+        self.received = []
+        self.running = True
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+
+    def run(self):
+        pending = b''
+        while self.running:
+            pending += self.port.read(timeout=0.02)
+            *lines, pending = pending.split(b'\n')
+            for line in lines:
+                self.received.append(line)
+                if line.startswith(b'ask ') and not self.silent:
+                    self.port.write(b're ' + line[4:] + b'\n')
+
+    def stop(self):
+        self.running = False
+        self.thread.join(2)
+
+
+@pytest.fixture
+def device(tmp_path):
+    port = VirtualSerialPort(str(tmp_path / 'dev')).open()
+    echo = Echo(port)
+    yield echo
+    echo.stop()
+    port.close()
+
+
+def make_link(path, **kwargs):
+    unsolicited = []
+    states = []
+    link = SerialLink(path, 115200, LineDecoder(), on_frame=unsolicited.append,
+                      on_connection=lambda up, why: states.append(up), **kwargs)
+    link.start()
+    return link, unsolicited, states
+
+
+def test_a_reply_is_matched_to_its_request_and_others_go_to_the_handler(device):
+    link, unsolicited, _ = make_link(device.port.path)
+    try:
+        assert link.wait_connected(2)
+        device.port.write(b'hello\n')
+        reply = link.request(b'ask 7\n', lambda f: f == b're 7', timeout=1.0)
+        assert reply == b're 7'
+        wait_for(lambda: b'hello' in unsolicited, 2, what='the unsolicited frame')
+        assert b're 7' not in unsolicited
+        assert link.stats.frames_in >= 2 and link.stats.bytes_out == len(b'ask 7\n')
+    finally:
+        link.stop()
+
+
+def test_no_reply_times_out_after_the_retries_and_counts_them(device):
+    link, _, _ = make_link(device.port.path)
+    try:
+        assert link.wait_connected(2)
+        device.silent = True
+        with pytest.raises(LinkTimeout):
+            link.request(b'ask 1\n', lambda f: f == b're 1', timeout=0.05, retries=2)
+        wait_for(lambda: device.received.count(b'ask 1') == 3, 2, what='three attempts')
+        assert link.stats.timeouts == 1 and link.stats.retries == 2
+    finally:
+        link.stop()
+
+
+def test_writing_while_the_port_is_missing_fails_at_once(tmp_path):
+    link, _, _ = make_link(str(tmp_path / 'missing'))
+    try:
+        with pytest.raises(LinkDown):
+            link.write(b'x')
+        assert 'no such device' in link.last_error
+    finally:
+        link.stop()
+
+
+def test_unplug_is_noticed_and_the_link_reopens_the_same_path_after_replug(device):
+    link, _, states = make_link(device.port.path)
+    try:
+        assert link.wait_connected(2)
+        device.port.unplug()
+        wait_for(lambda: states[-1] is False, 2, what='the link to notice the unplug')
+        assert not link.connected
+        device.port.replug()
+        wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        assert link.request(b'ask 2\n', lambda f: f == b're 2', timeout=1.0) == b're 2'
+        assert states == [True, False, True]
+        assert link.stats.reconnects == 1
+    finally:
+        link.stop()
+
+
+def test_a_request_in_flight_fails_fast_when_the_port_goes_away(device):
+    link, _, _ = make_link(device.port.path)
+    try:
+        assert link.wait_connected(2)
+        device.silent = True
+        threading.Timer(0.1, device.port.unplug).start()
+        start = time.monotonic()
+        with pytest.raises(LinkDown):
+            link.request(b'ask 3\n', lambda f: f == b're 3', timeout=5.0)
+        assert time.monotonic() - start < 4.0
+    finally:
+        link.stop()
+
+
+def test_loop_url_works_for_plain_python_use():
+    link, unsolicited, _ = make_link('loop://')
+    try:
+        assert link.wait_connected(2)
+        assert link.request(b'ping\n', lambda f: f == b'ping', timeout=1.0) == b'ping'
+    finally:
+        link.stop()
+
+
+def test_a_failing_frame_handler_does_not_stop_the_reader(device):
+    def boom(frame):
+        raise RuntimeError('handler bug')
+    link = SerialLink(device.port.path, 115200, LineDecoder(), on_frame=boom)
+    link.start()
+    try:
+        assert link.wait_connected(2)
+        device.port.write(b'first\n')
+        assert link.request(b'ask 4\n', lambda f: f == b're 4', timeout=1.0) == b're 4'
+    finally:
+        link.stop()

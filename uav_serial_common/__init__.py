@@ -1,0 +1,1 @@
+"""What the two drivers truly share: the serial link and the pseudo-terminal helper."""

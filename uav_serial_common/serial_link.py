@@ -1,0 +1,332 @@
+"""A serial link: one reader thread, request/response matching, timeouts, retries, reconnect.
+
+The link knows nothing of a device's protocol. It is given a streaming decoder (``feed(bytes) ->
+frames``) and a frame handler. Frames that answer an outstanding request (decided by the
+request's own ``match`` predicate) are handed to the waiting caller; every other frame goes to
+``on_frame`` straight from the reader thread, so unsolicited frames never wait behind anything.
+
+The port is opened with ``serial.serial_for_url``, so device paths, ``loop://`` and ``spy://``
+URLs all work. When the port errors or disappears the reader thread closes it and reopens it with
+exponential backoff until `stop()`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, List, Optional, Protocol
+
+import serial
+
+Match = Callable[[Any], bool]
+
+
+class Decoder(Protocol):
+    """What the link needs of a streaming decoder."""
+
+    def feed(self, data: bytes) -> Iterable[Any]:
+        """Consume bytes, return the complete frames found."""
+
+    def reset(self) -> None:
+        """Forget any partial frame."""
+
+
+class LinkError(Exception):
+    """Base class of link errors."""
+
+
+class LinkDown(LinkError):
+    """The port is not open (missing, unplugged or failing)."""
+
+
+class LinkTimeout(LinkError):
+    """No matching reply arrived in time, after every retry."""
+
+
+@dataclass
+class LinkStats:
+    """Counters of one link, since it was created."""
+
+    bytes_in: int = 0
+    bytes_out: int = 0
+    frames_in: int = 0
+    frames_out: int = 0
+    timeouts: int = 0
+    retries: int = 0
+    reconnects: int = 0
+    open_failures: int = 0
+
+
+@dataclass
+class _Waiter:
+    match: Match
+    event: threading.Event = field(default_factory=threading.Event)
+    frame: Any = None
+
+
+class SerialLink:
+    """One serial port owned by one reader thread."""
+
+    def __init__(
+        self,
+        url: str,
+        baud: int,
+        decoder: Decoder,
+        on_frame: Optional[Callable[[Any], None]] = None,
+        on_connection: Optional[Callable[[bool, str], None]] = None,
+        on_tx: Optional[Callable[[bytes], None]] = None,
+        on_rx: Optional[Callable[[bytes], None]] = None,
+        logger: Optional[Any] = None,
+        backoff_initial_s: float = 0.05,
+        backoff_max_s: float = 1.0,
+        read_timeout_s: float = 0.05,
+    ) -> None:
+        self.url = url
+        self.baud = baud
+        self.stats = LinkStats()
+        self.last_error = ''
+        self.last_rx_time: Optional[float] = None
+        self._decoder = decoder
+        self._on_frame = on_frame
+        self._on_connection = on_connection
+        self._on_tx = on_tx
+        self._on_rx = on_rx
+        self._log = logger or logging.getLogger('serial_link')
+        self._backoff_initial = backoff_initial_s
+        self._backoff_max = backoff_max_s
+        self._read_timeout = read_timeout_s
+        self._serial: Optional[serial.SerialBase] = None
+        self._write_lock = threading.Lock()
+        self._rx_lock = threading.Lock()
+        self._waiters: List[_Waiter] = []
+        self._waiters_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._connected = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the reader thread; it opens the port and keeps it open."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(
+            target=self._run, name=f'serial-reader {self.url}', daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the reader thread and close the port."""
+        self._stop.set()
+        port = self._serial
+        if port is not None:
+            try:
+                # Wake a blocking read at once instead of waiting for its timeout.
+                port.cancel_read()
+            except Exception:  # noqa: BLE001 - not every URL handler can cancel
+                pass
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        self._close('stopped')
+
+    @property
+    def connected(self) -> bool:
+        """Return True while the port is open."""
+        return self._connected.is_set()
+
+    def wait_connected(self, timeout: float) -> bool:
+        """Wait until the port is open; returns whether it is."""
+        return self._connected.wait(timeout)
+
+    # -- I/O ------------------------------------------------------------------------------------
+
+    def write(self, data: bytes) -> None:
+        """Send bytes now; raises LinkDown when the port is not open."""
+        with self._write_lock:
+            port = self._serial
+            if port is None or not self._connected.is_set():
+                raise LinkDown(f'{self.url} is not open: {self.last_error or "not connected"}')
+            try:
+                port.write(data)
+            except (serial.SerialException, OSError) as exc:
+                self._fail(f'write failed: {exc}')
+                raise LinkDown(f'{self.url}: write failed: {exc}') from exc
+            self.stats.bytes_out += len(data)
+            self.stats.frames_out += 1
+        if self._on_tx is not None:
+            self._on_tx(data)
+
+    def request(
+        self,
+        data: bytes,
+        match: Match,
+        timeout: float,
+        retries: int = 0,
+        flush: bool = False,
+    ) -> Any:
+        """Send `data` and return the first frame that `match` accepts.
+
+        The frame is awaited for `timeout` seconds after each send; the request is sent again up
+        to `retries` more times. Raises LinkTimeout when nothing matched, LinkDown when the port
+        is not open. `flush` discards input (and any partial frame) first, for half-duplex buses
+        where a late reply to an earlier request must not be taken for this one.
+        """
+        waiter = _Waiter(match)
+        with self._waiters_lock:
+            self._waiters.append(waiter)
+        try:
+            for attempt in range(retries + 1):
+                if attempt:
+                    self.stats.retries += 1
+                if flush:
+                    self.flush_input()
+                self.write(data)
+                if waiter.event.wait(timeout) and waiter.frame is not None:
+                    return waiter.frame
+                if not self._connected.is_set():
+                    raise LinkDown(f'{self.url} closed while waiting for a reply')
+            self.stats.timeouts += 1
+            raise LinkTimeout(f'no reply within {timeout * 1000:.0f} ms '
+                              f'after {retries + 1} attempt(s)')
+        finally:
+            with self._waiters_lock:
+                if waiter in self._waiters:
+                    self._waiters.remove(waiter)
+
+    def flush_input(self) -> None:
+        """Discard unread input and any partial frame."""
+        with self._rx_lock:
+            port = self._serial
+            if port is not None:
+                try:
+                    port.reset_input_buffer()
+                except (serial.SerialException, OSError):
+                    pass
+            self._decoder.reset()
+
+    # -- reader thread --------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        backoff = self._backoff_initial
+        while not self._stop.is_set():
+            if self._serial is None:
+                if self._open():
+                    backoff = self._backoff_initial
+                else:
+                    self._stop.wait(backoff)
+                    backoff = min(backoff * 2, self._backoff_max)
+                    continue
+            port = self._serial
+            try:
+                data = port.read(1)
+                if data and port.in_waiting:
+                    data += port.read(port.in_waiting)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                # TypeError/AttributeError: pyserial's fd became None under a concurrent close.
+                if not self._stop.is_set():
+                    self._fail(f'read failed: {exc}')
+                continue
+            if data:
+                self._receive(data)
+
+    def _receive(self, data: bytes) -> None:
+        self.last_rx_time = time.monotonic()
+        self.stats.bytes_in += len(data)
+        if self._on_rx is not None:
+            self._on_rx(data)
+        with self._rx_lock:
+            frames = self._decoder.feed(data)
+        for frame in frames:
+            self.stats.frames_in += 1
+            if not self._deliver_to_waiter(frame) and self._on_frame is not None:
+                try:
+                    self._on_frame(frame)
+                except Exception:  # noqa: BLE001 - a handler bug must not kill the reader
+                    self._log.error(f'frame handler failed on {frame!r}:\n'
+                                    f'{traceback.format_exc()}')
+
+    def _deliver_to_waiter(self, frame: Any) -> bool:
+        with self._waiters_lock:
+            for waiter in self._waiters:
+                if not waiter.event.is_set() and waiter.match(frame):
+                    waiter.frame = frame
+                    waiter.event.set()
+                    return True
+        return False
+
+    def _open(self) -> bool:
+        try:
+            port = serial.serial_for_url(
+                self.url, baudrate=self.baud, timeout=self._read_timeout, write_timeout=1.0,
+                do_not_open=True)
+            if hasattr(port, 'exclusive'):
+                try:
+                    port.exclusive = True
+                except (ValueError, serial.SerialException):
+                    pass
+            port.open()
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self.stats.open_failures += 1
+            message = describe_open_error(self.url, exc)
+            if message != self.last_error:
+                self._log.error(message)
+            self.last_error = message
+            return False
+        with self._rx_lock:
+            self._decoder.reset()
+        self._serial = port
+        if self.stats.open_failures or self.stats.reconnects:
+            self.stats.reconnects += 1
+        self.last_error = ''
+        self._connected.set()
+        self._log.info(f'opened {self.url} at {self.baud} baud')
+        self._notify(True, 'port open')
+        return True
+
+    def _fail(self, reason: str) -> None:
+        if self._connected.is_set():
+            self._log.error(f'{self.url}: {reason}; reconnecting')
+        self.last_error = reason
+        self._close(reason)
+
+    def _close(self, reason: str) -> None:
+        was_connected = self._connected.is_set()
+        self._connected.clear()
+        port, self._serial = self._serial, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:  # noqa: BLE001 - closing a vanished device may fail any way
+                pass
+        # Wake every waiter: their request fails at once rather than at its timeout.
+        with self._waiters_lock:
+            for waiter in self._waiters:
+                waiter.event.set()
+        if was_connected:
+            self._notify(False, reason)
+
+    def _notify(self, up: bool, reason: str) -> None:
+        if self._on_connection is not None:
+            try:
+                self._on_connection(up, reason)
+            except Exception:  # noqa: BLE001 - a handler bug must not kill the reader
+                self._log.error(f'connection handler failed ({reason})')
+
+
+def describe_open_error(url: str, exc: BaseException) -> str:
+    """Turn an open failure into a message that tells the user what to do."""
+    text = str(exc)
+    if 'Permission denied' in text or 'Errno 13' in text:
+        return (f'cannot open {url}: permission denied. Add your user to the dialout group '
+                f'(sudo usermod -aG dialout $USER, then log in again) or fix the udev rule.')
+    if 'No such file' in text or 'Errno 2' in text or 'could not open port' in text:
+        return (f'cannot open {url}: no such device. Is it plugged in? Check `ls -l {url}` '
+                f'and the port parameter; retrying.')
+    if 'busy' in text.lower() or 'Errno 16' in text or 'lock' in text.lower():
+        return f'cannot open {url}: the port is in use by another program; retrying.'
+    return f'cannot open {url}: {text}; retrying.'
