@@ -101,7 +101,8 @@ def test_writing_while_the_port_is_missing_fails_at_once(tmp_path):
     try:
         with pytest.raises(LinkDown):
             link.write(b'x')
-        assert 'no such device' in link.last_error
+        wait_for(lambda: 'no such device' in link.last_error, 2,
+                 what='an open error that tells the user what is wrong')
     finally:
         link.stop()
 

@@ -1,0 +1,87 @@
+"""The virtual-device runner: a model behind a pty, with wire timing and wire faults."""
+
+import time
+
+import pytest
+import serial
+
+from ros_harness import wait_for
+from uav_serial_common.pty_port import wire_time
+from uav_serial_common.virtual_device import VirtualDeviceRunner
+
+
+def echo_model(data, now):
+    # Each request byte is answered by a 3-byte frame whose last byte is a checksum.
+    return [bytes([0xAA, b, (0xAA + b) & 0xFF]) for b in data]
+
+
+@pytest.fixture
+def device(tmp_path):
+    runner = VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, baud=115200).start()
+    driver = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
+    yield runner, driver
+    driver.close()
+    runner.stop()
+
+
+def read_n(driver, n, timeout=2.0):
+    data = b''
+    deadline = time.monotonic() + timeout
+    while len(data) < n and time.monotonic() < deadline:
+        data += driver.read(n - len(data))
+    return data
+
+
+def test_the_model_answers_each_request(device):
+    runner, driver = device
+    driver.write(b'\x01\x02')
+    assert read_n(driver, 6) == bytes([0xAA, 1, 0xAB, 0xAA, 2, 0xAC])
+    wait_for(lambda: (runner.bytes_in, runner.bytes_out) == (2, 6), 2, what='byte counters')
+
+
+def test_dropped_and_corrupted_replies(device):
+    runner, driver = device
+    runner.faults.drop_next = 1
+    runner.faults.corrupt_next = 1
+    driver.write(b'\x01')
+    driver.write(b'\x02')
+    driver.write(b'\x03')
+    got = read_n(driver, 6)
+    # The first reply is lost, the second's checksum is wrong, the third is intact.
+    assert got[:2] == b'\xaa\x02' and got[2] != 0xAC
+    assert got[3:] == bytes([0xAA, 3, 0xAD])
+    assert (runner.replies_dropped, runner.replies_corrupted) == (1, 1)
+
+
+def test_garbage_goes_out_before_the_next_output(device):
+    runner, driver = device
+    runner.inject_garbage(b'\x00\xff\x13')
+    assert read_n(driver, 3) == b'\x00\xff\x13'
+
+
+def test_a_reply_comes_no_sooner_than_request_and_reply_take_on_the_wire(tmp_path):
+    with VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, baud=9600) as runner:
+        driver = serial.serial_for_url(runner.path, baudrate=9600, timeout=0.5)
+        try:
+            start = time.monotonic()
+            driver.write(bytes(8))
+            assert len(read_n(driver, 24)) == 24
+            assert time.monotonic() - start >= wire_time(8 + 24, 9600) * 0.95
+        finally:
+            driver.close()
+
+
+def test_unplug_for_a_while_replugs_at_the_same_path(device):
+    runner, driver = device
+    runner.unplug(duration_s=0.2)
+    with pytest.raises(serial.SerialException):
+        for _ in range(5):
+            driver.read(1)
+    driver.close()
+    wait_for(lambda: runner.port.plugged, 3, what='the automatic replug')
+    again = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
+    try:
+        again.write(b'\x05')
+        assert read_n(again, 3) == bytes([0xAA, 5, 0xAF])
+    finally:
+        again.close()

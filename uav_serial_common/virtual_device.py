@@ -1,0 +1,242 @@
+"""Run a device model behind a pseudo-terminal, with wire timing and fault injection.
+
+The device models (``dps_parachute_ros.simulation``, ``desheng_servo_ros.simulation``) are plain
+Python and clocked by their caller. `VirtualDeviceRunner` is that caller for real time: one thread
+reads what the driver wrote, hands it to the model once it would have finished arriving on a real
+wire, and sends the model's output back paced at the configured baud. Faults that concern the wire
+rather than the device (garbage, lost or late replies, bad checksums, an unplugged cable) are
+applied here, the same way for every device.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterable, Optional, Union
+
+from uav_serial_common.pty_port import PortUnplugged, sleep_until, VirtualSerialPort, wire_time
+
+Output = Union[bytes, Iterable[bytes], None]
+
+
+@dataclass
+class WireFaults:
+    """Faults applied to the device's output. Counts are consumed as replies go out."""
+
+    drop_next: int = 0                 # replies to drop entirely
+    corrupt_next: int = 0              # replies whose last (checksum) byte is flipped
+    reply_delay_s: float = 0.0         # extra delay before every reply
+    drop_probability: float = 0.0      # random loss, for soak tests
+    corrupt_probability: float = 0.0   # random corruption, for soak tests
+    garbage_probability: float = 0.0   # chance of a burst of noise before a reply
+
+
+class VirtualDeviceRunner:
+    """Drive a device model from a pty in real time."""
+
+    def __init__(
+        self,
+        link_path: Optional[str],
+        on_input: Callable[[bytes, float], Output],
+        on_tick: Optional[Callable[[float], Output]] = None,
+        next_event: Optional[Callable[[], Optional[float]]] = None,
+        baud: int = 115200,
+        tick_period_s: float = 0.005,
+        response_delay_s: float = 0.0,
+        seed: Optional[int] = None,
+        logger: Optional[logging.Logger] = None,
+    ) -> None:
+        self.port = VirtualSerialPort(link_path)
+        self.baud = baud
+        self.faults = WireFaults()
+        self.response_delay_s = response_delay_s
+        self.bytes_in = 0
+        self.bytes_out = 0
+        self.replies_dropped = 0
+        self.replies_corrupted = 0
+        self._on_input = on_input
+        self._on_tick = on_tick
+        self._next_event = next_event
+        self._tick_period = tick_period_s
+        self._rng = random.Random(seed)
+        self._log = logger or logging.getLogger('virtual_device')
+        self._lock = threading.RLock()  # the model is not thread-safe: one caller at a time
+        self._running = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._pending_garbage = b''
+        self._replug_at: Optional[float] = None
+        self._taps: list = []
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    @property
+    def path(self) -> str:
+        """Return the path the driver opens."""
+        return self.port.path
+
+    def start(self) -> 'VirtualDeviceRunner':
+        """Open the pty and start the device thread; returns self."""
+        self.port.open()
+        self._running.set()
+        self._thread = threading.Thread(target=self._run, name='virtual-device', daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the thread and remove the pty."""
+        self._running.clear()
+        if self._thread is not None:
+            self._thread.join(2.0)
+            self._thread = None
+        self.port.close()
+
+    def __enter__(self) -> 'VirtualDeviceRunner':
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def locked(self) -> threading.RLock:
+        """Return the model lock: hold it to change the model from another thread."""
+        return self._lock
+
+    def now(self) -> float:
+        """Return the runner's clock (the time the model is given)."""
+        return time.monotonic()
+
+    # -- faults ---------------------------------------------------------------------------------
+
+    def inject_garbage(self, data: bytes) -> None:
+        """Send noise to the driver before the next output (or at the next tick)."""
+        with self._lock:
+            self._pending_garbage += data
+
+    def unplug(self, duration_s: Optional[float] = None) -> None:
+        """Pull the cable; plug it back after `duration_s` if given."""
+        with self._lock:
+            self.port.unplug()
+            self._replug_at = None if duration_s is None else time.monotonic() + duration_s
+
+    def replug(self) -> None:
+        """Plug the cable back in at the same path."""
+        with self._lock:
+            self._replug_at = None
+            self.port.replug()
+
+    def add_tap(self, tap: Callable[[str, bytes, float], None]) -> None:
+        """Call `tap(direction, data, time)` for every chunk in ('rx') and out ('tx')."""
+        self._taps.append(tap)
+
+    # -- the device thread ----------------------------------------------------------------------
+
+    def _run(self) -> None:
+        rx_busy_until = 0.0
+        while self._running.is_set():
+            if not self.port.plugged:
+                if self._replug_at is not None and time.monotonic() >= self._replug_at:
+                    self.replug()
+                else:
+                    time.sleep(0.005)
+                    self._tick()
+                    continue
+            data = self.port.read(timeout=self._poll_timeout())
+            if data:
+                now = time.monotonic()
+                # The bytes reached the pty at once; on a wire the last one arrives only after
+                # all of them were clocked out, and a half-duplex device answers after that.
+                arrival = max(now, rx_busy_until) + wire_time(len(data), self.baud)
+                rx_busy_until = arrival
+                sleep_until(arrival)
+                self.bytes_in += len(data)
+                for tap in self._taps:
+                    tap('rx', data, arrival)
+                with self._lock:
+                    try:
+                        output = self._on_input(data, arrival)
+                    except Exception:  # noqa: BLE001 - a model bug must not kill the device
+                        self._log.exception('device model failed on input %s', data.hex(' '))
+                        output = None
+                self._send(output, reply=True)
+            self._tick()
+
+    def _poll_timeout(self) -> float:
+        if self._next_event is None:
+            return self._tick_period
+        with self._lock:
+            when = self._next_event()
+        if when is None:
+            return self._tick_period
+        return min(self._tick_period, max(0.0, when - time.monotonic()))
+
+    def _tick(self) -> None:
+        if self._on_tick is None:
+            output = None
+        else:
+            with self._lock:
+                try:
+                    output = self._on_tick(time.monotonic())
+                except Exception:  # noqa: BLE001 - a model bug must not kill the device
+                    self._log.exception('device model failed on tick')
+                    output = None
+        self._send(output, reply=False)
+
+    def _send(self, output: Output, reply: bool) -> None:
+        frames = _frames(output)
+        with self._lock:
+            garbage, self._pending_garbage = self._pending_garbage, b''
+        if garbage:
+            self._write(garbage)
+        if not frames:
+            return
+        if reply:
+            delay = self.response_delay_s + self.faults.reply_delay_s
+            if delay > 0:
+                time.sleep(delay)
+        for frame in frames:
+            frame = self._apply_faults(frame) if reply else frame
+            if frame:
+                self._write(frame)
+
+    def _apply_faults(self, frame: bytes) -> bytes:
+        faults = self.faults
+        if faults.drop_next > 0:
+            faults.drop_next -= 1
+            self.replies_dropped += 1
+            return b''
+        if faults.drop_probability and self._rng.random() < faults.drop_probability:
+            self.replies_dropped += 1
+            return b''
+        corrupt = False
+        if faults.corrupt_next > 0:
+            faults.corrupt_next -= 1
+            corrupt = True
+        elif faults.corrupt_probability and self._rng.random() < faults.corrupt_probability:
+            corrupt = True
+        if corrupt:
+            # Both protocols end a frame with its checksum: flipping it is a detectable error.
+            frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
+            self.replies_corrupted += 1
+        if faults.garbage_probability and self._rng.random() < faults.garbage_probability:
+            noise = bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(1, 9)))
+            frame = noise + frame
+        return frame
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self.port.write(data, self.baud)
+        except PortUnplugged:
+            return
+        self.bytes_out += len(data)
+        for tap in self._taps:
+            tap('tx', data, time.monotonic())
+
+
+def _frames(output: Output) -> list:
+    if not output:
+        return []
+    if isinstance(output, (bytes, bytearray)):
+        return [bytes(output)]
+    return [bytes(f) for f in output if f]
