@@ -488,3 +488,10 @@ def test_runs_are_deterministic():
         return out
     first, second = run(), run()
     assert first == second and len(first) == 600
+
+
+def test_broadcast_reset_resets_every_servo_silently():
+    sim = ServoBusSim([4, 5], reset_keeps_id=True)
+    sim.feed(p.encode_write(254, 0x06, b'\x09'), 0.0)
+    assert sim.feed(p.encode_request(254, p.Instruction.RESET), 0.0) == []
+    assert [read(sim, i, 'stall_protection_time', 0.0) for i in (4, 5)] == [3, 3]
