@@ -437,14 +437,13 @@ def test_removed_servo_falls_silent_and_added_servo_answers_with_defaults():
         sim.add_servo(254)
 
 
-def test_garbage_and_delay_are_held_for_the_wrapper():
+def test_garbage_is_queued_for_the_wrapper_and_taken_once():
     sim = ServoBusSim([1])
-    sim.reply_delay_s = 0.004
     sim.inject_garbage(b'\x00\xff')
     sim.inject_garbage(b'\x13')
+    assert sim.feed(p.encode_ping(1), 0.0) == [p.encode_reply(1, 0)]
     assert sim.take_garbage() == b'\x00\xff\x13'
     assert sim.take_garbage() == b''
-    assert sim.reply_delay_s == 0.004
 
 
 # ----- stream handling, time, determinism ----------------------------------------------------
