@@ -1,7 +1,7 @@
 """Plain-Python model of the DPS-S parachute module: host bytes in, module bytes out.
 
-No I/O, no threads, no wall clock: the caller passes the time (seconds, any origin, never
-decreasing). A pty wrapper turns this into a virtual serial device; wire timing at ``baud``
+No I/O, no threads, no wall clock: the caller passes the time (seconds, any origin; an earlier
+time than the last is taken as the last). A pty wrapper turns this into a virtual serial device; wire timing at ``baud``
 belongs to that wrapper. Behaviour the vendor document leaves open follows the decisions in
 ``docs/protocols.md`` (P13 onwards).
 """
@@ -282,15 +282,15 @@ class VirtualParachute:
     # -- internals: time -------------------------------------------------------------------
 
     def _advance_to(self, now: float) -> None:
-        if now < self._now:
-            raise ValueError(f'time went backwards: {now} < {self._now}')
+        # An earlier time (two callers racing in a wrapper) means "now": nothing happens twice.
+        now = max(float(now), self._now)
         while True:
             t = self._next_internal_event()
             if t is None or t > now:
                 break
             self._now = max(self._now, t)
             self._process_events()
-        self._now = float(now)
+        self._now = now
         self._evaluate()
 
     def _freefall_fire_time(self) -> float | None:

@@ -212,6 +212,27 @@ def test_attitude_trigger_re_arms_only_10_degrees_below_the_threshold():
     assert sim.step(5.0) == h('41 75 39 02 01 3c')
 
 
+def test_locking_while_a_request_is_pending_prevents_the_deployment():
+    sim = armed()
+    sim.set_tilt(80)
+    assert sim.step(1.1) == h('41 75 39 02 01 3c')
+    sim.receive(p.encode_arm(False), 1.2)
+    assert sim.receive(p.encode_trigger_confirm(), 1.3) == b''
+    assert not sim.triggered and sim.requests_confirmed == 1
+
+
+def test_arming_during_tilt_and_free_fall_fires_at_once_with_both_source_bits():
+    sim = booted(external_power=False)
+    sim.set_tilt(80)
+    sim.start_free_fall(5.0)
+    sim.step(3.0)
+    assert not sim.triggered  # locked
+    sim.receive(p.encode_arm(True), 3.1)
+    assert sim.triggered
+    record = msgs(sim.receive(p.encode_trigger_records_query()))[0]
+    assert record.source == p.SOURCE_ATTITUDE | p.SOURCE_FREEFALL
+
+
 def test_host_header_variant_of_the_request():
     sim = armed(trigger_request_header=p.HOST_HEADER)
     sim.set_tilt(90)
@@ -473,11 +494,12 @@ def test_host_bytes_split_across_reads_are_reassembled():
     assert sim.receive(frame[4:]) == h('41 75 30 01 00 31')
 
 
-def test_time_never_runs_backwards():
+def test_an_earlier_time_is_taken_as_the_current_time():
     sim = booted()
-    with pytest.raises(ValueError):
-        sim.step(0.5)
-    assert sim.advance(0.5) == b'' and sim.now == pytest.approx(1.5)
+    sim.reply_delay_s = 0.2
+    sim.receive(p.encode_armed_query())
+    assert sim.step(0.5) == b'' and sim.now == pytest.approx(1.0)
+    assert sim.advance(0.2) == h('41 75 30 01 00 31') and sim.now == pytest.approx(1.2)
 
 
 def test_constructor_rejects_unknown_options():
