@@ -1,9 +1,9 @@
 """Plain-Python model of the DPS-S parachute module: host bytes in, module bytes out.
 
 No I/O, no threads, no wall clock: the caller passes the time (seconds, any origin; an earlier
-time than the last is taken as the last). A pty wrapper turns this into a virtual serial device; wire timing at ``baud``
-belongs to that wrapper. Behaviour the vendor document leaves open follows the decisions in
-``docs/protocols.md`` (P13 onwards).
+time than the last is taken as the last). A pty wrapper turns this into a virtual serial device;
+wire timing at ``baud`` belongs to that wrapper. Behaviour the vendor document leaves open follows
+the decisions in ``docs/protocols.md`` (P13 onwards).
 """
 
 from __future__ import annotations
