@@ -1,0 +1,42 @@
+"""Both virtual devices and both drivers wired to them: the whole stack without hardware.
+
+ros2 launch uav_serial_drivers virtual_bringup.launch.py
+"""
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch_ros.actions import Node
+from launch_ros.substitutions import FindPackageShare
+
+
+def generate_launch_description():
+    """Run virtual_parachute + parachute_node and virtual_servo_bus + servo_bus_node."""
+    share = FindPackageShare('uav_serial_drivers')
+    parachute_link = LaunchConfiguration('parachute_link')
+    servo_link = LaunchConfiguration('servo_link')
+    namespace = LaunchConfiguration('namespace')
+    return LaunchDescription([
+        DeclareLaunchArgument('namespace', default_value='',
+                              description='namespace of every node'),
+        DeclareLaunchArgument('parachute_link', default_value='/tmp/vparachute',
+                              description='path of the virtual parachute port'),
+        DeclareLaunchArgument('servo_link', default_value='/tmp/vservobus',
+                              description='path of the virtual servo bus port'),
+        Node(package='uav_serial_drivers', executable='virtual_parachute',
+             name='virtual_parachute', namespace=namespace,
+             parameters=[{'link': parachute_link}], output='screen'),
+        Node(package='uav_serial_drivers', executable='virtual_servo_bus',
+             name='virtual_servo_bus', namespace=namespace,
+             parameters=[{'link': servo_link, 'servo_ids': [1, 2, 3]}], output='screen'),
+        Node(package='uav_serial_drivers', executable='parachute_node', name='parachute',
+             namespace=namespace,
+             parameters=[PathJoinSubstitution([share, 'config', 'parachute.yaml']),
+                         {'port': parachute_link}],
+             output='screen'),
+        Node(package='uav_serial_drivers', executable='servo_bus_node', name='servo_bus',
+             namespace=namespace,
+             parameters=[PathJoinSubstitution([share, 'config', 'servo_bus.yaml']),
+                         {'port': servo_link, 'servo_ids': [1, 2, 3]}],
+             output='screen'),
+    ])
