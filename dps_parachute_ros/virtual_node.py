@@ -1,13 +1,200 @@
-"""Placeholder entry point until its issue lands."""
+"""``virtual_parachute``: the simulated DPS-S module behind a pseudo-terminal, as a ROS node.
 
-import sys
+The device model (``simulation.VirtualParachute``) runs in a ``VirtualDeviceRunner`` thread in
+real time with wire timing; a driver opens the ``link`` path as it would a USB adapter.
+Parameters set the scene (tilt, acceleration, light, external power) and the wire faults;
+services script events (power cycle, free fall, cable pulled, noise, lost or spoiled replies).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import List, Optional
+
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from std_msgs.msg import String
+from std_srvs.srv import SetBool, Trigger
+
+from dps_parachute_ros.simulation import VirtualParachute
+from uav_serial_common.node_main import run_node
+from uav_serial_common.virtual_device import VirtualDeviceRunner
+
+GARBAGE = bytes.fromhex('00 ff 41 13 75 42 61 37 a5')
+"""Noise for ~/inject_garbage: stray bytes and broken headers of both directions."""
+
+
+def create_runner(sim: VirtualParachute, link_path: Optional[str], baud: int = 115200,
+                  seed: Optional[int] = None) -> VirtualDeviceRunner:
+    """Wire a device model to a pty runner (not started); the model's clock is monotonic."""
+    return VirtualDeviceRunner(
+        link_path,
+        on_input=lambda data, now: sim.receive(data, now),
+        on_tick=sim.step,
+        next_event=sim.next_event_time,
+        baud=baud,
+        seed=seed,
+    )
+
+
+def _float_range(lo: float, hi: float) -> List[FloatingPointRange]:
+    return [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+
+
+class VirtualParachuteNode(Node):
+    """ROS wrapper of one virtual DPS-S module."""
+
+    def __init__(self) -> None:
+        super().__init__('virtual_parachute')
+        d = self._declare
+        link = d('link', '/tmp/vparachute', 'path of the symlink to the pty', read_only=True)
+        baud = d('baud', 115200, 'wire rate in bit/s; 0 = no wire delay', read_only=True,
+                 int_range=(0, 4000000))
+        rate = d('stream_rate_hz', 10.0, 'status stream rate when streaming is on',
+                 float_range=(0.5, 100.0))
+        d('external_power', True, 'external power connected (then crashes ask the host first)')
+        d('tilt_deg', 0.0, 'true tilt to the horizontal plane [deg]', float_range=(0.0, 180.0))
+        d('accel_g', 1.0, 'measured acceleration magnitude [g]', float_range=(0.0, 16.0))
+        d('light_v', -1.0, 'force the light sensor [V]; -1 = modelled bay light',
+          float_range=(-1.0, 25.5))
+        d('free_fall_duration_s', 2.0, 'length of a ~/free_fall [s]', float_range=(0.0, 60.0))
+        d('drop_probability', 0.0, 'chance a reply is lost', float_range=(0.0, 1.0))
+        d('corrupt_probability', 0.0, 'chance a reply has a bad checksum',
+          float_range=(0.0, 1.0))
+        d('garbage_probability', 0.0, 'chance of noise before a reply', float_range=(0.0, 1.0))
+        d('reply_delay_s', 0.0, 'extra delay before every reply [s]', float_range=(0.0, 5.0))
+
+        self.sim = VirtualParachute(now=time.monotonic(), stream_period_s=1.0 / rate)
+        self.runner = create_runner(self.sim, link, baud)
+        for param in self._parameters.values():
+            self._apply(param.name, param.value)
+        self.runner.start()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        group = MutuallyExclusiveCallbackGroup()
+        self.create_service(Trigger, '~/power_cycle', self._power_cycle, callback_group=group)
+        self.create_service(Trigger, '~/free_fall', self._free_fall, callback_group=group)
+        self.create_service(SetBool, '~/disconnect', self._disconnect, callback_group=group)
+        self.create_service(Trigger, '~/inject_garbage', self._garbage, callback_group=group)
+        self.create_service(Trigger, '~/drop_next_reply', self._drop_next, callback_group=group)
+        self.create_service(Trigger, '~/corrupt_next_reply', self._corrupt_next,
+                            callback_group=group)
+        self._state_pub = self.create_publisher(String, '~/state', 10)
+        self.create_timer(0.2, self._publish_state, callback_group=group)
+        self.get_logger().info(f'virtual DPS-S module on {link} ({self.runner.port.device_name}) '
+                               f'at {baud} baud')
+
+    def _declare(self, name: str, default, description: str, read_only: bool = False,
+                 int_range=None, float_range=None):
+        descriptor = ParameterDescriptor(description=description, read_only=read_only)
+        if int_range is not None:
+            descriptor.integer_range = [IntegerRange(from_value=int_range[0],
+                                                     to_value=int_range[1], step=1)]
+        if float_range is not None:
+            descriptor.floating_point_range = _float_range(*float_range)
+        return self.declare_parameter(name, default, descriptor).value
+
+    def _apply(self, name: str, value) -> None:
+        sim, faults = self.sim, self.runner.faults
+        with self.runner.locked():
+            if name == 'stream_rate_hz':
+                sim.stream_period_s = 1.0 / value
+            elif name == 'external_power':
+                sim.set_external_power(bool(value))
+            elif name == 'tilt_deg':
+                sim.set_tilt(value)
+            elif name == 'accel_g':
+                sim.set_accel(value)
+            elif name == 'light_v':
+                sim.set_light(None if value < 0 else value)
+            elif name == 'drop_probability':
+                faults.drop_probability = value
+            elif name == 'corrupt_probability':
+                faults.corrupt_probability = value
+            elif name == 'garbage_probability':
+                faults.garbage_probability = value
+            elif name == 'reply_delay_s':
+                faults.reply_delay_s = value
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        for param in params:
+            self._apply(param.name, param.value)
+        return SetParametersResult(successful=True)
+
+    # -- services -------------------------------------------------------------------------------
+
+    def _power_cycle(self, request, response):
+        with self.runner.locked():
+            self.sim.power_cycle()
+            count = self.sim.boot_count
+        response.success, response.message = True, f'power cycled; boot count {count}'
+        return response
+
+    def _free_fall(self, request, response):
+        duration = self.get_parameter('free_fall_duration_s').value
+        with self.runner.locked():
+            self.sim.start_free_fall(duration)
+        response.success, response.message = True, f'free fall for {duration:.2f} s'
+        return response
+
+    def _disconnect(self, request, response):
+        if request.data:
+            self.runner.unplug()
+            response.message = 'unplugged'
+        else:
+            self.runner.replug()
+            response.message = 'plugged back in'
+        response.success = True
+        return response
+
+    def _garbage(self, request, response):
+        self.runner.inject_garbage(GARBAGE)
+        response.success, response.message = True, f'{len(GARBAGE)} bytes of noise queued'
+        return response
+
+    def _drop_next(self, request, response):
+        self.runner.faults.drop_next += 1
+        response.success, response.message = True, 'the next reply will be lost'
+        return response
+
+    def _corrupt_next(self, request, response):
+        self.runner.faults.corrupt_next += 1
+        response.success, response.message = True, 'the next reply will have a bad checksum'
+        return response
+
+    def _publish_state(self) -> None:
+        sim = self.sim
+        with self.runner.locked():
+            state = {
+                'powered': sim.powered, 'armed': sim.armed, 'triggered': sim.triggered,
+                'streaming': sim.streaming, 'protection': sim.protection,
+                'external_power': sim.external_power, 'boot_count': sim.boot_count,
+                'tilt_deg': sim.tilt_deg, 'accel_g': sim.accel_g,
+                'light_level_v': sim.light_level_v, 'pending_request': sim.pending_request,
+                'attitude_threshold_deg': sim.attitude_threshold_deg,
+                'freefall_threshold_g': sim.freefall_threshold_raw / 10,
+                'freefall_time_s': sim.freefall_time_raw / 100,
+                'light_threshold_v': sim.light_threshold_raw / 10,
+                'attitude_trigger_enabled': sim.attitude_trigger_enabled,
+                'freefall_trigger_enabled': sim.freefall_trigger_enabled,
+                'deployments': sim.deployments, 'records': len(sim.records),
+                'plugged': self.runner.port.plugged,
+            }
+        self._state_pub.publish(String(data=json.dumps(state)))
+
+    def on_shutdown(self) -> None:
+        """Remove the pty and its symlink."""
+        self.runner.stop()
 
 
 def main(args=None) -> int:
-    """Say that this executable is not implemented yet."""
-    print('virtual_node: not implemented yet', file=sys.stderr)
-    return 1
+    """Run the virtual module until Ctrl-C."""
+    return run_node(VirtualParachuteNode, args)
 
 
 if __name__ == '__main__':
+    import sys
     sys.exit(main())

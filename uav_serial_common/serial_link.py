@@ -83,6 +83,7 @@ class SerialLink:
         backoff_initial_s: float = 0.05,
         backoff_max_s: float = 1.0,
         read_timeout_s: float = 0.05,
+        idle_flush_s: Optional[float] = None,
     ) -> None:
         self.url = url
         self.baud = baud
@@ -98,6 +99,9 @@ class SerialLink:
         self._backoff_initial = backoff_initial_s
         self._backoff_max = backoff_max_s
         self._read_timeout = read_timeout_s
+        # Decoders that hold back a frame which could still grow (DPS-S 0x35) settle it through
+        # their flush() once the line has been idle this long; None = never.
+        self._idle_flush_s = idle_flush_s
         self._serial: Optional[serial.SerialBase] = None
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
@@ -232,6 +236,19 @@ class SerialLink:
                 continue
             if data:
                 self._receive(data)
+            elif self._idle_flush_s is not None:
+                self._flush_idle()
+
+    def _flush_idle(self) -> None:
+        flush = getattr(self._decoder, 'flush', None)
+        if flush is None or not getattr(self._decoder, 'pending', 0):
+            return
+        if self.last_rx_time is not None and \
+                time.monotonic() - self.last_rx_time < self._idle_flush_s:
+            return
+        with self._rx_lock:
+            frames = flush()
+        self._dispatch(frames)
 
     def _receive(self, data: bytes) -> None:
         self.last_rx_time = time.monotonic()
@@ -240,6 +257,9 @@ class SerialLink:
             self._on_rx(data)
         with self._rx_lock:
             frames = self._decoder.feed(data)
+        self._dispatch(frames)
+
+    def _dispatch(self, frames: Iterable[Any]) -> None:
         for frame in frames:
             self.stats.frames_in += 1
             if not self._deliver_to_waiter(frame) and self._on_frame is not None:

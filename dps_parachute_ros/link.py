@@ -1,0 +1,239 @@
+"""DPS-S serial link: SerialLink + the DPS stream decoder, typed requests, unsolicited frames.
+
+Requests are matched to replies by what answers them (the typed reply class, so a 6-byte
+0x34/0x35 frame answers the cell-voltage query while a 16-byte 0x35 frame is a trigger record,
+P3). Requests that wait for the same kind of reply are serialized; different kinds may be in
+flight at once, so a deploy never waits behind a poll that is timing out. Everything no request
+waits for (status stream, heartbeats, trigger requests with either header) goes to
+``on_message`` straight from the reader thread. No ROS here.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable, Optional, Tuple, Type
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.blackbox import BlackBox
+from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
+
+__all__ = ['LinkDown', 'LinkError', 'LinkTimeout', 'ParachuteLink', 'LinkBusy',
+           'REQUEST_TIMEOUT_S', 'EXPECTED_REPLY']
+
+REQUEST_TIMEOUT_S = 1.0
+"""P12: no reply within 1 s of a request means the module is offline."""
+RECORDS_QUIET_S = 0.1
+"""The trigger-record reply is complete when no further record came for this long."""
+
+EXPECTED_REPLY: dict[int, Tuple[Type, ...]] = {
+    p.CMD_HEARTBEAT: (p.Heartbeat,),
+    p.CMD_ARM: (p.ArmReply,),
+    p.CMD_DEPLOY: (p.DeployAck,),
+    p.CMD_SHUTDOWN: (p.ShutdownAck,),
+    p.CMD_STREAMING: (p.StreamingReply,),
+    p.CMD_LIGHT_LEVEL: (p.LightLevel,),
+    p.CMD_LIGHT_THRESHOLD: (p.LightThreshold,),
+    p.CMD_ATTITUDE_TRIGGER: (p.AutoTriggerFlags,),
+    p.CMD_FREEFALL_TRIGGER: (p.AutoTriggerFlags,),
+    p.CMD_ATTITUDE_THRESHOLD: (p.AttitudeThreshold,),
+    p.CMD_FREEFALL_THRESHOLD: (p.FreefallThreshold,),
+    p.CMD_FREEFALL_TIME: (p.FreefallTime,),
+    p.CMD_BOOT_COUNT: (p.BootCount,),
+    p.CMD_BAUD_RATE: (p.BaudRate,),
+    p.CMD_SENSOR_ZERO: (p.ZeroAck,),
+    p.CMD_ARMED: (p.ArmedState,),
+    p.CMD_TRIGGERED: (p.TriggeredState,),
+    p.CMD_STATUS: (p.Status,),
+    p.CMD_CHARGING: (p.Charging,),
+    p.CMD_CELL_VOLTAGE: (p.CellVoltage,),
+}
+"""Host command code to the typed reply that answers it."""
+
+
+class LinkBusy(LinkError):
+    """Another request waiting for the same kind of reply did not finish in time."""
+
+
+class _Decoder:
+    """The DPS stream decoder, plus a record of every frame and the time of the last one."""
+
+    def __init__(self, blackbox: Optional[BlackBox]) -> None:
+        self.inner = p.StreamDecoder('from_module')
+        self.blackbox = blackbox
+        self.last_frame_time: Optional[float] = None
+
+    @property
+    def pending(self) -> int:
+        return self.inner.pending
+
+    def feed(self, data: bytes) -> list:
+        return self._seen(self.inner.feed(data))
+
+    def flush(self) -> list:
+        return self._seen(self.inner.flush())
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def _seen(self, frames: list) -> list:
+        if frames:
+            # Our own echoed frames (host header) are no sign of life, a trigger request is.
+            if any(f.header == p.MODULE_HEADER or f.code == p.CMD_TRIGGER_REQUEST
+                   for f in frames):
+                self.last_frame_time = time.monotonic()
+            if self.blackbox is not None:
+                for f in frames:
+                    self.blackbox.frame('rx', f.raw)
+        return frames
+
+
+class ParachuteLink:
+    """One DPS-S module on one serial port."""
+
+    def __init__(self, url: str, baud: int,
+                 on_message: Callable[[p.ModuleMessage], None],
+                 on_connection: Optional[Callable[[bool, str], None]] = None,
+                 blackbox: Optional[BlackBox] = None,
+                 logger: Optional[Any] = None,
+                 layout: p.FlagLayout = 'table') -> None:
+        self.layout: p.FlagLayout = layout
+        self.blackbox = blackbox
+        self._on_message = on_message
+        self._decoder = _Decoder(blackbox)
+        self._locks: dict[Tuple[Type, ...], threading.Lock] = {}
+        self._locks_guard = threading.Lock()
+        self._collector: Optional[list] = None
+        self._collector_cond = threading.Condition()
+        self.timeouts = 0
+        self.serial = SerialLink(
+            url, baud, self._decoder, on_frame=self._on_frame, on_connection=on_connection,
+            on_tx=self._on_tx, logger=logger, read_timeout_s=0.02, idle_flush_s=0.005)
+
+    # -- lifecycle and state --------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open the port (in the reader thread, with reconnects)."""
+        self.serial.start()
+
+    def stop(self) -> None:
+        """Close the port and stop the reader thread."""
+        self.serial.stop()
+
+    @property
+    def connected(self) -> bool:
+        """Whether the port is open."""
+        return self.serial.connected
+
+    @property
+    def last_frame_time(self) -> Optional[float]:
+        """Monotonic time of the last valid frame from the module, None if none yet."""
+        return self._decoder.last_frame_time
+
+    @property
+    def decoder(self) -> p.StreamDecoder:
+        """The stream decoder (counters: checksum_errors, bytes_discarded ...)."""
+        return self._decoder.inner
+
+    # -- I/O ------------------------------------------------------------------------------------
+
+    def write(self, frame: bytes) -> None:
+        """Send one frame now, without waiting for anything (raises LinkDown)."""
+        self.serial.write(frame)
+
+    def request(self, frame: bytes, timeout: float = REQUEST_TIMEOUT_S, retries: int = 0,
+                expect: Optional[Tuple[Type, ...]] = None) -> p.ModuleMessage:
+        """Send a host frame, return the typed reply (LinkTimeout, LinkDown, LinkBusy)."""
+        expect = expect or EXPECTED_REPLY[frame[2]]
+        lock = self._lock_for(expect)
+        wait = timeout * (retries + 1) + 0.5
+        if not lock.acquire(timeout=wait):
+            raise LinkBusy(f'another request for {expect[0].__name__} is still running')
+        try:
+            layout = self.layout
+            found: list = []
+
+            def match(f: p.Frame) -> bool:
+                if f.header != p.MODULE_HEADER:
+                    return False
+                msg = p.decode_module_frame(f, layout)
+                if isinstance(msg, expect):
+                    found.append(msg)
+                    return True
+                return False
+
+            if self.blackbox is not None:
+                self.blackbox.record('request', hex=frame.hex(' '), expect=expect[0].__name__)
+            try:
+                self.serial.request(frame, match, timeout, retries)
+            except LinkTimeout:
+                self.timeouts += 1
+                raise
+            return found[-1]
+        finally:
+            lock.release()
+
+    def query_records(self, timeout: float = REQUEST_TIMEOUT_S,
+                      quiet_s: float = RECORDS_QUIET_S,
+                      max_records: int = 8) -> list[p.TriggerRecord]:
+        """Ask for the trigger history and collect every 16-byte record of the answer.
+
+        The number of records in an answer is not documented: collect until ``max_records``
+        or until none came for ``quiet_s``. Raises LinkTimeout when none came at all.
+        """
+        lock = self._lock_for((p.TriggerRecord,))
+        if not lock.acquire(timeout=timeout + 1.0):
+            raise LinkBusy('another trigger-record query is still running')
+        try:
+            records: list = []
+            with self._collector_cond:
+                self._collector = records
+            try:
+                if self.blackbox is not None:
+                    self.blackbox.record('request', hex=p.encode_trigger_records_query().hex(' '),
+                                         expect='TriggerRecord')
+                self.write(p.encode_trigger_records_query())
+                deadline = time.monotonic() + timeout
+                with self._collector_cond:
+                    while len(records) < max_records and self.connected:
+                        count = len(records)
+                        wait = quiet_s if records else deadline - time.monotonic()
+                        if wait <= 0:
+                            break
+                        self._collector_cond.wait(wait)
+                        if len(records) == count and (records or time.monotonic() >= deadline):
+                            break
+            finally:
+                with self._collector_cond:
+                    self._collector = None
+            if not records:
+                if not self.connected:
+                    raise LinkDown('port closed while waiting for trigger records')
+                self.timeouts += 1
+                raise LinkTimeout(f'no trigger record within {timeout * 1000:.0f} ms')
+            return list(records)
+        finally:
+            lock.release()
+
+    # -- reader thread ----------------------------------------------------------------------------
+
+    def _lock_for(self, key: Tuple[Type, ...]) -> threading.Lock:
+        with self._locks_guard:
+            lock = self._locks.get(key)
+            if lock is None:
+                lock = self._locks[key] = threading.Lock()
+            return lock
+
+    def _on_frame(self, frame: p.Frame) -> None:
+        msg = p.decode_module_frame(frame, self.layout)
+        if isinstance(msg, p.TriggerRecord):
+            with self._collector_cond:
+                if self._collector is not None:
+                    self._collector.append(msg)
+                    self._collector_cond.notify_all()
+                    return
+        self._on_message(msg)
+
+    def _on_tx(self, data: bytes) -> None:
+        if self.blackbox is not None:
+            self.blackbox.frame('tx', data)

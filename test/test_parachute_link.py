@@ -1,0 +1,136 @@
+"""DPS-S link against the virtual module on a real pty: matching, concurrency, unsolicited frames."""
+
+import json
+import os
+import threading
+import time
+
+import pytest
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.blackbox import BlackBox
+from dps_parachute_ros.link import LinkTimeout, ParachuteLink
+from dps_parachute_ros.simulation import VirtualParachute
+from dps_parachute_ros.virtual_node import create_runner
+from ros_harness import wait_for
+
+
+@pytest.fixture
+def rig(tmp_path):
+    sim = VirtualParachute(now=time.monotonic())
+    runner = create_runner(sim, str(tmp_path / 'vpara'), baud=115200).start()
+    wire = []
+    runner.add_tap(lambda d, data, t: wire.append((d, data)))
+    unsolicited = []
+    box = BlackBox(str(tmp_path / 'bb'))
+    link = ParachuteLink(runner.path, 115200, unsolicited.append, blackbox=box)
+    link.start()
+    assert link.serial.wait_connected(5)
+    yield sim, runner, link, unsolicited, wire, box
+    link.stop()
+    runner.stop()
+    box.close()
+
+
+def test_typed_request_and_reply(rig):
+    sim, runner, link, _, _, _ = rig
+    assert link.request(p.encode_attitude_threshold_query()).degrees == 60
+    assert link.request(p.encode_boot_count_query()).count == 1
+    assert isinstance(link.request(p.encode_status_query()), p.Status)
+
+
+def test_cell_voltage_coded_0x35_is_a_voltage_not_a_record(rig):
+    sim, runner, link, _, _, _ = rig
+    with runner.locked():
+        sim.set_external_power(False)
+        sim.cell_voltage_v = 3.8
+    reply = link.request(p.encode_cell_voltage_query())
+    assert isinstance(reply, p.CellVoltage) and reply.code == 0x35
+    assert reply.volts == pytest.approx(3.8)
+
+
+def test_trigger_records_are_collected(rig):
+    sim, runner, link, _, _, _ = rig
+    link.request(p.encode_arm(True))
+    assert link.request(p.encode_deploy()).success
+    records = link.query_records()
+    assert len(records) == 8
+    assert records[0].serial_trigger and all(r.is_empty for r in records[1:])
+
+
+def test_unsolicited_frames_go_to_the_handler(rig):
+    sim, runner, link, unsolicited, _, _ = rig
+    link.request(p.encode_streaming(True))
+    wait_for(lambda: any(isinstance(m, p.Status) for m in unsolicited), 3, what='stream frame')
+    with runner.locked():
+        sim.power_cycle()
+    wait_for(lambda: any(isinstance(m, p.Heartbeat) for m in unsolicited), 3,
+             what='power-up heartbeat')
+
+
+def test_trigger_request_reaches_the_handler_with_either_header(rig):
+    sim, runner, link, unsolicited, _, _ = rig
+    for header in (p.MODULE_HEADER, p.HOST_HEADER):
+        runner.inject_garbage(p.encode_trigger_request(header))
+        wait_for(lambda: any(isinstance(m, p.TriggerRequest) and m.header == header
+                             for m in unsolicited), 3, what='trigger request')
+
+
+def test_a_deploy_does_not_wait_behind_a_timing_out_request(rig):
+    sim, runner, link, _, _, _ = rig
+    link.request(p.encode_arm(True))
+    runner.faults.drop_next = 1
+    errors = []
+
+    def slow():
+        try:
+            link.request(p.encode_light_level_query(), timeout=1.0)
+        except LinkTimeout as exc:
+            errors.append(exc)
+
+    thread = threading.Thread(target=slow)
+    thread.start()
+    time.sleep(0.05)  # the light query is now waiting for its (dropped) reply
+    start = time.monotonic()
+    assert link.request(p.encode_deploy()).success
+    fast = time.monotonic() - start
+    thread.join()
+    assert errors, 'the light query should have timed out'
+    assert fast < 0.5  # far below the 1 s the light query waits
+
+
+def test_timeout_after_retries(rig):
+    sim, runner, link, _, wire, _ = rig
+    runner.faults.drop_next = 2
+    before = sum(1 for d, data in wire if d == 'rx')
+    with pytest.raises(LinkTimeout):
+        link.request(p.encode_boot_count_query(), timeout=0.2, retries=1)
+    wait_for(lambda: sum(1 for d, _ in wire if d == 'rx') - before == 2, 2,
+             what='exactly two attempts on the wire')
+    assert link.timeouts == 1
+
+
+def test_blackbox_records_frames_both_ways(rig):
+    sim, runner, link, _, _, box = rig
+    link.request(p.encode_boot_count_query())
+    assert box.sync()
+    lines = [json.loads(line) for line in open(box.path)]
+    frames = [(r['dir'], r['hex']) for r in lines if r['kind'] == 'frame']
+    assert ('tx', '42 61 23 01 00 24') in frames
+    assert ('rx', '41 75 23 01 01 25') in frames
+    assert all('t' in r and 'mono' in r for r in lines)
+
+
+def test_blackbox_one_file_per_run_in_an_expanded_directory(tmp_path, monkeypatch):
+    monkeypatch.setenv('HOME', str(tmp_path))
+    first = BlackBox('~/bb/nested')
+    first.record('state', armed=True)
+    first.close()
+    second = BlackBox('~/bb/nested')
+    second.record('decision', what='x')
+    assert second.sync()
+    assert os.path.dirname(first.path) == str(tmp_path / 'bb' / 'nested')
+    files = sorted(os.listdir(tmp_path / 'bb' / 'nested'))
+    assert len(files) == 2
+    second.close()
+    assert json.loads(open(first.path).readline())['armed'] is True
