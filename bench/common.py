@@ -1,0 +1,425 @@
+"""Shared helpers of the benchmarks: a private ROS domain, node processes, wire taps, figures.
+
+Everything here starts something that must be stopped: every helper is a context manager or
+has a ``stop()``, and every wait has a timeout. Temporary files live in one
+``tempfile.TemporaryDirectory`` per use and are removed on exit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import math
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+PACKAGE = 'uav_serial_drivers'
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+PAGE_SIZE = os.sysconf('SC_PAGE_SIZE')
+
+# ------------------------------------------------------------------------------------------
+# A private ROS domain
+# ------------------------------------------------------------------------------------------
+
+_DOMAIN_LOCK = None
+_DOMAIN_ID: Optional[int] = None
+
+
+def claim_domain_id() -> int:
+    """Lock a ROS_DOMAIN_ID no other session on this machine holds; keep it until exit.
+
+    Uses the same lock files as ``test/conftest.py``, so a benchmark never shares a domain
+    with a test session, nor with the test session that may have started it.
+    """
+    global _DOMAIN_LOCK, _DOMAIN_ID
+    if _DOMAIN_ID is not None:
+        return _DOMAIN_ID
+    ids = list(range(20, 101))
+    random.Random(os.getpid() * 7919 + 1).shuffle(ids)
+    current = os.environ.get('ROS_DOMAIN_ID')
+    for domain in ids:
+        if current is not None and str(domain) == current:
+            continue
+        path = f'/tmp/uav_serial_drivers-ros-domain-{domain}.lock'
+        handle = open(path, 'w')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _DOMAIN_LOCK = handle
+        _DOMAIN_ID = domain
+        return domain
+    raise RuntimeError('no free ROS_DOMAIN_ID in 20..100 for this benchmark run')
+
+
+def ros_env() -> Dict[str, str]:
+    """Return the environment for node processes: private domain, localhost discovery."""
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(claim_domain_id())
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    env.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def executable_path(name: str) -> str:
+    """Return the installed path of one of the package's executables."""
+    from ament_index_python.packages import get_package_prefix
+    path = Path(get_package_prefix(PACKAGE), 'lib', PACKAGE, name)
+    if not path.exists():
+        raise FileNotFoundError(f'{path} is not installed: run `make build`')
+    return str(path)
+
+
+def node_available(name: str) -> bool:
+    """Whether executable `name` is installed and is more than the placeholder."""
+    try:
+        path = executable_path(name)
+    except (FileNotFoundError, Exception):  # noqa: BLE001 - no ament index at all
+        return False
+    module = {'parachute_node': 'dps_parachute_ros/node.py',
+              'servo_bus_node': 'desheng_servo_ros/node.py',
+              'virtual_parachute': 'dps_parachute_ros/virtual_node.py',
+              'virtual_servo_bus': 'desheng_servo_ros/virtual_node.py'}.get(name)
+    if module is None:
+        return os.path.exists(path)
+    try:
+        return 'not implemented yet' not in (ROOT / module).read_text()
+    except OSError:
+        return False
+
+
+# ------------------------------------------------------------------------------------------
+# Processes
+# ------------------------------------------------------------------------------------------
+
+def write_params(directory: Path, name: str, parameters: Dict[str, Any]) -> Path:
+    """Write a ``/**`` parameter file and return its path."""
+    import yaml
+    path = directory / f'{name}.params.yaml'
+    path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+    return path
+
+
+class NodeProcess:
+    """One installed executable run as a child process, stopped by PID."""
+
+    def __init__(self, executable: str, workdir: Path, parameters: Optional[Dict] = None,
+                 node_name: Optional[str] = None, tag: Optional[str] = None) -> None:
+        self.executable = executable
+        tag = tag or executable
+        args = [executable_path(executable), '--ros-args']
+        if node_name:
+            args += ['-r', f'__node:={node_name}']
+        if parameters:
+            args += ['--params-file', str(write_params(workdir, tag, parameters))]
+        self.log_path = workdir / f'{tag}.log'
+        with open(self.log_path, 'ab') as log:
+            self.popen = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
+                                          env=ros_env(), start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        """Return the process id."""
+        return self.popen.pid
+
+    def alive(self) -> bool:
+        """Return whether the process still runs."""
+        return self.popen.poll() is None
+
+    def output(self) -> str:
+        """Return what the process printed so far."""
+        try:
+            return self.log_path.read_text(errors='replace')
+        except OSError:
+            return ''
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
+        """Send `sig`, wait up to `timeout` s, then SIGKILL; return the exit code."""
+        if self.popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.popen.pid, sig)
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(self.popen.pid, signal.SIGKILL)
+                self.popen.wait(5)
+        return self.popen.returncode
+
+
+@contextlib.contextmanager
+def workdir(prefix: str = 'uavbench-') -> Iterator[Path]:
+    """Yield a temporary directory that is removed afterwards."""
+    with tempfile.TemporaryDirectory(prefix=prefix) as path:
+        yield Path(path)
+
+
+@contextlib.contextmanager
+def node_process(executable: str, directory: Path, parameters: Optional[Dict] = None,
+                 **kwargs: Any) -> Iterator[NodeProcess]:
+    """Run one node process for the duration of a ``with`` block."""
+    proc = NodeProcess(executable, directory, parameters, **kwargs)
+    try:
+        yield proc
+    finally:
+        proc.stop()
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.01,
+             what: str = 'condition') -> Any:
+    """Poll `predicate` until truthy; raise TimeoutError after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'timed out after {timeout:.1f} s waiting for {what}')
+        time.sleep(interval)
+
+
+# ------------------------------------------------------------------------------------------
+# /proc figures
+# ------------------------------------------------------------------------------------------
+
+def cpu_seconds(pid: int) -> float:
+    """Return user + system CPU seconds of process `pid` (all its threads)."""
+    with open(f'/proc/{pid}/stat') as f:
+        fields = f.read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def rss_bytes(pid: int) -> int:
+    """Return the resident set size of `pid` in bytes."""
+    with open(f'/proc/{pid}/statm') as f:
+        return int(f.read().split()[1]) * PAGE_SIZE
+
+
+def fd_count(pid: int) -> int:
+    """Return the number of open file descriptors of `pid`."""
+    return len(os.listdir(f'/proc/{pid}/fd'))
+
+
+def thread_count(pid: int) -> int:
+    """Return the number of threads of `pid`."""
+    return len(os.listdir(f'/proc/{pid}/task'))
+
+
+def pty_fds(pid: int) -> int:
+    """Return how many of `pid`'s descriptors point at a pseudo-terminal."""
+    count = 0
+    for fd in os.listdir(f'/proc/{pid}/fd'):
+        with contextlib.suppress(OSError):
+            if os.readlink(f'/proc/{pid}/fd/{fd}').startswith('/dev/pts/'):
+                count += 1
+    return count
+
+
+class CpuMeter:
+    """CPU use of a process over a window, in percent of one core."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.start()
+
+    def start(self) -> None:
+        """Begin a new window now."""
+        self._t0 = time.monotonic()
+        self._c0 = cpu_seconds(self.pid)
+
+    def percent(self) -> float:
+        """Return CPU percent of one core since `start()`."""
+        elapsed = time.monotonic() - self._t0
+        return 100.0 * (cpu_seconds(self.pid) - self._c0) / elapsed if elapsed > 0 else 0.0
+
+
+# ------------------------------------------------------------------------------------------
+# Statistics
+# ------------------------------------------------------------------------------------------
+
+def percentile(values: List[float], q: float) -> float:
+    """Return the nearest-rank percentile `q` (0..100) of `values`; NaN when empty."""
+    if not values:
+        return math.nan
+    ordered = sorted(values)
+    rank = max(1, math.ceil(q / 100.0 * len(ordered)))
+    return ordered[min(rank, len(ordered)) - 1]
+
+
+def median(values: List[float]) -> float:
+    """Return the 50th percentile by nearest rank."""
+    return percentile(values, 50)
+
+
+# ------------------------------------------------------------------------------------------
+# ROS client side, in a private rclpy context
+# ------------------------------------------------------------------------------------------
+
+class RosClient:
+    """A private rclpy Context on the benchmark's domain, with one node spinning in a thread."""
+
+    def __init__(self, name: str = 'bench_client') -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.node import Node
+        self._rclpy = rclpy
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=claim_domain_id())
+        self.node = Node(name, context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        with contextlib.suppress(Exception):
+            self.executor.spin()
+
+    def subscribe(self, msg_type: Any, topic: str, callback: Callable[[Any], None],
+                  latched: bool = False, depth: int = 50) -> Any:
+        """Subscribe `callback` to `topic` (reliable; transient local if `latched`)."""
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        qos = QoSProfile(depth=depth)
+        qos.reliability = ReliabilityPolicy.RELIABLE
+        if latched:
+            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
+        return self.node.create_subscription(msg_type, topic, callback, qos)
+
+    def client(self, srv_type: Any, name: str, timeout: float = 20.0) -> Any:
+        """Create a service client and wait for its server."""
+        client = self.node.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'service {name} not available after {timeout:.0f} s')
+        return client
+
+    def call(self, client: Any, request: Any, timeout: float = 10.0) -> Any:
+        """Call a service through `client`; raise TimeoutError after `timeout` s."""
+        future = client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            client.remove_pending_request(future)
+            raise TimeoutError(f'{client.srv_name} did not answer within {timeout:.0f} s')
+        return future.result()
+
+    def wait_for_service(self, name: str, timeout: float = 20.0) -> None:
+        """Wait until a service of that fully qualified name exists."""
+        wait_for(lambda: any(n == name for n, _ in self.node.get_service_names_and_types()),
+                 timeout, interval=0.05, what=f'service {name}')
+
+    def close(self) -> None:
+        """Stop spinning and shut the context down."""
+        try:
+            self.executor.shutdown(timeout_sec=2.0)
+        finally:
+            self.node.destroy_node()
+            if self.context.ok():
+                self._rclpy.shutdown(context=self.context)
+            self._thread.join(timeout=2.0)
+
+
+@contextlib.contextmanager
+def ros_client(name: str = 'bench_client') -> Iterator[RosClient]:
+    """Yield a `RosClient` that is closed afterwards."""
+    client = RosClient(name)
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+# ------------------------------------------------------------------------------------------
+# Wire taps
+# ------------------------------------------------------------------------------------------
+
+class ServoWireTap:
+    """Decode both directions of a servo bus tap into timed request/reply transactions.
+
+    Install with ``runner.add_tap(tap)``. Requests are decoded as they arrive at the device,
+    replies as the device sends them; a READ request is paired with the next reply of the same
+    id. ``transactions`` holds ``(t_request, t_reply, request, reply)``.
+    """
+
+    def __init__(self) -> None:
+        from desheng_servo_ros.protocol import StreamDecoder
+        self._req = StreamDecoder('request')
+        self._rep = StreamDecoder('reply')
+        self._lock = threading.Lock()
+        self._open: Optional[tuple] = None
+        self.transactions: List[tuple] = []
+        self.requests: List[tuple] = []
+        self.bytes_rx = 0
+        self.bytes_tx = 0
+
+    def __call__(self, direction: str, data: bytes, t: float) -> None:
+        with self._lock:
+            if direction == 'rx':
+                self.bytes_rx += len(data)
+                for req in self._req.feed(data):
+                    self.requests.append((t, req))
+                    self._open = (t, req)
+            else:
+                self.bytes_tx += len(data)
+                for rep in self._rep.feed(data):
+                    if self._open is not None and self._open[1].servo_id == rep.servo_id:
+                        t_req, req = self._open
+                        self.transactions.append((t_req, t, req, rep))
+                        self._open = None
+
+    def snapshot(self) -> tuple:
+        """Return copies of (transactions, requests)."""
+        with self._lock:
+            return list(self.transactions), list(self.requests)
+
+
+class DpsWireTap:
+    """Decode both directions of a parachute port into timed frames: ``rx`` and ``tx`` lists."""
+
+    def __init__(self) -> None:
+        from dps_parachute_ros.protocol import StreamDecoder
+        self._host = StreamDecoder('from_host')
+        self._module = StreamDecoder('from_module')
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self.rx: List[tuple] = []
+        self.tx: List[tuple] = []
+        self.bytes_rx = 0
+
+    def __call__(self, direction: str, data: bytes, t: float) -> None:
+        with self._cond:
+            if direction == 'rx':
+                self.bytes_rx += len(data)
+                self.rx.extend((t, f) for f in self._host.feed(data))
+            else:
+                self.tx.extend((t, f) for f in self._module.feed(data))
+            self._cond.notify_all()
+
+    def wait_rx(self, predicate: Callable[[Any], bool], start: int,
+                timeout: float) -> Optional[tuple]:
+        """Return the first ``(t, frame)`` received at index >= `start` matching `predicate`."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for item in self.rx[start:]:
+                    if predicate(item[1]):
+                        return item
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
