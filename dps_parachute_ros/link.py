@@ -132,7 +132,7 @@ class ParachuteLink:
 
     @property
     def decoder(self) -> p.StreamDecoder:
-        """The stream decoder (counters: checksum_errors, bytes_discarded ...)."""
+        """Return the DPS stream decoder, whose counters the diagnostics show."""
         return self._decoder.inner
 
     # -- I/O ------------------------------------------------------------------------------------

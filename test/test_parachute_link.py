@@ -1,4 +1,4 @@
-"""DPS-S link against the virtual module on a real pty: matching, concurrency, unsolicited frames."""
+"""DPS-S link on a real pty: matching, concurrency, unsolicited frames, black box."""
 
 import json
 import os

@@ -1,0 +1,417 @@
+"""parachute_node as a process against the virtual module on a pty (one node for the module).
+
+Tests that need a fresh module power-cycle it and wait for the node to re-initialize it; what
+reaches the wire is seen through a tap on the runner.
+"""
+
+import json
+import math
+import time
+
+import pytest
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from std_srvs.srv import SetBool, Trigger
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.simulation import VirtualParachute
+from dps_parachute_ros.virtual_node import create_runner
+from ros_harness import LaunchedProcesses, RosTestHarness, wait_for
+from sensor_msgs.msg import BatteryState
+from std_msgs.msg import Bool
+from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
+from uav_serial_drivers.srv import (Confirmed, Deploy, GetParachuteConfig, GetTriggerRecords,
+                                    SetAutoTriggers, SetThresholds)
+
+NODE = '/parachute'
+DESIRED = dict(attitude_threshold_deg=70, freefall_threshold_g=0.4, freefall_time_s=0.5,
+               light_threshold_v=1.5)
+DEPLOY_FRAME = bytes.fromhex('42 61 11 02 01 14')
+CONFIRM_FRAME = bytes.fromhex('42 61 39 a5 01 df')
+
+
+class Wire:
+    """Every host frame the virtual module received, with its time."""
+
+    def __init__(self, runner):
+        self.frames = []
+        self._decoder = p.StreamDecoder('from_host')
+        runner.add_tap(self._tap)
+
+    def _tap(self, direction, data, t):
+        if direction == 'rx':
+            for frame in self._decoder.feed(data):
+                self.frames.append((t, frame.raw))
+
+    def mark(self):
+        return len(self.frames)
+
+    def since(self, mark, code=None):
+        return [raw for _, raw in self.frames[mark:] if code is None or raw[2] == code]
+
+
+class Rig:
+    def __init__(self, tmp):
+        self.tmp = tmp
+        self.sim = VirtualParachute(now=time.monotonic())
+        self.runner = create_runner(self.sim, str(tmp / 'vpara')).start()
+        self.wire = Wire(self.runner)
+        self.ros = RosTestHarness()
+        self.procs = LaunchedProcesses(tmp, 'parachute_node')
+        sub = self.ros.subscribe
+        self.status = sub(ParachuteStatus, f'{NODE}/status')
+        self.config = sub(ParachuteConfig, f'{NODE}/config', latched=True)
+        self.events = sub(TriggerEvent, f'{NODE}/trigger_event', latched=True)
+        self.requests = sub(TriggerRequest, f'{NODE}/trigger_request')
+        self.battery = sub(BatteryState, f'{NODE}/battery')
+        self.triggered = sub(Bool, f'{NODE}/triggered', latched=True)
+        self.diagnostics = sub(DiagnosticArray, '/diagnostics')
+        params = dict(port=self.runner.path, blackbox_dir=str(tmp / 'bb'),
+                      defer_timeout_s=0.5, aux_poll_period_s=0.5, **DESIRED)
+        self.proc = self.procs.start('parachute_node', parameters=params, ros=self.ros,
+                                     wait_service=f'{NODE}/deploy')
+
+    def call(self, srv, name, request=None, timeout=10.0):
+        return self.ros.call(srv, f'{NODE}/{name}', request, timeout)
+
+    def model(self):
+        return self.runner.locked()
+
+    def fresh(self, external_power=True):
+        """Power-cycle the module and wait until the node has re-initialized it."""
+        with self.model():
+            self.sim.set_tilt(0)
+            self.sim.set_accel(1.0)
+            self.sim.set_external_power(external_power)
+            self.sim.power_cycle()
+            boot = self.sim.boot_count
+        self.config.wait(lambda m: m.boot_count == boot and m.settings_verified, 10,
+                         what=f'config re-read after power cycle (boot {boot})')
+        start = len(self.status)
+        self.status.wait(lambda m: m.online and m.streaming and not m.triggered and
+                         not m.armed, 10, what='fresh streaming status', start=start)
+
+    def arm(self):
+        reply = self.call(SetBool, 'arm', SetBool.Request(data=True))
+        assert reply.success, reply.message
+        return reply
+
+    def set_param(self, name, value):
+        if isinstance(value, str):
+            pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+        elif isinstance(value, float):
+            pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+        else:
+            pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
+        request = SetParameters.Request(parameters=[Parameter(name=name, value=pv)])
+        return self.ros.call(SetParameters, f'{NODE}/set_parameters', request).results[0]
+
+    def close(self, failed):
+        self.procs.stop_all()
+        if failed:
+            print(f'--- parachute_node output ---\n{self.proc.output()}')
+        self.ros.close()
+        self.runner.stop()
+
+
+@pytest.fixture(scope='module')
+def rig(tmp_path_factory, request):
+    failed_before = request.session.testsfailed
+    rig = Rig(tmp_path_factory.mktemp('parachute'))
+    try:
+        rig.config.wait(lambda m: m.valid and m.settings_verified, 15, what='verified config')
+        rig.status.wait(lambda m: m.online and m.streaming, 10, what='online status')
+        yield rig
+    finally:
+        rig.close(request.session.testsfailed > failed_before)
+
+
+# ---------------------------------------------------------------------------------------------
+
+def test_online_streaming_status_and_desired_settings_applied(rig):
+    msg = rig.status.wait(lambda m: m.online and m.streaming and not math.isnan(m.tilt_deg),
+                          5, what='a stream frame')
+    assert msg.header.frame_id == 'parachute' and msg.accel_g == pytest.approx(1.0)
+    config = rig.config.last
+    assert config.attitude_threshold_deg == 70
+    assert config.freefall_threshold_g == pytest.approx(0.4)
+    assert config.freefall_time_s == pytest.approx(0.5)
+    assert config.light_threshold_v == pytest.approx(1.5)
+    assert config.auto_triggers_known and config.baud_rate == 115200
+    with rig.model():
+        assert (rig.sim.attitude_threshold_deg, rig.sim.freefall_threshold_raw,
+                rig.sim.freefall_time_raw, rig.sim.light_threshold_raw) == (70, 4, 50, 15)
+
+
+def test_battery_state_follows_rep_conventions(rig):
+    msg = rig.battery.wait(lambda m: m.present and not math.isnan(m.voltage), 5,
+                           what='battery state')
+    for field in ('current', 'charge', 'capacity', 'design_capacity', 'percentage',
+                  'temperature'):
+        assert math.isnan(getattr(msg, field)), field
+    assert msg.power_supply_status == BatteryState.POWER_SUPPLY_STATUS_CHARGING
+    assert list(msg.cell_voltage) == [pytest.approx(msg.voltage)]
+    assert msg.voltage == pytest.approx(4.2)
+
+
+def test_arm_and_lock_round_trip(rig):
+    mark = rig.wire.mark()
+    assert 'armed' in rig.arm().message
+    with rig.model():
+        assert rig.sim.armed
+    rig.status.wait(lambda m: m.armed, 3, what='armed status', start=len(rig.status) - 1)
+    reply = rig.call(SetBool, 'arm', SetBool.Request(data=False))
+    assert reply.success, reply.message
+    with rig.model():
+        assert not rig.sim.armed
+    sent = rig.wire.since(mark)
+    assert p.encode_arm(True) in sent and p.encode_arm(False) in sent
+    assert p.encode_armed_query() in sent  # P7: verified by a query
+
+
+def test_deploy_refusals_send_nothing(rig):
+    rig.call(SetBool, 'arm', SetBool.Request(data=False))
+    mark = rig.wire.mark()
+    for token in ('deploy', 'DEPLOY ', ''):
+        reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm=token, arm_if_locked=True))
+        assert not reply.success and 'DEPLOY' in reply.message
+    reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY', arm_if_locked=False))
+    assert not reply.success and 'locked' in reply.message
+    reply = rig.call(Confirmed, 'shutdown_module', Confirmed.Request(confirm='shutdown'))
+    assert not reply.success and 'SHUTDOWN' in reply.message
+    # A probe request after the refusals: everything the node sent up to it is on the tap.
+    rig.call(GetParachuteConfig, 'get_config')
+    for code in (p.CMD_DEPLOY, p.CMD_ARM, p.CMD_SHUTDOWN):
+        assert rig.wire.since(mark, code) == [], hex(code)
+    with rig.model():
+        assert not rig.sim.triggered and rig.sim.powered
+
+
+def test_deploy_success_event_and_black_box(rig):
+    rig.fresh()
+    rig.arm()
+    mark = rig.wire.mark()
+    events_before = len(rig.events)
+    reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+    assert reply.success, reply.message
+    assert reply.latency_ms > 0
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY_FRAME]
+    event = rig.events.wait(lambda m: True, 5, start=events_before, what='trigger event')
+    assert event.source == TriggerEvent.SOURCE_SERIAL and event.source_name == 'serial'
+    assert event.via == TriggerEvent.VIA_DEPLOY_ACK
+    with rig.model():
+        assert rig.sim.triggered and rig.sim.deployments == 1
+    rig.status.wait(lambda m: m.triggered and not m.armed, 3, what='triggered status')
+    rig.triggered.wait(lambda m: m.data, 3, what='~/triggered true')
+    diag = rig.diagnostics.wait(lambda m: any(
+        s.name == 'parachute: state' and s.level == DiagnosticStatus.ERROR for s in m.status),
+        5, what='ERROR diagnostic while triggered')
+    assert diag
+    # The black box holds the frames both ways and the decision, synced before the reply.
+    box = next((rig.tmp / 'bb').glob('parachute-*.jsonl'))
+    records = [json.loads(line) for line in box.read_text().splitlines() if line]
+    frames = {(r['dir'], r['hex']) for r in records if r['kind'] == 'frame'}
+    assert ('tx', '42 61 11 02 01 14') in frames and ('rx', '41 75 11 01 01 13') in frames
+    assert any(r['kind'] == 'decision' and r.get('what') == 'deploy acknowledged'
+               for r in records)
+    # One event per deployment: the triggered flag and the new record add none.
+    records_reply = rig.call(GetTriggerRecords, 'get_trigger_records')
+    assert records_reply.success and records_reply.records[-1].source == 1
+    assert len(rig.events) == events_before + 1
+
+
+def test_deploy_arms_first_when_asked(rig):
+    rig.fresh()
+    mark = rig.wire.mark()
+    reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
+    assert reply.success, reply.message
+    sent = [raw[2] for raw in rig.wire.since(mark) if raw[2] in (p.CMD_ARM, p.CMD_DEPLOY)]
+    assert sent == [p.CMD_ARM, p.CMD_DEPLOY]
+
+
+def provoke_trigger_request(rig):
+    """Arm a module on external power and tilt it past its threshold: it asks the host."""
+    rig.fresh()
+    rig.arm()
+    start = len(rig.requests)
+    mark = rig.wire.mark()
+    with rig.model():
+        requested = rig.sim.requests_sent
+        rig.sim.set_tilt(85)
+        assert rig.sim.requests_sent == requested + 1
+    return start, mark
+
+
+@pytest.mark.parametrize('policy', ['confirm', 'deny'])
+def test_trigger_request_confirm_and_deny(rig, policy):
+    assert rig.set_param('trigger_request_policy', policy).successful
+    try:
+        start, mark = provoke_trigger_request(rig)
+        msg = rig.requests.wait(lambda m: True, 3, start=start, what='trigger request message')
+        assert msg.policy == policy
+        if policy == 'confirm':
+            assert msg.decision == TriggerRequest.CONFIRMED and msg.decision_name == 'confirmed'
+            assert msg.latency_ms >= 0
+            wait_for(lambda: CONFIRM_FRAME in rig.wire.since(mark), 2, what='confirmation')
+            event = rig.events.wait(lambda m: m.via == TriggerEvent.VIA_STATUS and
+                                    m.source == TriggerEvent.SOURCE_ATTITUDE, 5,
+                                    what='attitude trigger event')
+            assert event.record_known and event.record.source_name == 'attitude'
+            with rig.model():
+                assert rig.sim.triggered
+        else:
+            assert msg.decision == TriggerRequest.DENIED and math.isnan(msg.latency_ms)
+            wait_for(lambda: rig.sim.requests_expired >= 1, 3, what='request window to end')
+            assert CONFIRM_FRAME not in rig.wire.since(mark)
+            with rig.model():
+                assert not rig.sim.triggered
+    finally:
+        assert rig.set_param('trigger_request_policy', 'confirm').successful
+
+
+@pytest.mark.parametrize('answer', [True, False, None])
+def test_trigger_request_deferred(rig, answer):
+    assert rig.set_param('trigger_request_policy', 'defer').successful
+    try:
+        start, mark = provoke_trigger_request(rig)
+        if answer is not None:
+            # Answer as soon as the node holds the request (the call fails until it does).
+            wait_for(lambda: rig.call(SetBool, 'answer_trigger_request',
+                                      SetBool.Request(data=answer)).success, 3,
+                     interval=0.005, what='the deferred request to be answerable')
+        msg = rig.requests.wait(lambda m: True, 3, start=start, what='trigger request message')
+        expected = {True: TriggerRequest.CONFIRMED, False: TriggerRequest.DENIED,
+                    None: TriggerRequest.TIMED_OUT}[answer]
+        assert msg.decision == expected, msg
+        if answer:
+            wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
+            assert CONFIRM_FRAME in rig.wire.since(mark)
+        else:
+            wait_for(lambda: rig.sim.requests_expired >= 1, 3, what='request window to end')
+            assert CONFIRM_FRAME not in rig.wire.since(mark)
+            assert not rig.sim.triggered
+    finally:
+        assert rig.set_param('trigger_request_policy', 'confirm').successful
+
+
+def test_policy_parameter_is_validated(rig):
+    result = rig.set_param('trigger_request_policy', 'maybe')
+    assert not result.successful and 'confirm' in result.reason
+    result = rig.set_param('defer_timeout_s', 1.5)
+    assert not result.successful
+
+
+def test_reboot_reapplies_desired_settings(rig):
+    with rig.model():
+        rig.sim.attitude_threshold_deg = 45
+        rig.sim.freefall_threshold_raw = 7
+        rig.sim.freefall_time_raw = 200
+        rig.sim.light_threshold_raw = 30
+    rig.fresh()
+    with rig.model():
+        assert (rig.sim.attitude_threshold_deg, rig.sim.freefall_threshold_raw,
+                rig.sim.freefall_time_raw, rig.sim.light_threshold_raw) == (70, 4, 50, 15)
+
+
+def test_parameter_set_is_written_or_refused(rig):
+    mark = rig.wire.mark()
+    result = rig.set_param('attitude_threshold_deg', 75)
+    assert result.successful, result.reason
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 75
+    assert p.encode_attitude_threshold_set(75) in rig.wire.since(mark)
+    try:
+        mark = rig.wire.mark()
+        for bad in (95, 5):
+            result = rig.set_param('attitude_threshold_deg', bad)
+            assert not result.successful
+        result = rig.set_param('freefall_threshold_g', 3.0)
+        assert not result.successful
+        rig.call(GetParachuteConfig, 'get_config')
+        assert [raw for raw in rig.wire.since(mark) if raw[3] == p.CTRL_SET] == []
+        with rig.model():
+            assert rig.sim.attitude_threshold_deg == 75
+    finally:
+        assert rig.set_param('attitude_threshold_deg', 70).successful
+
+
+def test_set_thresholds_refuses_out_of_range_before_sending(rig):
+    nan = float('nan')
+    mark = rig.wire.mark()
+    for request in (SetThresholds.Request(attitude_deg=nan, freefall_g=2.0,
+                                          freefall_time_s=nan, light_threshold_v=nan),
+                    SetThresholds.Request(attitude_deg=100.0, freefall_g=nan,
+                                          freefall_time_s=nan, light_threshold_v=nan),
+                    SetThresholds.Request(attitude_deg=nan, freefall_g=nan,
+                                          freefall_time_s=9.0, light_threshold_v=nan)):
+        reply = rig.call(SetThresholds, 'set_thresholds', request)
+        assert not reply.success and 'range' in reply.message
+    rig.call(GetParachuteConfig, 'get_config')
+    assert [raw for raw in rig.wire.since(mark) if raw[3] == p.CTRL_SET] == []
+    reply = rig.call(SetThresholds, 'set_thresholds', SetThresholds.Request(
+        attitude_deg=nan, freefall_g=nan, freefall_time_s=nan, light_threshold_v=1.5))
+    assert reply.success and reply.config.light_threshold_v == pytest.approx(1.5)
+
+
+def test_auto_triggers_streaming_zero_and_config(rig):
+    reply = rig.call(SetAutoTriggers, 'set_auto_triggers',
+                     SetAutoTriggers.Request(attitude_enabled=False, freefall_enabled=True))
+    assert reply.success, reply.message
+    assert not reply.config.attitude_trigger_enabled and reply.config.freefall_trigger_enabled
+    with rig.model():
+        assert not rig.sim.attitude_trigger_enabled and rig.sim.freefall_trigger_enabled
+    reply = rig.call(SetAutoTriggers, 'set_auto_triggers',
+                     SetAutoTriggers.Request(attitude_enabled=True, freefall_enabled=True))
+    assert reply.success and reply.config.attitude_trigger_enabled
+    assert rig.call(Trigger, 'zero_sensor').success
+    reply = rig.call(GetParachuteConfig, 'get_config')
+    assert reply.success and reply.config.valid and reply.config.boot_count == rig.sim.boot_count
+    assert rig.call(SetBool, 'set_streaming', SetBool.Request(data=False)).success
+    rig.status.wait(lambda m: m.online and not m.streaming, 3, what='polled status')
+    assert rig.call(SetBool, 'set_streaming', SetBool.Request(data=True)).success
+    rig.status.wait(lambda m: m.online and m.streaming, 3, what='streaming status')
+
+
+def test_garbage_on_the_line_does_not_disturb(rig):
+    start = len(rig.status)
+    for _ in range(5):
+        rig.runner.inject_garbage(bytes.fromhex('41 75 32 ff 00 42 61 13 00 41'))
+        time.sleep(0.05)
+    rig.status.wait(lambda m: True, 3, start=len(rig.status), what='status after noise')
+    assert all(m.online for m in rig.status.messages[start:])
+    assert rig.call(GetParachuteConfig, 'get_config').success
+
+
+def test_free_fall_on_battery_deploys_and_leaves_a_record(rig):
+    rig.fresh(external_power=False)
+    rig.arm()
+    start = len(rig.events)
+    with rig.model():
+        rig.sim.start_free_fall(0.8)  # longer than the desired free-fall time of 0.5 s
+    event = rig.events.wait(lambda m: m.source & TriggerEvent.SOURCE_FREEFALL, 5, start=start,
+                            what='free-fall trigger event')
+    assert event.via == TriggerEvent.VIA_STATUS and event.record_known
+    assert event.record.freefall_time_s == pytest.approx(0.5)
+    reply = rig.call(GetTriggerRecords, 'get_trigger_records')
+    assert reply.success
+    last = reply.records[-1]
+    assert last.source_name == 'freefall' and not last.charging and len(last.raw) == 16
+    with rig.model():
+        rig.sim.set_external_power(True)
+
+
+def test_unplug_goes_offline_and_replug_recovers(rig):
+    start = len(rig.status)
+    diag_start = len(rig.diagnostics)
+    rig.runner.unplug()
+    rig.status.wait(lambda m: not m.online, 2, start=start, what='offline status')
+    rig.diagnostics.wait(lambda m: any(
+        s.name == 'parachute: link' and s.level == DiagnosticStatus.ERROR for s in m.status),
+        2, start=diag_start, what='link ERROR diagnostic')
+    reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
+    assert not reply.success and 'offline' in reply.message
+    start = len(rig.status)
+    rig.runner.replug()
+    rig.status.wait(lambda m: m.online and m.streaming, 10, start=start,
+                    what='online again after replug')
