@@ -401,6 +401,20 @@ def test_free_fall_on_battery_deploys_and_leaves_a_record(rig):
         rig.sim.set_external_power(True)
 
 
+def test_a_silent_module_goes_offline_and_comes_back(rig):
+    start = len(rig.status)
+    with rig.model():
+        rig.sim.power_off()
+    rig.status.wait(lambda m: not m.online, 3, start=start, what='offline status')
+    start = len(rig.status)
+    with rig.model():
+        rig.sim.power_on()
+    rig.status.wait(lambda m: m.online and m.streaming, 10, start=start,
+                    what='online and streaming again')
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 70
+
+
 def test_unplug_goes_offline_and_replug_recovers(rig):
     start = len(rig.status)
     diag_start = len(rig.diagnostics)

@@ -1,0 +1,47 @@
+"""virtual_parachute and parachute_node from the installed package, as two processes."""
+
+import json
+import os
+import signal
+
+from std_srvs.srv import SetBool, Trigger
+from std_msgs.msg import String
+from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus
+from uav_serial_drivers.srv import Deploy
+
+
+def test_driver_and_virtual_module_talk_to_each_other(ros, launch, tmp_path):
+    link = str(tmp_path / 'vparachute')
+    state = ros.subscribe(String, '/virtual_parachute/state')
+    launch.start('virtual_parachute', parameters={'link': link, 'stream_rate_hz': 20.0},
+                 ros=ros, wait_service='/virtual_parachute/power_cycle')
+    status = ros.subscribe(ParachuteStatus, '/parachute/status')
+    config = ros.subscribe(ParachuteConfig, '/parachute/config', latched=True)
+    driver = launch.start('parachute_node',
+                          parameters={'port': link, 'blackbox_dir': str(tmp_path / 'bb')},
+                          ros=ros, wait_service='/parachute/deploy')
+    status.wait(lambda m: m.online and m.streaming, 15, what='online status')
+    first = config.wait(lambda m: m.valid, 10, what='config').boot_count
+    assert ros.call(SetBool, '/parachute/arm', SetBool.Request(data=True)).success
+    seen = state.wait(lambda m: json.loads(m.data)['armed'], 5, what='model armed')
+    assert json.loads(seen.data)['plugged']
+    # A power cycle of the virtual module: the driver notices and re-initializes it.
+    assert ros.call(Trigger, '/virtual_parachute/power_cycle').success
+    config.wait(lambda m: m.boot_count == first + 1, 10, what='boot count after power cycle')
+    status.wait(lambda m: m.online and m.streaming and not m.armed, 10,
+                what='streaming again after the power cycle', start=len(status) - 1)
+    # Pulling the virtual cable takes the driver offline; plugging it back brings it online.
+    assert ros.call(SetBool, '/virtual_parachute/disconnect', SetBool.Request(data=True)).success
+    status.wait(lambda m: not m.online, 3, what='offline', start=len(status) - 1)
+    assert ros.call(SetBool, '/virtual_parachute/disconnect',
+                    SetBool.Request(data=False)).success
+    status.wait(lambda m: m.online, 10, what='online again', start=len(status) - 1)
+    # The deploy acknowledgement is on disk before the service answers: SIGKILL keeps it.
+    reply = ros.call(Deploy, '/parachute/deploy',
+                     Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
+    assert reply.success, reply.message
+    os.kill(driver.pid, signal.SIGKILL)
+    driver.popen.wait(5)
+    box = next((tmp_path / 'bb').glob('parachute-*.jsonl'))
+    # Only lines after the last sync may be cut short by the kill.
+    assert any('"what":"deploy acknowledged"' in line for line in box.read_text().splitlines())
