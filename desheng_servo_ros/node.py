@@ -52,6 +52,7 @@ TORQUE_ADDRESS = 0x28
 ID_ADDRESS = 0x05
 RUN_PRESET_ADDRESS = 0x3C
 ALL_IDS = (proto.MIN_ID, proto.MAX_ID)
+SWITCH_INTERVAL_S = 0.0005
 
 # Parameters that shape the servo list or the units: fixed for the life of the node.
 _STARTUP_ONLY = ('servo_ids', 'joint_names', 'ticks_per_revolution', 'zero_tick',
@@ -403,8 +404,9 @@ class ServoBusNode(Node):
                 self._idle_while_paused()
                 continue
             if not self.bus.connected:
-                self._publish(time.monotonic())
-                self._wait_connected()
+                # Keep servo_states (all offline) and diagnostics coming while the port is away.
+                self._publish(time.monotonic(), joints=False)
+                self.bus.wait_connected(1.0 / self.publish_rate_hz)
                 next_cycle = time.monotonic()
                 continue
             now = time.monotonic()
@@ -532,7 +534,7 @@ class ServoBusNode(Node):
                 f'servo(s) {listed} do not answer on {self.port}: check their ids with the '
                 '~/scan service, their power and wiring')
 
-    def _publish(self, now: float) -> None:
+    def _publish(self, now: float, joints: bool = True) -> None:
         try:
             stamp = self.get_clock().now().to_msg()
             js = JointState()
@@ -553,7 +555,8 @@ class ServoBusNode(Node):
                     over_temperature=bool(s.status & proto.STATUS_OVER_TEMPERATURE),
                     voltage_fault=bool(s.status & proto.STATUS_VOLTAGE_FAULT),
                     torque_enabled=s.torque_enabled, error_count=s.error_count))
-            self.joint_pub.publish(js)
+            if joints:
+                self.joint_pub.publish(js)
             self.state_pub.publish(states)
             if self._diag_dirty and now - self._last_diag >= DIAGNOSTICS_MIN_INTERVAL_S:
                 self._publish_diagnostics()
@@ -942,6 +945,9 @@ class ServoBusNode(Node):
 
 def main(args: Optional[List[str]] = None) -> int:
     """Run ``servo_bus_node``."""
+    # The hot path hands the GIL between the reader thread and the read loop on every reply;
+    # the default 5 ms switch interval would add up to that much to each transaction.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run_node(ServoBusNode, args)
 
 

@@ -187,6 +187,8 @@ class VirtualServoBusNode(Node):
 
 def main(args: Optional[List[str]] = None) -> int:
     """Run ``virtual_servo_bus``."""
+    # Replies are paced on the device thread; a short GIL switch interval keeps them on time.
+    sys.setswitchinterval(0.0005)
     return run_node(VirtualServoBusNode, args)
 
 
