@@ -380,12 +380,8 @@ class ParachuteNode(Node):
         if freefall is not None:
             reply = self._req(p.encode_freefall_trigger(freefall), timeout)
             self._set_flags(reply)
-        try:
-            reply = self._req(p.encode_auto_trigger_query(), FLAGS_QUERY_TIMEOUT_S,
-                              silence_ok=True)
-            self._set_flags(reply)
-        except LinkTimeout:
-            pass  # a real module may not answer our query extension (P14)
+        # No query afterwards: each set reply carries both flags (P8), and the query is a
+        # hazard on firmware that ignores D3 (P14).
         self._publish_config()
         att, ff = self._flags
         wrong = []
@@ -410,11 +406,14 @@ class ParachuteNode(Node):
                 self._cfg_raw[name] = reply.value
         count = self._req(p.encode_boot_count_query(), retries=1).count
         self._note_boot_count(count)
-        try:
-            self._set_flags(self._req(p.encode_auto_trigger_query(), FLAGS_QUERY_TIMEOUT_S,
-                                      silence_ok=True))
-        except LinkTimeout:
-            pass
+        if None in self._flags:
+            # Once per run at most (P14: a firmware ignoring D3 would take it as "enable the
+            # attitude trigger"); a real module may stay silent: the flags stay unknown.
+            try:
+                self._set_flags(self._req(p.encode_auto_trigger_query(),
+                                          FLAGS_QUERY_TIMEOUT_S, silence_ok=True))
+            except LinkTimeout:
+                pass
         with self._state_lock:
             self._config_stamp = self.get_clock().now().to_msg()
         self._update_mismatch(log=False)
