@@ -1,0 +1,110 @@
+"""ServoBusLink against the simulated bus on a pty: matching, timeouts, retries, bus timing."""
+
+import threading
+import time
+
+from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.link import (_PriorityLock, DERIVED_MARGIN_S, LinkTimeout,
+                                    PRIORITY_LOOP, PRIORITY_SERVICE, PRIORITY_URGENT,
+                                    ServoBusLink)
+from desheng_servo_ros.virtual_node import VirtualServoBus
+import pytest
+from ros_harness import wait_for
+from servo_rig import Wire
+from uav_serial_common.pty_port import wire_time
+
+
+@pytest.fixture(scope='module')
+def bus(tmp_path_factory):
+    dev = VirtualServoBus(str(tmp_path_factory.mktemp('servo_link') / 'bus'), [1, 2, 3],
+                          seed=1).start()
+    wire = Wire(dev.runner)
+    link = ServoBusLink(dev.path, 115200, max_retries=1)
+    link.start()
+    assert link.wait_connected(5)
+    yield dev, wire, link
+    link.stop()
+    dev.stop()
+
+
+def test_read_returns_the_addressed_servos_reply(bus):
+    dev, wire, link = bus
+    with dev.runner.locked():
+        dev.sim.move_by_hand(2, 1000)
+    reply = link.read(2, 0x38, 2)
+    assert reply.servo_id == 2 and int.from_bytes(reply.params, 'big') == 1000
+    assert link.ping(3).servo_id == 3
+
+
+def test_timeout_is_the_wire_time_plus_the_margin(bus):
+    _, _, link = bus
+    assert link.timeout_for(8, 4) == pytest.approx(wire_time(18, 115200) + DERIVED_MARGIN_S)
+    link.response_timeout_ms = 3.0
+    try:
+        assert link.timeout_for(8, 4) == pytest.approx(wire_time(18, 115200) + 0.003)
+    finally:
+        link.response_timeout_ms = 0.0
+
+
+def test_a_lost_or_corrupted_reply_is_retried(bus):
+    dev, wire, link = bus
+    retries = link.link.stats.retries
+    errors = link.checksum_errors
+    dev.runner.faults.drop_next = 1
+    assert link.read(1, 0x03, 2).params == bytes((1, 28))
+    dev.runner.faults.corrupt_next = 1
+    assert link.read(1, 0x03, 2).params == bytes((1, 28))
+    assert link.link.stats.retries == retries + 2
+    assert link.checksum_errors == errors + 1
+
+
+def test_a_silent_servo_times_out_after_every_retry(bus):
+    dev, wire, link = bus
+    mark = wire.mark()
+    with pytest.raises(LinkTimeout):
+        link.ping(77)
+    assert [r.raw for r in wire.requests(mark)] == [proto.encode_ping(77)] * 2
+    with pytest.raises(LinkTimeout):
+        link.ping(77, retries=0)
+
+
+def test_frames_without_reply_hold_the_bus_for_their_wire_time(bus):
+    _, _, link = bus
+    writes = []
+    write = link.link.write
+
+    def timed_write(data):
+        writes.append((time.monotonic(), bytes(data)))
+        write(data)
+    link.link.write = timed_write
+    try:
+        targets = [(i, 2048, 0) for i in range(1, 40)]
+        link.sync_write_positions(targets)
+        link.ping(1)
+    finally:
+        del link.link.write
+    (t_sync, sync), (t_ping, ping) = writes
+    assert sync == proto.encode_sync_write_positions(targets) and ping == proto.encode_ping(1)
+    # The PING is written only once the SYNC WRITE has left the wire (a lower bound only).
+    assert t_ping - t_sync >= wire_time(len(sync), 115200)
+
+
+def test_the_bus_lock_serves_higher_priorities_first():
+    lock = _PriorityLock()
+    assert lock.acquire(PRIORITY_LOOP, 1.0)
+    order = []
+    threads = [threading.Thread(target=lambda p=p: (lock.acquire(p, 5.0), order.append(p),
+                                                    lock.release()))
+               for p in (PRIORITY_LOOP, PRIORITY_SERVICE, PRIORITY_URGENT)]
+    for t in threads:
+        t.start()
+        # Queue them in this order, lowest priority first.
+        wait_for(lambda t=t: sum(lock._waiting) == threads.index(t) + 1, 5,
+                 what='the waiter queued')
+    assert lock.waiting_above(PRIORITY_LOOP)
+    lock.release()
+    for t in threads:
+        t.join(5)
+    assert order == [PRIORITY_URGENT, PRIORITY_SERVICE, PRIORITY_LOOP]
+    assert lock.acquire(PRIORITY_LOOP, 0.1)
+    assert not lock.acquire(PRIORITY_URGENT, 0.05)
