@@ -423,3 +423,147 @@ class DpsWireTap:
                 if remaining <= 0:
                     return None
                 self._cond.wait(remaining)
+
+
+# ------------------------------------------------------------------------------------------
+# Rigs: a device model behind a pty in this process, its driver node as a process
+# ------------------------------------------------------------------------------------------
+
+def servo_runner(sim: Any, link: str, baud: int, seed: Optional[int] = None) -> Any:
+    """Wire a `ServoBusSim` to a (not started) `VirtualDeviceRunner` on `link`."""
+    from uav_serial_common.virtual_device import VirtualDeviceRunner
+    runner = None
+
+    def tick(now: float) -> None:
+        sim.advance(now)
+        garbage = sim.take_garbage()
+        if garbage and runner is not None:
+            runner.inject_garbage(garbage)
+
+    runner = VirtualDeviceRunner(link, on_input=lambda data, now: sim.feed(data, now),
+                                 on_tick=tick, baud=baud, seed=seed)
+    return runner
+
+
+def parachute_runner(sim: Any, link: str, baud: int, seed: Optional[int] = None) -> Any:
+    """Wire a `VirtualParachute` to a (not started) `VirtualDeviceRunner` on `link`."""
+    from uav_serial_common.virtual_device import VirtualDeviceRunner
+    return VirtualDeviceRunner(link, on_input=lambda data, now: sim.receive(data, now),
+                               on_tick=sim.step, next_event=sim.next_event_time, baud=baud,
+                               seed=seed)
+
+
+POSITION_ADDRESS = 0x38
+
+
+def is_position_read(req: Any) -> bool:
+    """Whether a servo request is a READ that covers the present-position register."""
+    from desheng_servo_ros.protocol import Instruction
+    if req.instruction != Instruction.READ or len(req.params) != 2:
+        return False
+    address, length = req.params[0], req.params[1]
+    return address <= POSITION_ADDRESS and address + length >= POSITION_ADDRESS + 2
+
+
+class ServoRig:
+    """A virtual servo bus in this process (taps on its wire) and `servo_bus_node` on it."""
+
+    def __init__(self, directory: Path, ids: List[int], baud: int = 115200,
+                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
+                 tag: str = 'servo_bus_node') -> None:
+        from desheng_servo_ros.simulation import ServoBusSim
+        self.directory = directory
+        self.ids = list(ids)
+        self.baud = baud
+        self.link = str(directory / f'{tag}.pty')
+        self.sim = ServoBusSim(self.ids, now=time.monotonic())
+        self.runner = servo_runner(self.sim, self.link, baud, seed)
+        self.tap = ServoWireTap()
+        self.runner.add_tap(self.tap)
+        self.parameters = {'port': self.link, 'baud': baud, 'servo_ids': self.ids,
+                           'joint_names': [f'servo_{i}' for i in self.ids]}
+        self.parameters.update(parameters or {})
+        self.tag = tag
+        self.node: Optional[NodeProcess] = None
+
+    def __enter__(self) -> 'ServoRig':
+        self.runner.start()
+        try:
+            self.node = NodeProcess('servo_bus_node', self.directory, self.parameters,
+                                    tag=self.tag)
+        except BaseException:
+            self.runner.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if self.node is not None:
+                self.node.stop()
+        finally:
+            self.runner.stop()
+
+    def position_transactions(self, since: float = 0.0) -> List[tuple]:
+        """Return the position-read transactions whose request arrived at or after `since`."""
+        transactions, _ = self.tap.snapshot()
+        return [t for t in transactions if t[0] >= since and is_position_read(t[2])]
+
+    def wait_ready(self, timeout: float = 40.0) -> None:
+        """Wait until every servo's position has been read once; raise if the node died."""
+        def ready() -> bool:
+            if not self.node.alive():
+                raise RuntimeError(f'servo_bus_node exited:\n{self.node.output()[-3000:]}')
+            seen = {t[3].servo_id for t in self.position_transactions()}
+            return seen >= set(self.ids)
+        wait_for(ready, timeout, interval=0.05, what='position reads of every servo')
+
+
+class ParachuteRig:
+    """A virtual DPS-S module in this process (taps on its wire) and `parachute_node` on it."""
+
+    def __init__(self, directory: Path, baud: int = 115200, stream_period_s: float = 0.05,
+                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
+                 tag: str = 'parachute_node') -> None:
+        from dps_parachute_ros.simulation import VirtualParachute
+        self.directory = directory
+        self.link = str(directory / f'{tag}.pty')
+        self.blackbox_dir = directory / f'{tag}-blackbox'
+        self.sim = VirtualParachute(now=time.monotonic(), stream_period_s=stream_period_s)
+        self.runner = parachute_runner(self.sim, self.link, baud, seed)
+        self.tap = DpsWireTap()
+        self.runner.add_tap(self.tap)
+        self.parameters = {'port': self.link, 'baud': baud,
+                           'blackbox_dir': str(self.blackbox_dir)}
+        self.parameters.update(parameters or {})
+        self.tag = tag
+        self.node: Optional[NodeProcess] = None
+
+    def __enter__(self) -> 'ParachuteRig':
+        self.runner.start()
+        try:
+            self.start_node()
+        except BaseException:
+            self.runner.stop()
+            raise
+        return self
+
+    def start_node(self) -> NodeProcess:
+        """Start (or restart) the driver process."""
+        self.node = NodeProcess('parachute_node', self.directory, self.parameters, tag=self.tag)
+        return self.node
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if self.node is not None:
+                self.node.stop()
+        finally:
+            self.runner.stop()
+
+    def wait_ready(self, timeout: float = 40.0) -> None:
+        """Wait until the driver has turned the status stream on; raise if it died."""
+        def ready() -> bool:
+            if not self.node.alive():
+                raise RuntimeError(f'parachute_node exited:\n{self.node.output()[-3000:]}')
+            with self.runner.locked():
+                return self.sim.streaming
+        wait_for(ready, timeout, interval=0.05, what='the driver to turn the stream on')

@@ -1,0 +1,219 @@
+"""Every service of both drivers called with malformed and out-of-range requests.
+
+Each case must be refused (``success`` false) without a byte on the wire. The drivers keep
+polling while the cases run, so "a byte on the wire" means a frame that the driver's own
+background traffic does not contain: first the benchmark records, for a few seconds, every
+distinct frame the idle driver sends (position/telemetry READs, status/aux queries); then any
+other frame that reaches the device between a call and 50 ms after its response counts
+against that case.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any, Dict, List, Tuple
+
+from bench.common import ParachuteRig, ros_client, ServoRig, workdir
+
+NAN = math.nan
+INF = math.inf
+
+
+def servo_cases() -> List[Tuple[str, str, Dict[str, Any]]]:
+    """Return (service, srv type name, request fields) of the servo driver's bad requests."""
+    wp = 'WritePositions'
+    return [
+        ('write_positions', wp, {'names': ['no_such_joint'], 'positions': [0.0]}),
+        ('write_positions', wp, {'ids': [99], 'positions': [0.0]}),
+        ('write_positions', wp, {'ids': [0], 'positions': [0.0]}),
+        ('write_positions', wp, {'ids': [255], 'positions': [0.0]}),
+        ('write_positions', wp, {'ids': [1, 2], 'positions': [0.0]}),
+        ('write_positions', wp, {'ids': [1], 'positions': [0.0, 0.1]}),
+        ('write_positions', wp, {'ids': [1], 'positions': [NAN]}),
+        ('write_positions', wp, {'ids': [1], 'positions': [INF]}),
+        ('write_positions', wp, {'ids': [1], 'positions': [100.0]}),
+        ('write_positions', wp, {'ids': [1], 'names': ['servo_1'], 'positions': [0.0]}),
+        ('write_positions', wp, {'ids': [1], 'positions': [0.0], 'move_time_ms': -5}),
+        ('write_positions', wp, {'ids': [1], 'positions': [0.0], 'move_time_ms': 70000}),
+        ('write_positions', wp, {'ids': [1], 'positions': [0.0], 'staged': True,
+                                 'move_time_ms': 70000}),
+        ('write_positions', wp, {}),
+        ('set_torque', 'SetTorque', {'ids': [99], 'enable': True}),
+        ('set_torque', 'SetTorque', {'ids': [0], 'enable': True}),
+        ('read_register', 'ReadRegister', {'id': 0, 'register_name': 'present_position'}),
+        ('read_register', 'ReadRegister', {'id': 255, 'register_name': 'present_position'}),
+        ('read_register', 'ReadRegister', {'id': 1, 'register_name': 'no_such_register'}),
+        ('read_register', 'ReadRegister', {'id': 1, 'address': 0x38, 'length': 0}),
+        ('read_register', 'ReadRegister', {'id': 1, 'address': 0x38, 'length': 200}),
+        ('read_register', 'ReadRegister', {'id': 1, 'address': 250, 'length': 20}),
+        ('write_register', 'WriteRegister', {'id': 1, 'register_name': 'present_position',
+                                             'value': 5}),
+        ('write_register', 'WriteRegister', {'id': 1, 'register_name': 'current', 'value': 1}),
+        ('write_register', 'WriteRegister', {'id': 1, 'register_name': 'torque_enable',
+                                             'value': 300}),
+        ('write_register', 'WriteRegister', {'id': 1, 'register_name': 'target_position',
+                                             'value': -1}),
+        ('write_register', 'WriteRegister', {'id': 1, 'register_name': 'target_position',
+                                             'value': 1 << 40}),
+        ('write_register', 'WriteRegister', {'id': 1, 'register_name': 'no_such_register',
+                                             'value': 0}),
+        ('write_register', 'WriteRegister', {'id': 0, 'register_name': 'torque_enable',
+                                             'value': 0}),
+        ('scan', 'ScanBus', {'first_id': 0, 'last_id': 10}),
+        ('scan', 'ScanBus', {'first_id': 10, 'last_id': 5}),
+        ('scan', 'ScanBus', {'first_id': 1, 'last_id': 251}),
+        ('go_to_preset', 'GoToPreset', {'ids': [1], 'preset': 0}),
+        ('go_to_preset', 'GoToPreset', {'ids': [1], 'preset': 4}),
+        ('go_to_preset', 'GoToPreset', {'ids': [99], 'preset': 1}),
+        ('set_id', 'SetId', {'id': 1, 'new_id': 0}),
+        ('set_id', 'SetId', {'id': 1, 'new_id': 251}),
+        ('set_id', 'SetId', {'id': 1, 'new_id': 254}),
+        ('set_id', 'SetId', {'id': 0, 'new_id': 5}),
+        ('factory_reset', 'FactoryReset', {'id': 1, 'confirm': ''}),
+        ('factory_reset', 'FactoryReset', {'id': 1, 'confirm': 'reset'}),
+        ('factory_reset', 'FactoryReset', {'id': 1, 'confirm': 'RESET '}),
+        ('factory_reset', 'FactoryReset', {'id': 0, 'confirm': 'RESET'}),
+        ('factory_reset', 'FactoryReset', {'id': 255, 'confirm': 'RESET'}),
+    ]
+
+
+def parachute_cases() -> List[Tuple[str, str, Dict[str, Any]]]:
+    """Return (service, srv type name, request fields) of the parachute driver's bad requests."""
+    th = 'SetThresholds'
+    nan4 = {'attitude_deg': NAN, 'freefall_g': NAN, 'freefall_time_s': NAN,
+            'light_threshold_v': NAN}
+
+    def thresholds(**kw: float) -> Dict[str, float]:
+        return dict(nan4, **kw)
+    cases = [('deploy', 'Deploy', {'confirm': c}) for c in
+             ('', 'deploy', 'DEPLOY ', ' DEPLOY', 'DEPLOYDEPLOY', 'SHUTDOWN')]
+    # The module starts locked: the right token without arm_if_locked is refused too.
+    cases.append(('deploy', 'Deploy', {'confirm': 'DEPLOY', 'arm_if_locked': False}))
+    for key, values in (('attitude_deg', (5.0, 91.0, 45.5, -10.0, 1e9, INF, -INF)),
+                        ('freefall_g', (0.0, 0.04, 1.0, -1.0, INF)),
+                        ('freefall_time_s', (0.0, 2.6, 100.0, -0.5, INF)),
+                        ('light_threshold_v', (-0.1, 25.6, 1e6, -INF))):
+        cases += [('set_thresholds', th, thresholds(**{key: v})) for v in values]
+    cases += [('shutdown_module', 'Confirmed', {'confirm': c})
+              for c in ('', 'shutdown', 'SHUTDOWN ', 'DEPLOY')]
+    cases += [('answer_trigger_request', 'std_srvs/SetBool', {'data': d}) for d in (True, False)]
+    return cases
+
+
+def _srv_type(name: str) -> Any:
+    if name.startswith('std_srvs/'):
+        import std_srvs.srv
+        return getattr(std_srvs.srv, name.split('/')[1])
+    import uav_serial_drivers.srv
+    return getattr(uav_serial_drivers.srv, name)
+
+
+class _FrameLog:
+    """Every frame the device receives, keyed for 'is this background traffic?'."""
+
+    def __init__(self, key) -> None:
+        self.key = key
+        self.frames: List[Tuple[float, Any]] = []
+        self.lock = threading.Lock()
+
+    def add(self, t: float, frame: Any) -> None:
+        with self.lock:
+            self.frames.append((t, frame))
+
+    def keys_between(self, t0: float, t1: float) -> List[Tuple[Any, Any]]:
+        with self.lock:
+            return [(self.key(f), f) for t, f in self.frames if t0 <= t <= t1]
+
+
+def _servo_key(req: Any) -> Any:
+    return (req.servo_id, req.instruction, bytes(req.params[:2])) \
+        if req.instruction == 2 else bytes(req.raw)
+
+
+def _dps_key(frame: Any) -> Any:
+    return bytes(frame.raw)
+
+
+def _run_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float) -> Dict:
+    t0 = time.monotonic()
+    time.sleep(observe_s)
+    background = {k for k, _ in log.keys_between(t0, time.monotonic())}
+    refused = 0
+    wire: List[str] = []
+    accepted: List[str] = []
+    errors: List[str] = []
+    clients: Dict[str, Any] = {}
+    for service, type_name, fields in cases:
+        srv = _srv_type(type_name)
+        name = f'{namespace}/{service}'
+        try:
+            if name not in clients:
+                clients[name] = client.client(srv, name)
+            request = srv.Request()
+            for key, value in fields.items():
+                setattr(request, key, value)
+        except (TimeoutError, AttributeError, TypeError, ValueError, AssertionError) as exc:
+            errors.append(f'{service} {fields}: {exc}'[:200])
+            continue
+        t_call = time.monotonic()
+        try:
+            response = client.call(clients[name], request, timeout=15.0)
+        except TimeoutError as exc:
+            errors.append(f'{service} {fields}: {exc}')
+            continue
+        time.sleep(0.05)
+        extra = [f for k, f in log.keys_between(t_call, time.monotonic()) if k not in background]
+        if response.success:
+            accepted.append(f'{service} {fields}: {response.message}'[:200])
+        else:
+            refused += 1
+        if extra:
+            wire.append(f'{service} {fields}: ' + ' | '.join(bytes(f.raw).hex(' ')
+                                                             for f in extra[:3]))
+    return {'cases': len(cases), 'refused': refused, 'accepted': accepted,
+            'bytes_on_wire': wire, 'errors': errors}
+
+
+def servo(observe_s: float = 3.0) -> Dict:
+    """Run the servo driver's bad requests; return the figures."""
+    with workdir() as directory, ServoRig(directory, [1, 2, 3], 115200) as rig, \
+            ros_client('bench_bad_inputs_servo') as client:
+        log = _FrameLog(_servo_key)
+        from desheng_servo_ros.protocol import StreamDecoder
+        decoder = StreamDecoder('request')
+        rig.runner.add_tap(lambda d, data, t: [log.add(t, f) for f in decoder.feed(data)]
+                           if d == 'rx' else None)
+        rig.wait_ready()
+        return _run_cases(client, '/servo_bus', servo_cases(), log, observe_s)
+
+
+def parachute(observe_s: float = 3.0) -> Dict:
+    """Run the parachute driver's bad requests; return the figures."""
+    with workdir() as directory, ParachuteRig(directory) as rig, \
+            ros_client('bench_bad_inputs_parachute') as client:
+        log = _FrameLog(_dps_key)
+        from dps_parachute_ros.protocol import StreamDecoder
+        decoder = StreamDecoder('from_host')
+        rig.runner.add_tap(lambda d, data, t: [log.add(t, f) for f in decoder.feed(data)]
+                           if d == 'rx' else None)
+        rig.wait_ready()
+        return _run_cases(client, '/parachute', parachute_cases(), log, observe_s)
+
+
+def run() -> Dict:
+    """Both drivers; return per-driver results and the summary figures."""
+    results = {'servo': servo(), 'parachute': parachute()}
+    return {
+        'per_driver': results,
+        'bad_inputs_cases': sum(r['cases'] for r in results.values()),
+        'bad_inputs_refused': sum(r['refused'] for r in results.values()),
+        'bad_inputs_bytes_on_wire': sum(len(r['bytes_on_wire']) for r in results.values()),
+        'bad_inputs_errors': sum(len(r['errors']) for r in results.values()),
+    }
+
+
+if __name__ == '__main__':
+    import pprint
+    pprint.pprint(run())

@@ -1,0 +1,112 @@
+"""SIGKILL of ``parachute_node`` right after a deploy acknowledgement; the record must be on disk.
+
+Each round starts the driver (black box in a fresh directory) against the virtual module, arms
+the module, calls ``~/deploy`` and sends SIGKILL to the driver as soon as the service response
+arrives (the user has been told "deployed"). Then the driver's black-box file (its name holds the
+PID) must contain the ``deploy acknowledged`` decision. A round counts as ``ok`` only then.
+
+``wire_rounds`` more rounds kill the driver the moment the module's acknowledgement leaves the
+module's port, before the driver can have handled it; those report whether the deploy
+*request* was on disk (information: the contract syncs on safety events, and this shows how
+early).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+from typing import Dict, List
+
+from bench.common import ParachuteRig, RosClient, wait_for, workdir
+
+
+def _records(directory: Path, pid: int) -> List[dict]:
+    out: List[dict] = []
+    for path in directory.glob(f'*-{pid}*.jsonl'):
+        for line in path.read_text(errors='replace').splitlines():
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                pass  # a torn last line after SIGKILL
+    return out
+
+
+def _has_ack(records: List[dict]) -> bool:
+    return any(r.get('kind') == 'decision' and r.get('what') == 'deploy acknowledged'
+               for r in records)
+
+
+def _has_request(records: List[dict]) -> bool:
+    return any(r.get('kind') == 'request' and r.get('what') == 'deploy' for r in records)
+
+
+def _arm(rig: ParachuteRig) -> None:
+    with rig.runner.locked():
+        rig.sim.triggered = False
+        rig.sim.protection = False
+        rig.sim.armed = True
+
+
+def run(rounds: int = 20, wire_rounds: int = 5) -> Dict:
+    """Run the kill rounds; return the figures."""
+    from uav_serial_drivers.srv import Deploy
+    ok = 0
+    wire_request_on_disk = 0
+    errors: List[str] = []
+    kill = {'pid': None}
+
+    def tap(direction: str, data: bytes, t: float) -> None:
+        pid = kill['pid']
+        if pid is not None and direction == 'tx' and data[:3] == b'\x41\x75\x11':
+            kill['pid'] = None
+            os.kill(pid, signal.SIGKILL)
+
+    with workdir() as directory, ParachuteRig(directory) as rig:
+        rig.runner.add_tap(tap)
+        rig.node.stop()
+        for i in range(rounds + wire_rounds):
+            wire = i >= rounds
+            node = rig.start_node()
+            # A fresh participant per round: the killed driver's service lingers in the old
+            # one's graph and would let a request go out before the new server is matched.
+            client = RosClient(f'bench_kill9_{i}')
+            try:
+                rig.wait_ready()
+                _arm(rig)
+                service = client.client(Deploy, '/parachute/deploy')
+                time.sleep(0.5)  # status frames: the driver sees the module armed
+                kill['pid'] = node.pid if wire else None
+                future = service.call_async(Deploy.Request(confirm='DEPLOY'))
+                if not wire:
+                    wait_for(future.done, 10.0, interval=0.0005, what='deploy response')
+                    os.kill(node.pid, signal.SIGKILL)
+                    response = future.result()
+                    if not response.success:
+                        errors.append(f'round {i}: deploy failed: {response.message}')
+                node.popen.wait(10)
+                records = _records(rig.blackbox_dir, node.pid)
+                if wire:
+                    wire_request_on_disk += _has_request(records)
+                elif _has_ack(records):
+                    ok += 1
+                else:
+                    errors.append(f'round {i}: no "deploy acknowledged" record '
+                                  f'({len(records)} records on disk)')
+            except (TimeoutError, RuntimeError, subprocess.TimeoutExpired) as exc:
+                errors.append(f'round {i}: {exc}'[:300])
+            finally:
+                kill['pid'] = None
+                node.stop(signal.SIGKILL, timeout=5.0)
+                client.close()
+    return {'kill9_rounds': rounds, 'kill9_record_on_disk': ok,
+            'kill9_wire_rounds': wire_rounds,
+            'kill9_wire_request_on_disk': wire_request_on_disk, 'errors': errors}
+
+
+if __name__ == '__main__':
+    import sys
+    print(run(int(sys.argv[1]) if len(sys.argv) > 1 else 3, 2))

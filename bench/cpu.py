@@ -1,0 +1,59 @@
+"""CPU of each driver process at its nominal load, in percent of one core.
+
+- ``cpu_servo_pct``: ``servo_bus_node`` with 12 servos at ``publish_rate_hz`` 50 (default
+  telemetry period 1 s) on a virtual bus at 115200 baud.
+- ``cpu_parachute_pct``: ``parachute_node`` with the module's status stream at 20 Hz.
+
+CPU = (utime + stime of every thread, from ``/proc/<pid>/stat``) / wall time of the window,
+after a warm-up. The virtual devices run in this process, so they are not counted.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Dict
+
+from bench.common import CpuMeter, ParachuteRig, ServoRig, workdir
+
+
+def servo_cpu(duration_s: float = 10.0, warmup_s: float = 2.0, n_servos: int = 12,
+              rate_hz: float = 50.0) -> Dict[str, float]:
+    """Return the servo driver's CPU percent and the position-read rate it achieved."""
+    ids = list(range(1, n_servos + 1))
+    with workdir() as directory, \
+            ServoRig(directory, ids, 115200, {'publish_rate_hz': rate_hz}) as rig:
+        rig.wait_ready()
+        time.sleep(warmup_s)
+        meter = CpuMeter(rig.node.pid)
+        t0 = time.monotonic()
+        time.sleep(duration_s)
+        pct = meter.percent()
+        reads = len(rig.position_transactions(t0))
+        elapsed = time.monotonic() - t0
+    return {'cpu_pct': pct, 'cycles_s': reads / n_servos / elapsed}
+
+
+def parachute_cpu(duration_s: float = 10.0, warmup_s: float = 2.0,
+                  stream_hz: float = 20.0) -> Dict[str, float]:
+    """Return the parachute driver's CPU percent with the status stream at `stream_hz`."""
+    with workdir() as directory, \
+            ParachuteRig(directory, stream_period_s=1.0 / stream_hz) as rig:
+        rig.wait_ready()
+        time.sleep(warmup_s)
+        meter = CpuMeter(rig.node.pid)
+        time.sleep(duration_s)
+        pct = meter.percent()
+    return {'cpu_pct': pct}
+
+
+def run(duration_s: float = 10.0) -> Dict[str, float]:
+    """Measure both drivers one after the other; return the ``cpu_*`` figures."""
+    servo = servo_cpu(duration_s)
+    parachute = parachute_cpu(duration_s)
+    return {'cpu_servo_pct': servo['cpu_pct'], 'cpu_servo_cycles_s': servo['cycles_s'],
+            'cpu_parachute_pct': parachute['cpu_pct']}
+
+
+if __name__ == '__main__':
+    import sys
+    print(run(float(sys.argv[1]) if len(sys.argv) > 1 else 10.0))

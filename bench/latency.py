@@ -1,0 +1,129 @@
+"""Safety-path latencies of ``parachute_node``, timed on the module's side of the wire.
+
+- ``confirm``: the virtual module (``VirtualParachute`` behind ``VirtualDeviceRunner`` in this
+  process, 115200 baud) raises a crash trigger request (armed, on external power, tilt above the
+  threshold); the time runs from the moment its last byte left the module's port to the moment
+  the last byte of the driver's confirmation ``42 61 39 a5 01 df`` arrived there. After each
+  request the module is re-armed and levelled again.
+- ``deploy``: from the benchmark's ``~/deploy`` service call (``call_async``) to the arrival of
+  the deploy frame (``42 61 11 02 01 ..``) at the module's port, with the module armed.
+
+Both run while ``servo_bus_node`` polls 12 servos at full rate on a virtual bus in another
+process (``bench.device_proc``), so the driver competes for the two cores as on a drone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from typing import Dict, List
+
+from bench.common import node_process, ParachuteRig, percentile, ros_client, workdir
+from bench.device_proc import servo_bus_process
+
+
+def _is_confirm(frame) -> bool:
+    from dps_parachute_ros import protocol as p
+    return frame.code == p.CMD_TRIGGER_REQUEST and frame.data == p.CONFIRM_PAYLOAD
+
+
+def _is_deploy(frame) -> bool:
+    from dps_parachute_ros import protocol as p
+    return frame.code == p.CMD_DEPLOY and frame.data[1:2] == b'\x01'
+
+
+def _rearm(rig: ParachuteRig) -> None:
+    with rig.runner.locked():
+        sim = rig.sim
+        sim.set_tilt(0.0)
+        sim.triggered = False
+        sim.protection = False
+        sim.armed = True
+
+
+def _trigger_request_sent_at(rig: ParachuteRig, start: int, timeout: float):
+    from dps_parachute_ros import protocol as p
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for t, frame in rig.tap.tx[start:]:
+            if frame.code == p.CMD_TRIGGER_REQUEST:
+                return t
+        time.sleep(0.0005)
+    return None
+
+
+def confirm_latencies(rig: ParachuteRig, count: int, gap_s: float = 0.15) -> Dict:
+    """Raise `count` trigger requests; return confirmation latencies (ms) and misses."""
+    latencies: List[float] = []
+    missed = 0
+    for _ in range(count):
+        _rearm(rig)
+        time.sleep(gap_s)
+        tx_start, rx_start = len(rig.tap.tx), len(rig.tap.rx)
+        with rig.runner.locked():
+            rig.sim.set_tilt(80.0)
+        sent = _trigger_request_sent_at(rig, tx_start, 1.0)
+        got = rig.tap.wait_rx(_is_confirm, rx_start, 1.5)
+        if sent is None or got is None:
+            missed += 1
+            continue
+        latencies.append((got[0] - sent) * 1000.0)
+    _rearm(rig)
+    return {'latencies_ms': latencies, 'missed': missed}
+
+
+def deploy_latencies(rig: ParachuteRig, client, count: int, gap_s: float = 0.25) -> Dict:
+    """Call ``~/deploy`` `count` times with the module armed; return frame latencies (ms)."""
+    from uav_serial_drivers.srv import Deploy
+    service = client.client(Deploy, '/parachute/deploy')
+    latencies: List[float] = []
+    service_ms: List[float] = []
+    failed = 0
+    for _ in range(count):
+        _rearm(rig)
+        time.sleep(gap_s)  # a few status frames: the driver sees the module armed
+        rx_start = len(rig.tap.rx)
+        request = Deploy.Request(confirm='DEPLOY', arm_if_locked=False)
+        t0 = time.monotonic()
+        response = client.call(service, request, timeout=10.0)
+        t_resp = time.monotonic()
+        got = rig.tap.wait_rx(_is_deploy, rx_start, 0.5)
+        if got is None or not response.success:
+            failed += 1
+            continue
+        latencies.append((got[0] - t0) * 1000.0)
+        service_ms.append((t_resp - t0) * 1000.0)
+    _rearm(rig)
+    return {'latencies_ms': latencies, 'service_ms': service_ms, 'failed': failed}
+
+
+def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = True) -> Dict:
+    """Measure both latencies with the servo driver as background load; return figures."""
+    with workdir() as directory, contextlib.ExitStack() as stack:
+        bg_node = None
+        if background:
+            servo_link = str(directory / 'bg-servo.pty')
+            ids = list(range(1, 13))
+            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
+            bg_node = stack.enter_context(node_process(
+                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
+                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
+                tag='bg_servo_bus_node'))
+        rig = stack.enter_context(ParachuteRig(directory))
+        client = stack.enter_context(ros_client('bench_latency'))
+        rig.wait_ready()
+        time.sleep(1.0)
+        confirm = confirm_latencies(rig, confirm_count)
+        deploy = deploy_latencies(rig, client, deploy_count)
+        alive = rig.node.alive() and (bg_node is None or bg_node.alive())
+    c, d = confirm['latencies_ms'], deploy['latencies_ms']
+    return {
+        'confirm_n': len(c), 'confirm_missed': confirm['missed'],
+        'confirm_p50_ms': percentile(c, 50), 'confirm_p99_ms': percentile(c, 99),
+        'confirm_max_ms': max(c) if c else float('nan'),
+        'deploy_n': len(d), 'deploy_failed': deploy['failed'],
+        'deploy_p50_ms': percentile(d, 50), 'deploy_p99_ms': percentile(d, 99),
+        'deploy_max_ms': max(d) if d else float('nan'),
+        'deploy_service_p99_ms': percentile(deploy['service_ms'], 99),
+        'alive': alive,
+    }

@@ -1,0 +1,237 @@
+"""Run every benchmark and the fault campaign; print a table and one ``bench:`` line.
+
+``make bench`` runs this with the defaults (5 min soak). ``--quick`` shrinks every figure to
+seconds (for development; its numbers are not the reported ones), ``--soak-s`` sets the soak
+length (the documented long run is ``--soak-s 3600``), ``--only`` picks benchmark families.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Callable, Dict, List, Tuple
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import (bad_inputs, blackbox_kill9, cpu, decoders, fuzz, latency,  # noqa: E402
+                   reconnects, servo_rate, soak)
+from bench.common import claim_domain_id  # noqa: E402
+
+Row = Tuple[str, str, str, str]  # name, value, goal, verdict
+
+
+def _fmt(value) -> str:
+    if isinstance(value, float):
+        if math.isnan(value):
+            return 'nan'
+        return f'{value:.3f}' if abs(value) < 10 else f'{value:.1f}'
+    return str(value)
+
+
+def _verdict(ok) -> str:
+    return '' if ok is None else ('met' if ok else 'MISSED')
+
+
+class Results:
+    """Figures of one run: the table rows and the ``bench:`` line."""
+
+    def __init__(self) -> None:
+        self.rows: List[Row] = []
+        self.figures: Dict[str, object] = {}
+        self.notes: List[str] = []
+
+    def add(self, name: str, value, goal: str = '', ok=None, line: bool = True) -> None:
+        """Add one figure; `ok` None means no goal."""
+        self.rows.append((name, _fmt(value), goal, _verdict(ok)))
+        if line:
+            self.figures[name] = _fmt(value)
+
+    def note(self, text: str) -> None:
+        """Add a line printed under the table."""
+        self.notes.append(text)
+
+
+def bench_decoders(res: Results, a: argparse.Namespace) -> None:
+    r = decoders.run(n_frames=5000 if a.quick else 40000)
+    for kind in ('dps', 'servo'):
+        x = r[f'decoder_x_1mbit_{kind}']
+        res.add(f'decoder_mb_s_{kind}', r[f'decoder_mb_s_{kind}'])
+        res.add(f'decoder_x_1mbit_{kind}', x, '>= 10', x >= 10)
+
+
+def bench_fuzz(res: Results, a: argparse.Namespace) -> None:
+    r = fuzz.run(segments=20000 if a.quick else 1_000_000)
+    res.add('fuzz_frames', r['fuzz_frames'], '>= 10^6 per decoder',
+            min(d['frames'] for d in r['per_decoder'].values()) >= 1_000_000)
+    res.add('fuzz_exceptions', r['fuzz_exceptions'], '0', r['fuzz_exceptions'] == 0)
+    res.add('fuzz_recovered_pct', r['fuzz_recovered_pct'], '100',
+            r['fuzz_recovered_pct'] == 100.0)
+    res.add('fuzz_overlapped', r['fuzz_overlapped'], line=False)
+    for name, d in r['per_decoder'].items():
+        res.note(f'fuzz {name}: {d["frames"]} frames, {d["valid"]} valid, {d["spurious"]} found '
+                 f'in noise, {d["overlapped"]} overlapped by those, {d["recovered"]} recovered '
+                 f'({d["recovered_pct"]:.3f} % of the rest), {d["exceptions"]} exceptions')
+
+
+def bench_servo_rate(res: Results, a: argparse.Namespace) -> None:
+    duration = 2.0 if a.quick else 5.0
+    for baud in (115200, 1000000):
+        suffix = '' if baud == 115200 else '_1m'
+        for n in (1, 6, 12):
+            r = servo_rate.measure(n, baud, duration)
+            ok = r['ratio'] >= 0.90 if baud == 115200 else None
+            res.add(f'servo_read_ratio_{n}{suffix}', r['ratio'], '>= 0.90' if ok is not None
+                    else '', ok)
+            res.note(f'servo rate {n} servos @ {baud}: {r["cycles_s"]:.1f} full-bus reads/s of '
+                     f'{r["limit_cycles_s"]:.1f} wire limit ({r["bytes_per_read"]:.0f} B per '
+                     f'READ+reply); node CPU {r["cpu_pct"]:.0f} %; host turnaround p50 '
+                     f'{r["host_gap_p50_ms"]:.3f} ms, device p50 {r["device_p50_ms"]:.3f} ms; '
+                     f'ratio without the emulator\'s own time {r["ratio_host_only"]:.3f}')
+            if not r['alive']:
+                res.note(f'servo_bus_node DIED during the rate run ({n} servos, {baud})')
+
+
+def bench_latency(res: Results, a: argparse.Namespace) -> None:
+    n = 30 if a.quick else 200
+    r = latency.run(confirm_count=n, deploy_count=n)
+    res.add('confirm_p50_ms', r['confirm_p50_ms'])
+    res.add('confirm_p99_ms', r['confirm_p99_ms'], '<= 20', r['confirm_p99_ms'] <= 20.0)
+    res.add('confirm_n', r['confirm_n'], f'>= {n}, 0 missed',
+            r['confirm_n'] >= n and r['confirm_missed'] == 0)
+    res.add('deploy_p99_ms', r['deploy_p99_ms'], '<= 20', r['deploy_p99_ms'] <= 20.0)
+    res.add('deploy_n', r['deploy_n'], f'{n}, 0 failed', r['deploy_failed'] == 0)
+    res.note(f'confirm max {r["confirm_max_ms"]:.2f} ms; deploy p50 {r["deploy_p50_ms"]:.2f} '
+             f'ms, max {r["deploy_max_ms"]:.2f} ms; deploy service round trip p99 '
+             f'{r["deploy_service_p99_ms"]:.1f} ms (call -> response, includes the module ack)')
+
+
+def bench_cpu(res: Results, a: argparse.Namespace) -> None:
+    r = cpu.run(duration_s=5.0 if a.quick else 20.0)
+    res.add('cpu_servo_pct', r['cpu_servo_pct'], '<= 25', r['cpu_servo_pct'] <= 25.0)
+    res.add('cpu_parachute_pct', r['cpu_parachute_pct'], '<= 5',
+            r['cpu_parachute_pct'] <= 5.0)
+    res.note(f'cpu_servo: 12 servos asked for 50 Hz, got {r["cpu_servo_cycles_s"]:.1f} full-bus '
+             'reads/s (115200 baud cannot carry 50 Hz x 12 position reads plus telemetry)')
+
+
+def bench_reconnects(res: Results, a: argparse.Namespace) -> None:
+    r = reconnects.run(cycles=5 if a.quick else 100)
+    res.add('reconnects', r['reconnect_cycles'], '>= 100 per device',
+            r['reconnect_cycles'] >= 100)
+    res.add('reconnect_crashes', r['reconnect_crashes'], '0', r['reconnect_crashes'] == 0)
+    res.add('reconnect_not_recovered', r['reconnect_not_recovered'], '0',
+            r['reconnect_not_recovered'] == 0)
+    res.add('reconnect_median_s', r['reconnect_median_s'])
+    res.add('reconnect_max_s', r['reconnect_max_s'], '<= 2', r['reconnect_max_s'] <= 2.0)
+    res.add('reconnect_fd_leak', r['reconnect_fd_leak'], '0', r['reconnect_fd_leak'] == 0)
+    res.add('reconnect_thread_leak', r['reconnect_thread_leak'], '0',
+            r['reconnect_thread_leak'] == 0)
+    for name, d in r['per_device'].items():
+        res.note(f'reconnects {name}: {d["cycles"]} cycles, median {d["median_s"]:.3f} s, max '
+                 f'{d["max_s"]:.3f} s, fd {d["fd_leak"]:+d} (pty {d["pty_fd_leak"]:+d}), '
+                 f'threads {d["thread_leak"]:+d}')
+
+
+def bench_soak(res: Results, a: argparse.Namespace) -> None:
+    r = soak.run(duration_s=a.soak_s)
+    res.add('soak_s', r['soak_s'])
+    res.add('soak_crashes', r['soak_crashes'], '0', r['soak_crashes'] == 0)
+    for name in ('servo', 'parachute'):
+        v = r[f'soak_rss_growth_mb_{name}']
+        res.add(f'soak_rss_growth_mb_{name}', v, '< 5', v < 5.0)
+    for name in ('joint_states', 'status'):
+        v = r[f'soak_max_gap_s_{name}']
+        res.add(f'soak_max_gap_s_{name}', v, '<= 1', v <= 1.0)
+    res.note(f'soak: gaps as received here {r["soak_rx_gap_s_joint_states"]:.2f} s / '
+             f'{r["soak_rx_gap_s_status"]:.2f} s; {r["soak_joint_states_msgs"]} joint_states, '
+             f'{r["soak_status_msgs"]} status messages; replies dropped/corrupted by the wire: '
+             f'{r["soak_faults"]}')
+
+
+def bench_kill9(res: Results, a: argparse.Namespace) -> None:
+    rounds = 3 if a.quick else 20
+    r = blackbox_kill9.run(rounds=rounds, wire_rounds=2 if a.quick else 10)
+    res.add('blackbox_kill9', f'{r["kill9_record_on_disk"]}/{r["kill9_rounds"]}',
+            'all on disk', r['kill9_record_on_disk'] == r['kill9_rounds'])
+    res.add('blackbox_kill9_wire', f'{r["kill9_wire_request_on_disk"]}/{r["kill9_wire_rounds"]}',
+            '(info)')
+    for error in r['errors'][:5]:
+        res.note(f'kill9: {error}')
+
+
+def bench_bad_inputs(res: Results, a: argparse.Namespace) -> None:
+    r = bad_inputs.run()
+    res.add('bad_inputs', f'{r["bad_inputs_refused"]}/{r["bad_inputs_cases"]}', 'all refused',
+            r['bad_inputs_refused'] == r['bad_inputs_cases'] and not r['bad_inputs_errors'])
+    res.add('bad_inputs_bytes_on_wire', r['bad_inputs_bytes_on_wire'], '0',
+            r['bad_inputs_bytes_on_wire'] == 0)
+    for name, d in r['per_driver'].items():
+        for text in d['accepted'] + d['bytes_on_wire'] + d['errors']:
+            res.note(f'bad_inputs {name}: {text}')
+
+
+FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
+    'decoders': bench_decoders,
+    'fuzz': bench_fuzz,
+    'servo_rate': bench_servo_rate,
+    'latency': bench_latency,
+    'cpu': bench_cpu,
+    'reconnects': bench_reconnects,
+    'soak': bench_soak,
+    'kill9': bench_kill9,
+    'bad_inputs': bench_bad_inputs,
+}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--quick', action='store_true', help='seconds, not minutes')
+    parser.add_argument('--soak-s', type=float, default=None,
+                        help='soak duration in s (default 300, --quick 20)')
+    parser.add_argument('--only', default='', help='comma-separated families: '
+                        + ','.join(FAMILIES))
+    a = parser.parse_args(argv)
+    if a.soak_s is None:
+        a.soak_s = 20.0 if a.quick else 300.0
+    chosen = [f for f in a.only.split(',') if f] or list(FAMILIES)
+    unknown = [f for f in chosen if f not in FAMILIES]
+    if unknown:
+        parser.error(f'unknown families {unknown}; choose from {list(FAMILIES)}')
+    print(f'bench: ROS_DOMAIN_ID={claim_domain_id()}, {os.cpu_count()} cores, '
+          f'{"quick" if a.quick else "full"} run', flush=True)
+    res = Results()
+    failed = []
+    t_start = time.monotonic()
+    for name in chosen:
+        t0 = time.monotonic()
+        print(f'bench: {name} ...', flush=True)
+        try:
+            FAMILIES[name](res, a)
+        except Exception:  # noqa: BLE001 - one broken family must not hide the others
+            failed.append(name)
+            res.note(f'{name} FAILED:\n{traceback.format_exc()}')
+        print(f'bench: {name} done in {time.monotonic() - t0:.0f} s', flush=True)
+    width = max([len(r[0]) for r in res.rows] + [6])
+    print()
+    print(f'| {"figure":<{width}} | {"value":>10} | {"goal":<20} | verdict |')
+    print(f'|{"-" * (width + 2)}|{"-" * 12}|{"-" * 22}|---------|')
+    for name, value, goal, verdict in res.rows:
+        print(f'| {name:<{width}} | {value:>10} | {goal:<20} | {verdict:<7} |')
+    print()
+    for text in res.notes:
+        print(f'- {text}')
+    print(f'- total {time.monotonic() - t_start:.0f} s'
+          + (f'; FAILED families: {", ".join(failed)}' if failed else ''))
+    print('bench: ' + ' '.join(f'{k}={v}' for k, v in res.figures.items()), flush=True)
+    return 1 if failed else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
