@@ -184,6 +184,11 @@ class ServoBusNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
+        self._pub_cond = threading.Condition()
+        self._pub_due = False
+        self._publisher = threading.Thread(target=self._publisher_main, name='servo-publisher',
+                                           daemon=True)
+        self._publisher.start()
         self.bus.start()
         self._loop = threading.Thread(target=self._loop_main, name='servo-read-loop',
                                       daemon=True)
@@ -412,7 +417,11 @@ class ServoBusNode(Node):
             now = time.monotonic()
             self._cycle(now)
             self._cycle_count += 1
-            self._publish(now)
+            # Building and publishing messages runs on its own thread, while the next cycle's
+            # bytes are on the wire, instead of adding to every cycle.
+            with self._pub_cond:
+                self._pub_due = True
+                self._pub_cond.notify()
             if first_cycles < OFFLINE_AFTER_FAILURES + 1:
                 first_cycles += 1
                 if first_cycles == OFFLINE_AFTER_FAILURES + 1:
@@ -533,6 +542,15 @@ class ServoBusNode(Node):
             self.get_logger().warning(
                 f'servo(s) {listed} do not answer on {self.port}: check their ids with the '
                 '~/scan service, their power and wiring')
+
+    def _publisher_main(self) -> None:
+        while self._running:
+            with self._pub_cond:
+                if not self._pub_due:
+                    self._pub_cond.wait(0.5)
+                due, self._pub_due = self._pub_due, False
+            if due and self._running:
+                self._publish(time.monotonic())
 
     def _publish(self, now: float, joints: bool = True) -> None:
         try:
@@ -932,7 +950,10 @@ class ServoBusNode(Node):
         self._running = False
         with self._pause_cond:
             self._pause_cond.notify_all()
+        with self._pub_cond:
+            self._pub_cond.notify_all()
         self._loop.join(2.0)
+        self._publisher.join(1.0)
         try:
             if self.torque_off_on_shutdown and self.bus.connected:
                 self.bus.write(proto.BROADCAST_ID, TORQUE_ADDRESS, b'\x00', PRIORITY_URGENT)
