@@ -23,7 +23,7 @@ __all__ = ['LinkDown', 'LinkError', 'LinkTimeout', 'ParachuteLink', 'LinkBusy',
 
 REQUEST_TIMEOUT_S = 1.0
 """P12: no reply within 1 s of a request means the module is offline."""
-RECORDS_QUIET_S = 0.1
+RECORDS_QUIET_S = 0.2
 """The trigger-record reply is complete when no further record came for this long."""
 
 EXPECTED_REPLY: dict[int, Tuple[Type, ...]] = {

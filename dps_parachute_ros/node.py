@@ -823,10 +823,17 @@ class ParachuteNode(Node):
 
     def _trigger_job(self) -> None:
         new: List[p.TriggerRecord] = []
-        try:
-            new = self._fetch_new_records()
-        except LinkError as exc:
-            self.get_logger().warning(f'could not read the trigger record: {exc}')
+        for attempt in range(3):
+            # A module may store the record a moment after raising the flag, and a loaded
+            # host may cut a multi-frame answer short at the quiet gap: ask again, briefly.
+            if attempt:
+                time.sleep(0.2)
+            try:
+                new = self._fetch_new_records()
+            except LinkError as exc:
+                self.get_logger().warning(f'could not read the trigger record: {exc}')
+            if new or self._trigger_reported:
+                break
         with self._state_lock:
             if self._trigger_reported:
                 return

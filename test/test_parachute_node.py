@@ -127,6 +127,16 @@ def rig(tmp_path_factory, request):
         rig.close(request.session.testsfailed > failed_before)
 
 
+@pytest.fixture(autouse=True)
+def node_output_on_failure(request, rig):
+    """Show the node's log since this test started when it fails."""
+    start = len(rig.proc.output())
+    yield
+    report = getattr(request.node, 'rep_call', None)
+    if report is not None and report.failed:
+        print(f'--- parachute_node output during the test ---\n{rig.proc.output()[start:]}')
+
+
 # ---------------------------------------------------------------------------------------------
 
 def test_online_streaming_status_and_desired_settings_applied(rig):
