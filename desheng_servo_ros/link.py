@@ -29,9 +29,11 @@ PRIORITY_LOOP = 2      # the read loop
 # Reply frame = FF F5 ID LEN STATUS params CHK.
 REPLY_OVERHEAD = 6
 # Margin beyond the wire time of request + reply when response_timeout_ms is 0 ("derived"):
-# the servo answers within ~0.1..1 ms, a USB-serial adapter in low-latency mode adds ~1 ms, and
-# the rest absorbs scheduling on a busy host (a missed reply costs a retry, worse than waiting).
-DERIVED_MARGIN_S = 0.020
+# the servo answers within ~0.1..1 ms, but a USB-serial adapter holds received bytes for up to its
+# latency timer (16 ms by default on FTDI, twice when a reply straddles two periods), and a busy
+# companion computer adds scheduling delays. Waiting 2 x 16 + 2 ms costs time only when a servo
+# is really missing; a margin that is too short makes healthy servos flap offline.
+DERIVED_MARGIN_S = 0.034
 # After a frame without a reply, wait this much beyond its wire time before the next one, so a
 # servo still parsing it never sees the next header glued to it.
 IDLE_GUARD_S = 0.0001

@@ -219,7 +219,7 @@ class ServoBusNode(Node):
             ('default_move_time_ms', 0, _describe(
                 'run time when a command gives -1 [ms]; 0 = fastest', int_range=(0, 65535))),
             ('response_timeout_ms', 0.0, _describe(
-                'wait for a reply beyond its wire time [ms]; 0 = derived (20 ms)',
+                'wait for a reply beyond its wire time [ms]; 0 = derived (34 ms)',
                 float_range=(0.0, 10000.0))),
             ('max_retries', 1, _describe('retries per transaction', int_range=(0, 10))),
             ('torque_on_start', False, _describe('turn torque on for every servo at start')),

@@ -19,6 +19,7 @@ from typing import Optional
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 WRITE_STALL_DROP_S = 0.2
+PACING_BURST_S = 0.002
 
 
 def wire_time(nbytes: int, baud: int) -> float:
@@ -164,22 +165,29 @@ class VirtualSerialPort:
                 raise
             return b''
 
-    def write(self, data: bytes, baud: int = 0) -> None:
-        """Send `data` to the driver, paced at `baud` (8N1) when baud > 0."""
+    def write(self, data: bytes, baud: int = 0, start: Optional[float] = None) -> float:
+        """Send `data` to the driver, paced at `baud` (8N1) when baud > 0.
+
+        The first byte goes on the wire at `start` (a ``time.monotonic()`` value; default now, and
+        never earlier than the previous write ended). Returns when the last byte has arrived.
+        """
         if not data:
-            return
+            return time.monotonic()
         if baud <= 0:
             self._write_all(data)
-            return
-        start = time.monotonic()
+            return time.monotonic()
+        now = time.monotonic()
+        start = now if start is None else start
         per_byte = wire_time(1, baud)
-        # Pace in small bursts: exact per-byte pacing would cost a syscall per byte, while a
-        # whole-frame write would deliver bytes earlier than a real UART could.
-        burst = max(1, int(0.0005 / per_byte))
+        # Each burst is written when its last byte would have arrived, so nothing comes earlier
+        # than on a real UART. Bursts of up to PACING_BURST_S keep a short frame in one piece,
+        # as a USB adapter delivers it, instead of costing the reader a wake-up per few bytes.
+        burst = max(1, int(PACING_BURST_S / per_byte))
         for offset in range(0, len(data), burst):
             chunk = data[offset:offset + burst]
             sleep_until(start + (offset + len(chunk)) * per_byte)
             self._write_all(chunk)
+        return start + len(data) * per_byte
 
     def _write_all(self, data: bytes) -> None:
         view = memoryview(data)

@@ -13,6 +13,8 @@ exponential backoff until `stop()`.
 from __future__ import annotations
 
 import logging
+import os
+import select
 import threading
 import time
 import traceback
@@ -20,6 +22,11 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, List, Optional, Protocol
 
 import serial
+
+try:
+    from serial.serialposix import Serial as _PosixSerial
+except ImportError:  # pragma: no cover - not a POSIX system
+    _PosixSerial = None
 
 Match = Callable[[Any], bool]
 
@@ -103,6 +110,7 @@ class SerialLink:
         # their flush() once the line has been idle this long; None = never.
         self._idle_flush_s = idle_flush_s
         self._serial: Optional[serial.SerialBase] = None
+        self._fast_fd: Optional[int] = None
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
         self._waiters: List[_Waiter] = []
@@ -155,7 +163,7 @@ class SerialLink:
             if port is None or not self._connected.is_set():
                 raise LinkDown(f'{self.url} is not open: {self.last_error or "not connected"}')
             try:
-                port.write(data)
+                self._write_port(port, data)
             except (serial.SerialException, OSError) as exc:
                 self._fail(f'write failed: {exc}')
                 raise LinkDown(f'{self.url}: write failed: {exc}') from exc
@@ -226,11 +234,10 @@ class SerialLink:
                     continue
             port = self._serial
             try:
-                data = port.read(1)
-                if data and port.in_waiting:
-                    data += port.read(port.in_waiting)
-            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-                # TypeError/AttributeError: pyserial's fd became None under a concurrent close.
+                data = self._read_port(port)
+            except (serial.SerialException, OSError, TypeError, AttributeError,
+                    ValueError) as exc:
+                # TypeError/AttributeError/ValueError: the fd was closed under a concurrent close.
                 if not self._stop.is_set():
                     self._fail(f'read failed: {exc}')
                 continue
@@ -238,6 +245,43 @@ class SerialLink:
                 self._receive(data)
             elif self._idle_flush_s is not None:
                 self._flush_idle()
+
+    def _read_port(self, port: serial.SerialBase) -> bytes:
+        fd = self._fast_fd
+        if fd is None:
+            data = port.read(1)
+            if data and port.in_waiting:
+                data += port.read(port.in_waiting)
+            return data
+        # The same as pyserial's read, minus a second select and an ioctl per wake-up: on a
+        # half-duplex bus every reply pays for them, so they show in the bus rate.
+        abort = port.pipe_abort_read_r
+        ready, _, _ = select.select([fd, abort], [], [], self._read_timeout)
+        if not ready:
+            return b''
+        if abort in ready:
+            os.read(abort, 1000)
+            return b''
+        try:
+            data = os.read(fd, 4096)
+        except BlockingIOError:
+            return b''
+        if not data:
+            raise serial.SerialException('device reports readiness to read but returned no data '
+                                         '(device disconnected?)')
+        return data
+
+    def _write_port(self, port: serial.SerialBase, data: bytes) -> None:
+        fd = self._fast_fd
+        if fd is not None:
+            try:
+                written = os.write(fd, data)
+            except BlockingIOError:
+                written = 0
+            if written == len(data):
+                return
+            data = data[written:]
+        port.write(data)
 
     def _flush_idle(self) -> None:
         flush = getattr(self._decoder, 'flush', None)
@@ -300,6 +344,11 @@ class SerialLink:
         with self._rx_lock:
             self._decoder.reset()
         self._serial = port
+        # A plain POSIX port (not loop://, spy:// and the like, which add their own behaviour to
+        # read and write) is read and written through its file descriptor directly.
+        plain = _PosixSerial is not None and type(port).read is _PosixSerial.read and \
+            type(port).write is _PosixSerial.write and isinstance(getattr(port, 'fd', None), int)
+        self._fast_fd = port.fd if plain else None
         if self.stats.open_failures or self.stats.reconnects:
             self.stats.reconnects += 1
         self.last_error = ''
@@ -318,6 +367,7 @@ class SerialLink:
         was_connected = self._connected.is_set()
         self._connected.clear()
         port, self._serial = self._serial, None
+        self._fast_fd = None
         if port is not None:
             try:
                 port.close()

@@ -159,7 +159,7 @@ class VirtualDeviceRunner:
                     except Exception:  # noqa: BLE001 - a model bug must not kill the device
                         self._log.exception('device model failed on input %s', data.hex(' '))
                         output = None
-                self._send(output, reply=True)
+                self._send(output, reply=True, ready_at=arrival)
             self._tick()
 
     def _poll_timeout(self) -> float:
@@ -183,22 +183,23 @@ class VirtualDeviceRunner:
                     output = None
         self._send(output, reply=False)
 
-    def _send(self, output: Output, reply: bool) -> None:
+    def _send(self, output: Output, reply: bool, ready_at: Optional[float] = None) -> None:
         frames = _frames(output)
         with self._lock:
             garbage, self._pending_garbage = self._pending_garbage, b''
+        start = None
+        if reply and frames:
+            # A reply leaves the device its response delay after the request fully arrived; the
+            # model's own computing time is hidden in that and the reply's wire time, so the
+            # timing on the wire is the device's, not this Python process's.
+            start = (ready_at if ready_at is not None else time.monotonic()) + \
+                self.response_delay_s + self.faults.reply_delay_s
         if garbage:
-            self._write(garbage)
-        if not frames:
-            return
-        if reply:
-            delay = self.response_delay_s + self.faults.reply_delay_s
-            if delay > 0:
-                time.sleep(delay)
+            start = self._write(garbage, start)
         for frame in frames:
             frame = self._apply_faults(frame) if reply else frame
             if frame:
-                self._write(frame)
+                start = self._write(frame, start)
 
     def _apply_faults(self, frame: bytes) -> bytes:
         faults = self.faults
@@ -224,14 +225,16 @@ class VirtualDeviceRunner:
             frame = noise + frame
         return frame
 
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes, start: Optional[float] = None) -> Optional[float]:
+        """Pace `data` out from `start`; return when its last byte arrived (None: unplugged)."""
         try:
-            self.port.write(data, self.baud)
+            end = self.port.write(data, self.baud, start)
         except PortUnplugged:
-            return
+            return None
         self.bytes_out += len(data)
         for tap in self._taps:
-            tap('tx', data, time.monotonic())
+            tap('tx', data, end)
+        return end
 
 
 def _frames(output: Output) -> list:
