@@ -136,7 +136,9 @@ def bench_reconnects(res: Results, a: argparse.Namespace) -> None:
     for name, d in r['per_device'].items():
         res.note(f'reconnects {name}: {d["cycles"]} cycles, median {d["median_s"]:.3f} s, max '
                  f'{d["max_s"]:.3f} s, fd {d["fd_leak"]:+d} (pty {d["pty_fd_leak"]:+d}), '
-                 f'threads {d["thread_leak"]:+d}')
+                 f'threads {d["thread_leak"]:+d}, {d["not_recovered"]} not recovered')
+        for text in d['details'][:2]:
+            res.note(f'reconnects {name}: {text}')
 
 
 def bench_soak(res: Results, a: argparse.Namespace) -> None:
