@@ -8,10 +8,8 @@ has a ``stop()``, and every wait has a timeout. Temporary files live in one
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import math
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -33,36 +31,19 @@ PAGE_SIZE = os.sysconf('SC_PAGE_SIZE')
 # A private ROS domain
 # ------------------------------------------------------------------------------------------
 
-_DOMAIN_LOCK = None
-_DOMAIN_ID: Optional[int] = None
+sys.path.insert(0, str(ROOT / 'test'))
+from ros_domain import die_with_parent  # noqa: E402
+from ros_domain import claim_domain_id as _claim  # noqa: E402
 
 
 def claim_domain_id() -> int:
-    """Lock a ROS_DOMAIN_ID no other session on this machine holds; keep it until exit.
+    """Lock a ROS_DOMAIN_ID no test session or other benchmark holds (see test/ros_domain.py).
 
-    Uses the same lock files as ``test/conftest.py``, so a benchmark never shares a domain
-    with a test session, nor with the test session that may have started it.
+    Never the one in this process's environment: a test session that started the benchmark
+    holds that one.
     """
-    global _DOMAIN_LOCK, _DOMAIN_ID
-    if _DOMAIN_ID is not None:
-        return _DOMAIN_ID
-    ids = list(range(20, 101))
-    random.Random(os.getpid() * 7919 + 1).shuffle(ids)
     current = os.environ.get('ROS_DOMAIN_ID')
-    for domain in ids:
-        if current is not None and str(domain) == current:
-            continue
-        path = f'/tmp/uav_serial_drivers-ros-domain-{domain}.lock'
-        handle = open(path, 'w')
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _DOMAIN_LOCK = handle
-        _DOMAIN_ID = domain
-        return domain
-    raise RuntimeError('no free ROS_DOMAIN_ID in 20..100 for this benchmark run')
+    return _claim(exclude=int(current) if current and current.isdigit() else None)
 
 
 def ros_env() -> Dict[str, str]:
@@ -130,7 +111,8 @@ class NodeProcess:
         self.log_path = workdir / f'{tag}.log'
         with open(self.log_path, 'ab') as log:
             self.popen = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
-                                          env=ros_env(), start_new_session=True)
+                                          env=ros_env(), start_new_session=True,
+                                          preexec_fn=die_with_parent)
 
     @property
     def pid(self) -> int:
@@ -276,13 +258,15 @@ class RosClient:
     def __init__(self, name: str = 'bench_client') -> None:
         import rclpy
         from rclpy.context import Context
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         self._rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=claim_domain_id())
         self.node = Node(name, context=self.context)
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        # Single-threaded: rclpy's multi-threaded executor can spin hot in Python while tasks
+        # are in flight and starve the in-process virtual devices of the GIL.
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()

@@ -44,10 +44,11 @@ def main(argv: List[str]) -> int:
 def servo_bus_process(link: str, baud: int, ids: List[int],
                       timeout: float = 20.0) -> Iterator[subprocess.Popen]:
     """Run a virtual servo bus process for the duration of a ``with`` block."""
-    from bench.common import ROOT
+    from bench.common import die_with_parent, ROOT
     proc = subprocess.Popen([sys.executable, '-m', 'bench.device_proc', link, str(baud)]
                             + [str(i) for i in ids], cwd=str(ROOT), stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=die_with_parent)
     try:
         ready = threading.Event()
         threading.Thread(target=lambda: (proc.stdout.readline(), ready.set()),

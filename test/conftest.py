@@ -10,9 +10,7 @@
 
 from __future__ import annotations
 
-import fcntl
 import os
-import random
 import sys
 
 import pytest
@@ -20,31 +18,13 @@ import pytest
 sys.path.insert(0, os.path.dirname(__file__))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-_DOMAIN_LOCK = None
-
-
-def _claim_domain_id() -> int:
-    """Lock a domain id no other test session on this machine holds; keep it until exit."""
-    global _DOMAIN_LOCK
-    ids = list(range(20, 101))
-    random.Random(os.getpid()).shuffle(ids)
-    for domain in ids:
-        path = f'/tmp/uav_serial_drivers-ros-domain-{domain}.lock'
-        handle = open(path, 'w')
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _DOMAIN_LOCK = handle
-        return domain
-    raise RuntimeError('no free ROS_DOMAIN_ID in 20..100 for this test session')
+from ros_domain import claim_domain_id  # noqa: E402
 
 
 def pytest_configure(config: pytest.Config) -> None:
     """Isolate this session's ROS traffic before anything imports rclpy."""
     if not hasattr(config, 'workerinput'):
-        os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+        os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')

@@ -13,10 +13,12 @@ from typing import Any, Callable, Dict, List, Optional
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import yaml
+
+from ros_domain import die_with_parent
 
 PACKAGE = 'uav_serial_drivers'
 
@@ -60,11 +62,15 @@ class MessageLog:
              what: str = 'a matching message', start: int = 0) -> Any:
         """Return the first message from index `start` that satisfies `predicate`."""
         deadline = time.monotonic() + timeout
+        checked = start
         with self._cond:
             while True:
-                for msg in self.messages[start:]:
+                # Only look at what arrived since the last look: rescanning everything on each
+                # message would hog the GIL that the in-process virtual devices need.
+                for msg in self.messages[checked:]:
                     if predicate(msg):
                         return msg
+                checked = max(checked, len(self.messages))
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     last = self.messages[-1] if self.messages else None
@@ -85,14 +91,19 @@ class MessageLog:
 
 
 class RosTestHarness:
-    """A private rclpy Context with one node and a multi-threaded executor in a thread."""
+    """A private rclpy Context with one node and an executor spinning in a thread."""
 
     def __init__(self, node_name: str = 'test_client') -> None:
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = Node(node_name, context=self.context)
         self.group = ReentrantCallbackGroup()
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self._clients: Dict[Any, Any] = {}
+        self._clients_lock = threading.Lock()
+        # Single-threaded on purpose: the callbacks here only record messages and complete
+        # futures, and rclpy's multi-threaded executor can spin hot in Python while its tasks
+        # are in flight, starving the virtual devices that share this process of the GIL.
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
@@ -127,18 +138,30 @@ class RosTestHarness:
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
         """Call a service and return its response; fail the test on timeout."""
-        client = self.node.create_client(srv_type, name, callback_group=self.group)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout):
-                raise AssertionError(f'service {name} not available after {timeout:.0f} s')
-            future = client.call_async(request if request is not None else srv_type.Request())
-            done = threading.Event()
-            future.add_done_callback(lambda _f: done.set())
-            if not done.wait(timeout):
-                raise AssertionError(f'service {name} did not answer within {timeout:.0f} s')
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+        client = self.client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise AssertionError(f'service {name} not available after {timeout:.0f} s')
+        future = client.call_async(request if request is not None else srv_type.Request())
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            raise AssertionError(f'service {name} did not answer within {timeout:.0f} s')
+        return future.result()
+
+    def client(self, srv_type: Any, name: str) -> Any:
+        """Return the client of one service, created once and kept.
+
+        Creating a client creates DDS entities while holding the GIL; doing it on every call
+        stalls every other thread of the test process (the in-process virtual devices) for
+        up to seconds.
+        """
+        key = (srv_type, name)
+        with self._clients_lock:
+            client = self._clients.get(key)
+            if client is None:
+                client = self.node.create_client(srv_type, name, callback_group=self.group)
+                self._clients[key] = client
+            return client
 
     def wait_for_service(self, name: str, timeout: float = 15.0) -> None:
         """Wait until a service of that (fully qualified) name exists."""
@@ -235,7 +258,7 @@ class LaunchedProcesses:
         env.update(extra_env or {})
         with open(stdout_path, 'wb') as out, open(stderr_path, 'wb') as err:
             popen = subprocess.Popen(args, stdout=out, stderr=err, env=env,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=die_with_parent)
         proc = LaunchedProcess(executable, popen, stderr_path, stdout_path)
         self.processes.append(proc)
         try:

@@ -16,6 +16,7 @@ from sensor_msgs.msg import JointState
 from uav_serial_drivers.msg import ServoStateArray
 
 NODE = '/servo_bus'
+RIG_RESPONSE_TIMEOUT_MS = 250.0
 # The read loop's own READs (position block, telemetry block): anything else is "on the wire".
 LOOP_READS = {(0x38, 4), (0x28, 24)}
 
@@ -101,7 +102,12 @@ def start_rig(tmp: Path, name: str, ids=(1, 2, 3), parameters: Optional[Dict] = 
     wire = Wire(dev.runner)
     ros = RosTestHarness()
     procs = LaunchedProcesses(tmp, name)
-    params = {'port': dev.path, 'servo_ids': list(ids), 'telemetry_period_s': 0.2}
+    # The virtual bus shares this process (and its GIL) with the test's rclpy executor, which is
+    # busy right when the node publishes; its replies can then be tens of ms late, an artefact of
+    # the rig that a real servo does not have. A wide reply window keeps that from looking like a
+    # lost reply; tests of timeouts and offline detection set their own.
+    params = {'port': dev.path, 'servo_ids': list(ids), 'telemetry_period_s': 0.2,
+              'response_timeout_ms': RIG_RESPONSE_TIMEOUT_MS}
     params.update(parameters or {})
     joints = ros.subscribe(JointState, '/joint_states')
     states = ros.subscribe(ServoStateArray, f'{NODE}/servo_states')

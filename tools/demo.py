@@ -8,6 +8,7 @@ calls their services, with a compact live view. Exit code 0 on success, 1 with t
 from __future__ import annotations
 
 import argparse
+import ctypes
 import math
 import os
 import random
@@ -22,6 +23,11 @@ from typing import Any, Callable, List, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = 'uav_serial_drivers'
+
+
+def _die_with_parent() -> None:
+    # The kernel kills every process the demo started if the demo itself is killed.
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
 
 
 class DemoFailure(Exception):
@@ -44,7 +50,8 @@ class Processes:
         params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': params}}))
         log = open(self.workdir / f'{executable}.log', 'wb')
         proc = subprocess.Popen([str(path), '--ros-args', '--params-file', str(params_file)],
-                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                preexec_fn=_die_with_parent)
         self.items.append((executable, proc, log))
         return proc
 
@@ -83,7 +90,7 @@ class Mission:
     def __init__(self, tty: bool) -> None:
         import rclpy
         from rclpy.callback_groups import ReentrantCallbackGroup
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile
         from sensor_msgs.msg import BatteryState, JointState
         from uav_serial_drivers.msg import (ParachuteConfig, ParachuteStatus, TriggerEvent,
@@ -114,7 +121,7 @@ class Mission:
             callback_group=self.group)
         sub(TriggerRequest, '/parachute/trigger_request', self._append('requests'), 10,
             callback_group=self.group)
-        self.executor = MultiThreadedExecutor(num_threads=3)
+        self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
