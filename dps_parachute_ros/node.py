@@ -913,6 +913,11 @@ class ParachuteNode(Node):
                         'row went unacknowledged; a third could put the module into protection '
                         '(P11). Check the link; a module reboot clears this.')
                 attempts += 1
+                # The decision is on disk before the frame leaves: a crash between the two must
+                # not leave a deployment the black box never heard of.
+                self.blackbox.record('decision', what='deploy: sending the deploy frame',
+                                     attempt=attempts)
+                self.blackbox.sync()
                 try:
                     ack = self._req(p.encode_deploy(), retries=0)
                 except LinkTimeout:

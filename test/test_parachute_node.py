@@ -225,6 +225,12 @@ def test_deploy_success_event_and_black_box(rig):
     assert ('tx', '42 61 11 02 01 14') in frames and ('rx', '41 75 11 01 01 13') in frames
     assert any(r['kind'] == 'decision' and r.get('what') == 'deploy acknowledged'
                for r in records)
+    # The decision to send is recorded before the deploy frame itself.
+    sending = next(i for i, r in enumerate(records) if r.get('what', '').startswith(
+        'deploy: sending'))
+    sent = next(i for i, r in enumerate(records)
+                if r['kind'] == 'frame' and r['hex'] == '42 61 11 02 01 14')
+    assert sending < sent
     # One event per deployment: the triggered flag and the new record add none.
     records_reply = rig.call(GetTriggerRecords, 'get_trigger_records')
     assert records_reply.success and records_reply.records[-1].source == 1
