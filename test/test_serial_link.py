@@ -157,3 +157,17 @@ def test_a_failing_frame_handler_does_not_stop_the_reader(device):
         assert link.request(b'ask 4\n', lambda f: f == b're 4', timeout=1.0) == b're 4'
     finally:
         link.stop()
+
+
+def test_spy_url_logs_the_traffic_and_still_works(device, tmp_path):
+    # spy:// wraps the port to log every byte: the link must go through its read and write.
+    log = tmp_path / 'spy.txt'
+    link, _, _ = make_link(f'spy://{device.port.path}?file={log}')
+    try:
+        assert link.wait_connected(2)
+        assert link.request(b'ask 9\n', lambda f: f == b're 9', timeout=1.0) == b're 9'
+    finally:
+        link.stop()
+    text = log.read_text()
+    assert 'TX   0000  61 73 6B 20 39 0A' in text  # "ask 9\n" as it went out
+    assert 'e 9.' in text  # the reply as it came in (the spy logs each read)
