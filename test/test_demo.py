@@ -1,0 +1,20 @@
+"""`make demo` keeps working: the scripted mission runs to its end and cleans up after itself."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_demo_mission_succeeds_and_leaves_no_process_behind():
+    result = subprocess.run([sys.executable, str(ROOT / 'tools' / 'demo.py'), '--no-tty'],
+                            capture_output=True, text=True, timeout=120, env=dict(os.environ))
+    assert result.returncode == 0, result.stdout + result.stderr
+    last = result.stdout.strip().splitlines()[-1]
+    assert last.startswith('demo: OK'), last
+    for step in ['trigger event: source freefall', 'settings re-applied', 'refused:']:
+        assert step in result.stdout, f'{step!r} missing from the demo output'
+    leftovers = subprocess.run(['pgrep', '-f', 'uav-demo-'], capture_output=True, text=True)
+    assert leftovers.stdout == '', f'demo processes left behind: {leftovers.stdout}'
