@@ -23,7 +23,6 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-PACKAGE = 'uav_serial_drivers'
 CLK_TCK = os.sysconf('SC_CLK_TCK')
 PAGE_SIZE = os.sysconf('SC_PAGE_SIZE')
 
@@ -32,7 +31,8 @@ PAGE_SIZE = os.sysconf('SC_PAGE_SIZE')
 # ------------------------------------------------------------------------------------------
 
 sys.path.insert(0, str(ROOT / 'test'))
-from ros_domain import die_with_parent  # noqa: E402
+# wait_for raises ros_domain.WaitTimeout, a TimeoutError (what the benchmarks catch).
+from ros_domain import die_with_parent, executable_path, wait_for  # noqa: E402,F401
 from ros_domain import claim_domain_id as _claim  # noqa: E402
 
 
@@ -55,15 +55,6 @@ def ros_env() -> Dict[str, str]:
     env.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
     env['PYTHONUNBUFFERED'] = '1'
     return env
-
-
-def executable_path(name: str) -> str:
-    """Return the installed path of one of the package's executables."""
-    from ament_index_python.packages import get_package_prefix
-    path = Path(get_package_prefix(PACKAGE), 'lib', PACKAGE, name)
-    if not path.exists():
-        raise FileNotFoundError(f'{path} is not installed: run `make build`')
-    return str(path)
 
 
 def node_available(name: str) -> bool:
@@ -162,19 +153,6 @@ def node_process(executable: str, directory: Path, parameters: Optional[Dict] = 
         proc.stop()
 
 
-def wait_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.01,
-             what: str = 'condition') -> Any:
-    """Poll `predicate` until truthy; raise TimeoutError after `timeout` s."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise TimeoutError(f'timed out after {timeout:.1f} s waiting for {what}')
-        time.sleep(interval)
-
-
 # ------------------------------------------------------------------------------------------
 # /proc figures
 # ------------------------------------------------------------------------------------------
@@ -253,27 +231,20 @@ def median(values: List[float]) -> float:
 # ------------------------------------------------------------------------------------------
 
 class RosClient:
-    """A private rclpy Context on the benchmark's domain, with one node spinning in a thread."""
+    """A private rclpy Context on the benchmark's domain, with one node spinning in a thread.
+
+    The context, node and single-threaded executor are `test/ros_harness.py`'s
+    `RosTestHarness` (rclpy's multi-threaded executor can spin hot in Python while tasks are in
+    flight and starve the in-process virtual devices of the GIL); this adds callback
+    subscriptions and calls that raise TimeoutError.
+    """
 
     def __init__(self, name: str = 'bench_client') -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        self._rclpy = rclpy
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=claim_domain_id())
-        self.node = Node(name, context=self.context)
-        # Single-threaded: rclpy's multi-threaded executor can spin hot in Python while tasks
-        # are in flight and starve the in-process virtual devices of the GIL.
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        with contextlib.suppress(Exception):
-            self.executor.spin()
+        from ros_harness import RosTestHarness
+        self._ros = RosTestHarness(name, domain_id=claim_domain_id())
+        self.context = self._ros.context
+        self.node = self._ros.node
+        self.executor = self._ros.executor
 
     def subscribe(self, msg_type: Any, topic: str, callback: Callable[[Any], None],
                   latched: bool = False, depth: int = 50) -> Any:
@@ -303,19 +274,12 @@ class RosClient:
         return future.result()
 
     def wait_for_service(self, name: str, timeout: float = 20.0) -> None:
-        """Wait until a service of that fully qualified name exists."""
-        wait_for(lambda: any(n == name for n, _ in self.node.get_service_names_and_types()),
-                 timeout, interval=0.05, what=f'service {name}')
+        """Wait until a service of that fully qualified name exists; TimeoutError if not."""
+        self._ros.wait_for_service(name, timeout)
 
     def close(self) -> None:
         """Stop spinning and shut the context down."""
-        try:
-            self.executor.shutdown(timeout_sec=2.0)
-        finally:
-            self.node.destroy_node()
-            if self.context.ok():
-                self._rclpy.shutdown(context=self.context)
-            self._thread.join(timeout=2.0)
+        self._ros.close()
 
 
 @contextlib.contextmanager
@@ -413,31 +377,10 @@ class DpsWireTap:
 # Rigs: a device model behind a pty in this process, its driver node as a process
 # ------------------------------------------------------------------------------------------
 
-def servo_runner(sim: Any, link: str, baud: int, seed: Optional[int] = None) -> Any:
-    """Wire a `ServoBusSim` to a (not started) `VirtualDeviceRunner` on `link`."""
-    from uav_serial_common.virtual_device import VirtualDeviceRunner
-    runner = None
-
-    def tick(now: float) -> None:
-        sim.advance(now)
-        garbage = sim.take_garbage()
-        if garbage and runner is not None:
-            runner.inject_garbage(garbage)
-
-    runner = VirtualDeviceRunner(link, on_input=lambda data, now: sim.feed(data, now),
-                                 on_tick=tick, baud=baud, seed=seed)
-    return runner
-
-
-def parachute_runner(sim: Any, link: str, baud: int, seed: Optional[int] = None) -> Any:
-    """Wire a `VirtualParachute` to a (not started) `VirtualDeviceRunner` on `link`."""
-    from uav_serial_common.virtual_device import VirtualDeviceRunner
-    return VirtualDeviceRunner(link, on_input=lambda data, now: sim.receive(data, now),
-                               on_tick=sim.step, next_event=sim.next_event_time, baud=baud,
-                               seed=seed)
-
-
 POSITION_ADDRESS = 0x38
+# The virtual servo's own answer time after a request, in the benchmarks: none, so that the time
+# between wire bytes is the host's (servo_read_ratio is measured against the wire alone).
+BENCH_SERVO_RESPONSE_DELAY_S = 0.0
 
 
 def is_position_read(req: Any) -> bool:
@@ -449,80 +392,22 @@ def is_position_read(req: Any) -> bool:
     return address <= POSITION_ADDRESS and address + length >= POSITION_ADDRESS + 2
 
 
-class ServoRig:
-    """A virtual servo bus in this process (taps on its wire) and `servo_bus_node` on it."""
+class _Rig:
+    """A device runner in this process with a tap on it, and its driver node as a process."""
 
-    def __init__(self, directory: Path, ids: List[int], baud: int = 115200,
-                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
-                 tag: str = 'servo_bus_node') -> None:
-        from desheng_servo_ros.simulation import ServoBusSim
+    executable = ''
+
+    def __init__(self, directory: Path, runner: Any, tap: Any, parameters: Dict[str, Any],
+                 tag: str) -> None:
         self.directory = directory
-        self.ids = list(ids)
-        self.baud = baud
-        self.link = str(directory / f'{tag}.pty')
-        self.sim = ServoBusSim(self.ids, now=time.monotonic())
-        self.runner = servo_runner(self.sim, self.link, baud, seed)
-        self.tap = ServoWireTap()
-        self.runner.add_tap(self.tap)
-        self.parameters = {'port': self.link, 'baud': baud, 'servo_ids': self.ids,
-                           'joint_names': [f'servo_{i}' for i in self.ids]}
-        self.parameters.update(parameters or {})
+        self.runner = runner
+        self.tap = tap
+        self.runner.add_tap(tap)
+        self.parameters = parameters
         self.tag = tag
         self.node: Optional[NodeProcess] = None
 
-    def __enter__(self) -> 'ServoRig':
-        self.runner.start()
-        try:
-            self.node = NodeProcess('servo_bus_node', self.directory, self.parameters,
-                                    tag=self.tag)
-        except BaseException:
-            self.runner.stop()
-            raise
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        try:
-            if self.node is not None:
-                self.node.stop()
-        finally:
-            self.runner.stop()
-
-    def position_transactions(self, since: float = 0.0) -> List[tuple]:
-        """Return the position-read transactions whose request arrived at or after `since`."""
-        transactions, _ = self.tap.snapshot()
-        return [t for t in transactions if t[0] >= since and is_position_read(t[2])]
-
-    def wait_ready(self, timeout: float = 40.0) -> None:
-        """Wait until every servo's position has been read once; raise if the node died."""
-        def ready() -> bool:
-            if not self.node.alive():
-                raise RuntimeError(f'servo_bus_node exited:\n{self.node.output()[-3000:]}')
-            seen = {t[3].servo_id for t in self.position_transactions()}
-            return seen >= set(self.ids)
-        wait_for(ready, timeout, interval=0.05, what='position reads of every servo')
-
-
-class ParachuteRig:
-    """A virtual DPS-S module in this process (taps on its wire) and `parachute_node` on it."""
-
-    def __init__(self, directory: Path, baud: int = 115200, stream_period_s: float = 0.05,
-                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
-                 tag: str = 'parachute_node') -> None:
-        from dps_parachute_ros.simulation import VirtualParachute
-        self.directory = directory
-        self.link = str(directory / f'{tag}.pty')
-        self.blackbox_dir = directory / f'{tag}-blackbox'
-        self.sim = VirtualParachute(now=time.monotonic(), stream_period_s=stream_period_s)
-        self.runner = parachute_runner(self.sim, self.link, baud, seed)
-        self.tap = DpsWireTap()
-        self.runner.add_tap(self.tap)
-        self.parameters = {'port': self.link, 'baud': baud,
-                           'blackbox_dir': str(self.blackbox_dir)}
-        self.parameters.update(parameters or {})
-        self.tag = tag
-        self.node: Optional[NodeProcess] = None
-
-    def __enter__(self) -> 'ParachuteRig':
+    def __enter__(self) -> '_Rig':
         self.runner.start()
         try:
             self.start_node()
@@ -531,11 +416,6 @@ class ParachuteRig:
             raise
         return self
 
-    def start_node(self) -> NodeProcess:
-        """Start (or restart) the driver process."""
-        self.node = NodeProcess('parachute_node', self.directory, self.parameters, tag=self.tag)
-        return self.node
-
     def __exit__(self, *exc: object) -> None:
         try:
             if self.node is not None:
@@ -543,11 +423,79 @@ class ParachuteRig:
         finally:
             self.runner.stop()
 
+    def start_node(self) -> NodeProcess:
+        """Start (or restart) the driver process."""
+        self.node = NodeProcess(self.executable, self.directory, self.parameters, tag=self.tag)
+        return self.node
+
+    def _wait_ready(self, ready: Callable[[], bool], timeout: float, what: str) -> None:
+        def check() -> bool:
+            if not self.node.alive():
+                raise RuntimeError(f'{self.executable} exited:\n{self.node.output()[-3000:]}')
+            return ready()
+        wait_for(check, timeout, interval=0.05, what=what)
+
+
+class ServoRig(_Rig):
+    """A virtual servo bus in this process (taps on its wire) and `servo_bus_node` on it.
+
+    The bus is `desheng_servo_ros.virtual_node.VirtualServoBus` (the core of
+    ``virtual_servo_bus``) with `BENCH_SERVO_RESPONSE_DELAY_S`.
+    """
+
+    executable = 'servo_bus_node'
+
+    def __init__(self, directory: Path, ids: List[int], baud: int = 115200,
+                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
+                 tag: str = 'servo_bus_node') -> None:
+        from desheng_servo_ros.virtual_node import VirtualServoBus
+        self.ids = list(ids)
+        self.baud = baud
+        self.link = str(directory / f'{tag}.pty')
+        self.bus = VirtualServoBus(self.link, self.ids, baud=baud,
+                                   response_delay_s=BENCH_SERVO_RESPONSE_DELAY_S, seed=seed)
+        self.sim = self.bus.sim
+        params = {'port': self.link, 'baud': baud, 'servo_ids': self.ids,
+                  'joint_names': [f'servo_{i}' for i in self.ids]}
+        params.update(parameters or {})
+        super().__init__(directory, self.bus.runner, ServoWireTap(), params, tag)
+
+    def position_transactions(self, since: float = 0.0) -> List[tuple]:
+        """Return the position-read transactions whose request arrived at or after `since`."""
+        transactions, _ = self.tap.snapshot()
+        return [t for t in transactions if t[0] >= since and is_position_read(t[2])]
+
+    def wait_ready(self, timeout: float = 40.0) -> None:
+        """Wait until every servo's position has been read once; raise if the node died."""
+        self._wait_ready(lambda: {t[3].servo_id for t in self.position_transactions()}
+                         >= set(self.ids), timeout, 'position reads of every servo')
+
+
+class ParachuteRig(_Rig):
+    """A virtual DPS-S module in this process (taps on its wire) and `parachute_node` on it.
+
+    The module is `VirtualParachute` behind `dps_parachute_ros.virtual_node.create_runner`, as
+    in ``virtual_parachute``.
+    """
+
+    executable = 'parachute_node'
+
+    def __init__(self, directory: Path, baud: int = 115200, stream_period_s: float = 0.05,
+                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
+                 tag: str = 'parachute_node') -> None:
+        from dps_parachute_ros.simulation import VirtualParachute
+        from dps_parachute_ros.virtual_node import create_runner
+        self.link = str(directory / f'{tag}.pty')
+        self.blackbox_dir = directory / f'{tag}-blackbox'
+        self.sim = VirtualParachute(now=time.monotonic(), stream_period_s=stream_period_s)
+        params = {'port': self.link, 'baud': baud, 'blackbox_dir': str(self.blackbox_dir)}
+        params.update(parameters or {})
+        super().__init__(directory, create_runner(self.sim, self.link, baud, seed), DpsWireTap(),
+                         params, tag)
+
     def wait_ready(self, timeout: float = 40.0) -> None:
         """Wait until the driver has turned the status stream on; raise if it died."""
-        def ready() -> bool:
-            if not self.node.alive():
-                raise RuntimeError(f'parachute_node exited:\n{self.node.output()[-3000:]}')
+        def streaming() -> bool:
             with self.runner.locked():
                 return self.sim.streaming
-        wait_for(ready, timeout, interval=0.05, what='the driver to turn the stream on')
+        self._wait_ready(streaming, timeout, 'the driver to turn the stream on')

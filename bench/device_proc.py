@@ -1,8 +1,8 @@
 """A virtual servo bus in its own process: background load that shares no GIL with a benchmark.
 
-``python -m bench.device_proc LINK BAUD ID [ID ...]`` runs ``ServoBusSim`` behind a
-``VirtualDeviceRunner`` at LINK until its stdin closes or it gets SIGTERM/SIGINT; it prints
-``ready`` once the port exists.
+``python -m bench.device_proc LINK BAUD ID [ID ...]`` runs ``VirtualServoBus`` (``ServoBusSim``
+behind a ``VirtualDeviceRunner``, with the benchmarks' response delay) at LINK until its stdin
+closes or it gets SIGTERM/SIGINT; it prints ``ready`` once the port exists.
 """
 
 from __future__ import annotations
@@ -20,23 +20,20 @@ if __package__ in (None, ''):
 
 
 def main(argv: List[str]) -> int:
-    import time
-
-    from bench.common import servo_runner
-    from desheng_servo_ros.simulation import ServoBusSim
+    from bench.common import BENCH_SERVO_RESPONSE_DELAY_S
+    from desheng_servo_ros.virtual_node import VirtualServoBus
     link, baud, ids = argv[0], int(argv[1]), [int(a) for a in argv[2:]]
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
-    sim = ServoBusSim(ids, now=time.monotonic())
-    runner = servo_runner(sim, link, baud)
-    runner.start()
+    bus = VirtualServoBus(link, ids, baud=baud, response_delay_s=BENCH_SERVO_RESPONSE_DELAY_S)
+    bus.start()
     try:
         print('ready', flush=True)
         stop.wait()
     finally:
-        runner.stop()
+        bus.stop()
     return 0
 
 

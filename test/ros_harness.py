@@ -18,31 +18,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import yaml
 
-from ros_domain import die_with_parent
-
-PACKAGE = 'uav_serial_drivers'
-
-
-def wait_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.01,
-             what: str = 'condition') -> Any:
-    """Poll `predicate` until it returns something truthy; fail the test after `timeout` s."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out after {timeout:.1f} s waiting for {what}')
-        time.sleep(interval)
-
-
-def executable_path(name: str) -> str:
-    """Return the installed path of one of the package's executables."""
-    from ament_index_python.packages import get_package_prefix
-    path = Path(get_package_prefix(PACKAGE), 'lib', PACKAGE, name)
-    if not path.exists():
-        raise FileNotFoundError(f'{path} is not installed: run `make build`')
-    return str(path)
+from ros_domain import die_with_parent, executable_path, wait_for  # noqa: F401 - re-exported
 
 
 class MessageLog:
@@ -93,9 +69,10 @@ class MessageLog:
 class RosTestHarness:
     """A private rclpy Context with one node and an executor spinning in a thread."""
 
-    def __init__(self, node_name: str = 'test_client') -> None:
+    def __init__(self, node_name: str = 'test_client', domain_id: Optional[int] = None) -> None:
         self.context = Context()
-        rclpy.init(context=self.context)
+        # domain_id None: ROS_DOMAIN_ID of the environment (the test session's claim).
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.node = Node(node_name, context=self.context)
         self.group = ReentrantCallbackGroup()
         self._clients: Dict[Any, Any] = {}
