@@ -155,6 +155,11 @@ def bench_soak(res: Results, a: argparse.Namespace) -> None:
              f'{r["soak_rx_gap_s_status"]:.2f} s; {r["soak_joint_states_msgs"]} joint_states, '
              f'{r["soak_status_msgs"]} status messages; replies dropped/corrupted by the wire: '
              f'{r["soak_faults"]}')
+    res.note('soak stalls (value s, at s into the window): ' + ', '.join(
+        f'{k} {v}' for k, v in r['soak_stalls'].items()))
+    for name, lines in r['soak_driver_log'].items():
+        res.note(f'soak {name} driver log: {len(lines)} lines about lost replies/offline'
+                 + ''.join(f'\n    {line}' for line in lines[:8]))
 
 
 def bench_kill9(res: Results, a: argparse.Namespace) -> None:

@@ -19,6 +19,62 @@ from typing import Dict, List
 from bench.common import ParachuteRig, ros_client, rss_bytes, ServoRig, workdir
 
 
+class _DeviceProbe:
+    """A runner tap: how late the device thread runs behind the wire, and output silences."""
+
+    def __init__(self) -> None:
+        self.max_lag = 0.0
+        self.max_lag_at = 0.0
+        self.max_tx_gap = 0.0
+        self.max_tx_gap_at = 0.0
+        self._last_tx = None
+
+    def __call__(self, direction: str, data: bytes, t: float) -> None:
+        now = time.monotonic()
+        if now - t > self.max_lag:
+            self.max_lag, self.max_lag_at = now - t, now
+        if direction == 'tx':
+            if self._last_tx is not None and t - self._last_tx > self.max_tx_gap:
+                self.max_tx_gap, self.max_tx_gap_at = t - self._last_tx, t
+            self._last_tx = t
+
+    def reset(self) -> None:
+        self.max_lag = self.max_tx_gap = 0.0
+
+
+class _Watchdog:
+    """A thread of this process that sleeps 5 ms at a time and keeps its longest oversleep."""
+
+    def __init__(self, period_s: float = 0.005) -> None:
+        self.period = period_s
+        self.max_late = 0.0
+        self.max_late_at = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='soak-watchdog', daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            time.sleep(self.period)
+            late = time.monotonic() - t0 - self.period
+            if late > self.max_late:
+                self.max_late, self.max_late_at = late, time.monotonic()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+
+
+_LOG_MARKERS = ('offline', 'stopped answering', 're-initializ', 'back online', 'online',
+                'failed', 'timed out', 'timeout')
+
+
+def _log_events(text: str) -> List[str]:
+    return [line.strip()[-160:] for line in text.splitlines()
+            if any(m in line for m in _LOG_MARKERS)]
+
+
 class _Gaps:
     """Longest gap between consecutive messages, by their header stamps (publish time).
 
@@ -31,6 +87,7 @@ class _Gaps:
         self.last_rx = None
         self.max_gap = 0.0
         self.max_rx_gap = 0.0
+        self.max_gap_at = 0.0
         self.count = 0
         self.lock = threading.Lock()
 
@@ -39,7 +96,8 @@ class _Gaps:
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         with self.lock:
             if self.last is not None:
-                self.max_gap = max(self.max_gap, stamp - self.last)
+                if stamp - self.last > self.max_gap:
+                    self.max_gap, self.max_gap_at = stamp - self.last, now
                 self.max_rx_gap = max(self.max_rx_gap, now - self.last_rx)
             self.last, self.last_rx = stamp, now
             self.count += 1
@@ -67,6 +125,11 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         servo = stack.enter_context(ServoRig(directory, list(range(1, 13)), 115200,
                                              {'publish_rate_hz': 50.0}, seed=11))
         chute = stack.enter_context(ParachuteRig(directory, stream_period_s=0.05, seed=12))
+        probes = {'servo': _DeviceProbe(), 'parachute': _DeviceProbe()}
+        servo.runner.add_tap(probes['servo'])
+        chute.runner.add_tap(probes['parachute'])
+        watchdog = _Watchdog()
+        stack.callback(watchdog.stop)
         client = stack.enter_context(ros_client('bench_soak'))
         joints, status = _Gaps(), _Gaps()
         client.subscribe(JointState, '/joint_states', joints)
@@ -81,6 +144,10 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         start = time.monotonic()
         joints.reset()
         status.reset()
+        for probe in probes.values():
+            probe.reset()
+        watchdog.max_late = 0.0
+        logs_at_start = {'servo': len(servo.node.output()), 'parachute': len(chute.node.output())}
         rss: Dict[str, List[float]] = {k: [] for k in pids}
         baseline: Dict[str, int] = {}
         end = start + duration_s
@@ -111,6 +178,21 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
             'soak_joint_states_msgs': joints.count,
             'soak_status_msgs': status.count,
             'soak_faults': faults,
+            'soak_stalls': {
+                # Times are seconds after the start of the measured window.
+                **{f'{name}_device_lag_s': (round(pr.max_lag, 3), round(pr.max_lag_at - start, 1))
+                   for name, pr in probes.items()},
+                **{f'{name}_device_silence_s': (round(pr.max_tx_gap, 3),
+                                                round(pr.max_tx_gap_at - start, 1))
+                   for name, pr in probes.items()},
+                'bench_process_oversleep_s': (round(watchdog.max_late, 3),
+                                              round(watchdog.max_late_at - start, 1)),
+                'joint_states_gap_ended_at': round(joints.max_gap_at - start, 1),
+                'status_gap_ended_at': round(status.max_gap_at - start, 1),
+            },
+            'soak_driver_log': {
+                name: _log_events(rig.node.output()[logs_at_start[name]:])
+                for name, rig in (('servo', servo), ('parachute', chute))},
             'alive': alive,
         }
     return result
