@@ -422,6 +422,11 @@ def test_a_silent_module_goes_offline_and_comes_back(rig):
     with rig.model():
         rig.sim.power_off()
     rig.status.wait(lambda m: not m.online, 3, start=start, what='offline status')
+    # A desired setting cannot be confirmed by a module that does not answer: refused.
+    mark = rig.wire.mark()
+    result = rig.set_param('attitude_threshold_deg', 75)
+    assert not result.successful and 'offline' in result.reason, result.reason
+    assert p.encode_attitude_threshold_set(75) not in rig.wire.since(mark)
     start = len(rig.status)
     with rig.model():
         rig.sim.power_on()
