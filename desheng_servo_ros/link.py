@@ -183,6 +183,32 @@ class ServoBusLink:
             self._idle_at = 0.0
             self._lock.release()
 
+    def read_sequence(self, reads: Sequence[Tuple[bytes, int, int]],
+                      priority: int = PRIORITY_LOOP) -> list:
+        """READ several servos back to back: ``reads`` are (frame, servo id, reply params).
+
+        The next READ goes out the moment the previous reply is matched, from the link's
+        reader thread, so a read cycle costs no thread hand-off per servo. Returns one entry
+        per READ sent: the reply, or None when it did not come in time (no retry: the read loop
+        counts it). The sequence stops early when a caller of higher priority waits for the bus;
+        the result is then shorter than ``reads``.
+        """
+        items = [(frame, self._matcher(servo_id, n), self.timeout_for(len(frame), n))
+                 for frame, servo_id, n in reads]
+        self._take(priority)
+        try:
+            results = self.link.request_sequence(
+                items, flush=True, should_continue=lambda: not self._lock.waiting_above(priority))
+            self.transactions += len(results)
+            self.failed_transactions += sum(1 for r in results if r is None)
+            return results
+        except LinkError:
+            self.failed_transactions += 1
+            raise
+        finally:
+            self._idle_at = 0.0
+            self._lock.release()
+
     def send(self, frame: bytes, priority: int = PRIORITY_SERVICE) -> None:
         """Send a frame that gets no reply; the bus stays taken for its wire time."""
         self._take(priority)

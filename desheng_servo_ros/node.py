@@ -463,33 +463,32 @@ class ServoBusNode(Node):
                 self._pause_cond.notify_all()
 
     def _cycle(self, now: float) -> None:
-        """One READ per active servo; the hot path (no logging, no waits but the bus)."""
-        bus = self.bus
-        transact = bus.transact
+        """One READ per active servo, back to back; the hot path (no logging, no waits)."""
+        if self._pause or not self._running:
+            return
         period = self.telemetry_period_s
+        plan = []
+        reads = []
         for s in self.servos:
-            if self._pause or not self._running:
-                return
             if s.failures >= OFFLINE_AFTER_FAILURES:
                 if now < s.next_probe:
                     continue
                 s.next_probe = now + REPROBE_PERIOD_S
-                retries = 0
-            else:
-                retries = None
             telemetry = now >= s.next_telemetry
-            try:
-                if telemetry:
-                    reply = transact(s.telemetry_frame, s.id, TELEMETRY_LENGTH, PRIORITY_LOOP,
-                                     retries)
-                else:
-                    reply = transact(s.read_frame, s.id, POSITION_LENGTH, PRIORITY_LOOP, retries)
-            except LinkTimeout:
-                self._failed(s)
-                continue
-            except (LinkDown, BusBusy):
-                return
+            plan.append((s, telemetry))
             if telemetry:
+                reads.append((s.telemetry_frame, s.id, TELEMETRY_LENGTH))
+            else:
+                reads.append((s.read_frame, s.id, POSITION_LENGTH))
+        try:
+            replies = self.bus.read_sequence(reads, PRIORITY_LOOP)
+        except (LinkDown, BusBusy):
+            return
+        # Servos after the last reply were not read (a service took the bus): next cycle.
+        for (s, telemetry), reply in zip(plan, replies):
+            if reply is None:
+                self._failed(s)
+            elif telemetry:
                 if s.telemetry_started or period <= 0:
                     s.next_telemetry = now + period
                 else:

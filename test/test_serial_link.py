@@ -31,7 +31,9 @@ class Echo:
     def __init__(self, port):
         self.port = port
         self.silent = False
+        self.mute = set()
         self.received = []
+        self.arrivals = []
         self.running = True
         self.thread = threading.Thread(target=self.run, daemon=True)
         self.thread.start()
@@ -43,7 +45,8 @@ class Echo:
             *lines, pending = pending.split(b'\n')
             for line in lines:
                 self.received.append(line)
-                if line.startswith(b'ask ') and not self.silent:
+                self.arrivals.append(time.monotonic())
+                if line.startswith(b'ask ') and not self.silent and line[4:] not in self.mute:
                     self.port.write(b're ' + line[4:] + b'\n')
 
     def stop(self):
@@ -171,3 +174,23 @@ def test_spy_url_logs_the_traffic_and_still_works(device, tmp_path):
     text = log.read_text()
     assert 'TX   0000  61 73 6B 20 39 0A' in text  # "ask 9\n" as it went out
     assert 'e 9.' in text  # the reply as it came in (the spy logs each read)
+
+
+def test_a_sequence_sends_each_request_after_the_previous_reply_and_skips_a_silent_one(device):
+    link, unsolicited, _ = make_link(device.port.path)
+    try:
+        assert link.wait_connected(2)
+        device.mute = {b'2'}
+        items = [(f'ask {n}\n'.encode(), (lambda n: lambda f: f == f're {n}'.encode())(n), 0.2)
+                 for n in (1, 2, 3)]
+        assert link.request_sequence(items) == [b're 1', None, b're 3']
+        # Each request went out only after the previous one was answered or given up.
+        assert device.received[-3:] == [b'ask 1', b'ask 2', b'ask 3']
+        # ask 3 waited for ask 2's timeout (a lower bound: a slow machine only makes it later).
+        assert device.arrivals[-1] - device.arrivals[-2] >= 0.19
+        assert link.stats.timeouts == 1
+        stop_after_one = link.request_sequence(items, should_continue=lambda: False)
+        assert stop_after_one == [b're 1'] and device.received[-1] == b'ask 1'
+        assert unsolicited == []
+    finally:
+        link.stop()

@@ -19,7 +19,7 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, List, Optional, Protocol
+from typing import Any, Callable, Iterable, List, Optional, Protocol, Tuple
 
 import serial
 
@@ -72,6 +72,73 @@ class _Waiter:
     match: Match
     event: threading.Event = field(default_factory=threading.Event)
     frame: Any = None
+
+    def offer(self, frame: Any) -> bool:
+        """Take `frame` if it is the awaited reply (reader thread)."""
+        if self.event.is_set() or not self.match(frame):
+            return False
+        self.frame = frame
+        self.event.set()
+        return True
+
+
+class _Sequence:
+    """Requests sent one after the other, each as soon as the previous one is answered.
+
+    The reader thread sends the next request the moment it has matched a reply, so a chain of
+    half-duplex transactions costs no thread hand-off between its links; the caller only steps
+    in when a reply is overdue (it skips that one) and once at the end.
+    """
+
+    def __init__(self, link: 'SerialLink', items: List[Tuple[bytes, Match, float]],
+                 flush: bool, should_continue: Optional[Callable[[], bool]]) -> None:
+        self.link = link
+        self.items = items
+        self.flush = flush
+        self.should_continue = should_continue
+        self.lock = threading.Lock()
+        self.event = threading.Event()
+        self.results: List[Any] = []
+        self.index = 0
+        self.deadline = 0.0
+        self.done = False
+        self.error: Optional[LinkError] = None
+
+    def offer(self, frame: Any) -> bool:
+        """Take `frame` if it answers the current request, and send the next (reader thread)."""
+        with self.lock:
+            if self.done or not self.items[self.index][1](frame):
+                return False
+            self.results.append(frame)
+            self.advance()
+            return True
+
+    def send_current(self) -> None:
+        """Send the current request (lock held)."""
+        data, _, timeout = self.items[self.index]
+        try:
+            if self.flush:
+                self.link.flush_input()
+            self.link.write(data)
+        except LinkError as exc:
+            self.error = exc
+            self.finish()
+            return
+        self.deadline = time.monotonic() + timeout
+
+    def advance(self) -> None:
+        """Go on to the next request, or finish (lock held)."""
+        self.index += 1
+        if self.index < len(self.items) and \
+                (self.should_continue is None or self.should_continue()):
+            self.send_current()
+        else:
+            self.finish()
+
+    def finish(self) -> None:
+        """Wake the caller (lock held)."""
+        self.done = True
+        self.event.set()
 
 
 class SerialLink:
@@ -209,6 +276,49 @@ class SerialLink:
                 if waiter in self._waiters:
                     self._waiters.remove(waiter)
 
+    def request_sequence(
+        self,
+        items: List[Tuple[bytes, Match, float]],
+        flush: bool = False,
+        should_continue: Optional[Callable[[], bool]] = None,
+    ) -> List[Any]:
+        """Send requests one after the other, each once the previous one is answered.
+
+        `items` are (data, match, timeout). Returns one entry per request sent: its reply, or
+        None when none came within its timeout (the next request is sent then). Before each
+        request after the first, `should_continue()` may end the sequence early (a caller of
+        higher priority is waiting for the bus); the result is then shorter than `items`.
+        Raises LinkDown when the port is not open or closes meanwhile.
+        """
+        if not items:
+            return []
+        seq = _Sequence(self, items, flush, should_continue)
+        with self._waiters_lock:
+            self._waiters.append(seq)
+        try:
+            with seq.lock:
+                seq.send_current()
+            while True:
+                with seq.lock:
+                    if seq.done:
+                        break
+                    remaining = seq.deadline - time.monotonic()
+                    if remaining <= 0:
+                        seq.results.append(None)
+                        self.stats.timeouts += 1
+                        seq.advance()
+                        continue
+                seq.event.wait(remaining)
+                if not self._connected.is_set():
+                    raise LinkDown(f'{self.url} closed while waiting for a reply')
+            if seq.error is not None:
+                raise seq.error
+            return seq.results
+        finally:
+            with self._waiters_lock:
+                if seq in self._waiters:
+                    self._waiters.remove(seq)
+
     def flush_input(self) -> None:
         """Discard unread input and any partial frame."""
         with self._rx_lock:
@@ -316,9 +426,7 @@ class SerialLink:
     def _deliver_to_waiter(self, frame: Any) -> bool:
         with self._waiters_lock:
             for waiter in self._waiters:
-                if not waiter.event.is_set() and waiter.match(frame):
-                    waiter.frame = frame
-                    waiter.event.set()
+                if waiter.offer(frame):
                     return True
         return False
 
