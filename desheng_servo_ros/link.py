@@ -2,16 +2,18 @@
 
 No ROS here. :class:`ServoBusLink` owns the bus: one transaction at a time (a priority lock, so an
 emergency stop overtakes a read cycle and a service call gets in between two reads), stale input
-flushed before each request, exactly the reply of the addressed id with the expected length,
-a timeout of the wire time of request + reply plus a margin, bounded retries, and frames that
-expect no reply (broadcast, SYNC WRITE, ACTION) holding the bus for their own wire time.
+flushed before each request, exactly the reply of the addressed id with the expected length, a
+timeout of the wire time of request + reply plus a margin, bounded retries, chains of READs sent
+by the reader thread (the read loop), and frames that expect no reply (broadcast, SYNC WRITE,
+ACTION) holding the bus for their own wire time.
 """
 
 from __future__ import annotations
 
+from collections import deque
 import threading
 import time
-from typing import Callable, Dict, Iterable, Optional, Sequence, Tuple
+from typing import Any, Callable, Deque, Dict, Iterable, Optional, Protocol, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Reply, StreamDecoder
@@ -19,8 +21,8 @@ from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 
 __all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'PRIORITY_LOOP',
-           'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ServoBusLink',
-           'REPLY_OVERHEAD']
+           'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ReadItem', 'ReadPlan',
+           'ServoBusLink', 'REPLY_OVERHEAD']
 
 # Priorities of the bus lock: lower number goes first.
 PRIORITY_URGENT = 0    # emergency stop, shutdown torque-off
@@ -78,6 +80,66 @@ class _PriorityLock:
     def waiting_above(self, level: int) -> bool:
         """Whether someone of a higher priority than ``level`` is waiting."""
         return any(self._waiting[:level])
+
+
+# One READ of a chain: (frame, servo id, reply params, retries, tag for the plan).
+ReadItem = Tuple[bytes, int, int, int, Any]
+
+
+class ReadPlan(Protocol):
+    """What :meth:`ServoBusLink.read_chain` asks of its caller."""
+
+    def next_read(self) -> Optional[ReadItem]:
+        """Return the next READ, or None to end the chain (called on the reader thread)."""
+
+    def on_read(self, tag: Any, reply: Optional[Reply]) -> None:
+        """Take the reply of the READ tagged `tag` (None: no reply after its retries)."""
+
+
+class _ReadChain:
+    """A :class:`ReadPlan` as a request chain of the serial link, with retries per READ."""
+
+    __slots__ = ('bus', 'plan', 'priority', 'sent', 'retry')
+
+    def __init__(self, bus: 'ServoBusLink', plan: ReadPlan, priority: int) -> None:
+        self.bus = bus
+        self.plan = plan
+        self.priority = priority
+        self.sent: Deque[list] = deque()  # [item, attempts] of READs awaiting their result
+        self.retry: Optional[list] = None
+
+    def next_request(self) -> Optional[Tuple[bytes, Callable[[Reply], bool], float]]:
+        bus = self.bus
+        entry, self.retry = self.retry, None
+        if bus._lock.waiting_above(self.priority):
+            # Yield the bus between two READs; a retry that cannot go out has failed.
+            if entry is not None:
+                self._settle(entry[0], None)
+            return None
+        if entry is None:
+            item = self.plan.next_read()
+            if item is None:
+                return None
+            entry = [item, 0]
+        self.sent.append(entry)
+        frame, servo_id, nparams = entry[0][:3]
+        return frame, bus._matcher(servo_id, nparams), bus.timeout_for(len(frame), nparams)
+
+    def on_result(self, reply: Optional[Reply]) -> None:
+        entry = self.sent.popleft()
+        item = entry[0]
+        if reply is None and entry[1] < item[3]:
+            entry[1] += 1
+            self.bus.link.stats.retries += 1
+            self.retry = entry
+            return
+        self._settle(item, reply)
+
+    def _settle(self, item: ReadItem, reply: Optional[Reply]) -> None:
+        self.bus.transactions += 1
+        if reply is None:
+            self.bus.failed_transactions += 1
+        self.plan.on_read(item[4], reply)
 
 
 class ServoBusLink:
@@ -183,25 +245,20 @@ class ServoBusLink:
             self._idle_at = 0.0
             self._lock.release()
 
-    def read_sequence(self, reads: Sequence[Tuple[bytes, int, int]],
-                      priority: int = PRIORITY_LOOP) -> list:
-        """READ several servos back to back: ``reads`` are (frame, servo id, reply params).
+    def read_chain(self, plan: 'ReadPlan', priority: int = PRIORITY_LOOP) -> int:
+        """READ servos back to back, as ``plan.next_read()`` gives them, until it returns None.
 
-        The next READ goes out the moment the previous reply is matched, from the link's
-        reader thread, so a read cycle costs no thread hand-off per servo. Returns one entry
-        per READ sent: the reply, or None when it did not come in time (no retry: the read loop
-        counts it). The sequence stops early when a caller of higher priority waits for the bus;
-        the result is then shorter than ``reads``.
+        The next READ goes out the moment the previous reply is matched, from the link's reader
+        thread, so a chain costs no thread hand-off per servo, also from one read cycle to the
+        next. A READ that gets no reply is sent again at once, up to its own retries; then
+        ``plan.on_read(tag, None)``. Replies reach ``plan.on_read(tag, reply)`` on the reader
+        thread, after the next READ is on its way. The chain stops early, between two READs,
+        when a caller of higher priority waits for the bus. Returns the READs sent.
         """
-        items = [(frame, self._matcher(servo_id, n), self.timeout_for(len(frame), n))
-                 for frame, servo_id, n in reads]
+        chain = _ReadChain(self, plan, priority)
         self._take(priority)
         try:
-            results = self.link.request_sequence(
-                items, flush=True, should_continue=lambda: not self._lock.waiting_above(priority))
-            self.transactions += len(results)
-            self.failed_transactions += sum(1 for r in results if r is None)
-            return results
+            return self.link.request_chain(chain, flush=True)
         except LinkError:
             self.failed_transactions += 1
             raise

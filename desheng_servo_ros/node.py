@@ -18,7 +18,7 @@ from typing import Iterator, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.link import (BusBusy, LinkDown, LinkError, LinkTimeout, PRIORITY_LOOP,
-                                    PRIORITY_SERVICE, PRIORITY_URGENT, ServoBusLink)
+                                    PRIORITY_SERVICE, PRIORITY_URGENT, ReadItem, ServoBusLink)
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -112,6 +112,83 @@ def _describe(desc: str, *, read_only: bool = False, int_range: Optional[Tuple[i
         d.floating_point_range = [FloatingPointRange(from_value=float_range[0],
                                                      to_value=float_range[1], step=0.0)]
     return d
+
+
+class _ReadCycles:
+    """The read loop's cycles (one READ per active servo) as a plan for a chain of READs.
+
+    The bus link asks for each next READ the moment the previous reply is in, so consecutive
+    cycles follow each other on the wire without a gap when ``publish_rate_hz`` asks for more
+    than the bus carries; otherwise the chain ends after a cycle and the read loop waits for
+    the next one. Runs on the link's reader thread (replies) and the read loop (timeouts).
+    """
+
+    def __init__(self, node: 'ServoBusNode') -> None:
+        self.node = node
+        self.plan: List[Tuple[_Servo, bool]] = []
+        self.pos = 0
+        self.started = 0.0
+        self.next_cycle = time.monotonic()
+
+    @property
+    def in_cycle(self) -> bool:
+        """Whether a cycle has READs left to send."""
+        return self.pos < len(self.plan)
+
+    def reset(self) -> None:
+        """Drop the cycle in progress (the servo list or the port changed); next one is due."""
+        self.plan = []
+        self.pos = 0
+        self.next_cycle = time.monotonic()
+
+    def next_read(self) -> Optional[ReadItem]:
+        """Return the next READ of this cycle or of the next one when it is due, else None."""
+        node = self.node
+        if node._pause or not node._running:
+            return None
+        if self.pos >= len(self.plan) and not self._start_cycle():
+            return None
+        s, telemetry = self.plan[self.pos]
+        self.pos += 1
+        tag = (s, telemetry, self.started, self.pos == len(self.plan))
+        # A servo that already failed as often as it takes to be offline is probed without
+        # retries, so a missing servo costs little bus time.
+        retries = node.bus.max_retries if s.failures < OFFLINE_AFTER_FAILURES else 0
+        if telemetry:
+            return s.telemetry_frame, s.id, TELEMETRY_LENGTH, retries, tag
+        return s.read_frame, s.id, POSITION_LENGTH, retries, tag
+
+    def on_read(self, tag: Tuple[_Servo, bool, float, bool],
+                reply: Optional[proto.Reply]) -> None:
+        """Take the result of one READ; the last one of a cycle completes it."""
+        s, telemetry, started, last = tag
+        self.node._on_read(s, telemetry, started, reply)
+        if last:
+            self.node._cycle_done()
+
+    def _start_cycle(self) -> bool:
+        node = self.node
+        now = time.monotonic()
+        if now < self.next_cycle:
+            return False
+        period = 1.0 / node.publish_rate_hz
+        if now - self.next_cycle > period:
+            if not node._behind_logged and self.started:
+                node._behind_logged = True
+                node.get_logger().warning(
+                    f'the bus cannot keep up with publish_rate_hz {node.publish_rate_hz:g} '
+                    f'({len(node.servos)} servos at {node.baud} baud): publishing as fast as '
+                    'it reads')
+            self.next_cycle = now
+        self.next_cycle += period
+        self.started = now
+        self.plan = node._plan_cycle(now)
+        self.pos = 0
+        if not self.plan:
+            # Every servo is offline and none is due for a probe: publish that all the same.
+            node._cycle_done()
+            return False
+        return True
 
 
 class StartupError(RuntimeError):
@@ -362,9 +439,11 @@ class ServoBusNode(Node):
         except Exception as exc:  # noqa: BLE001 - report, never die silently
             self.get_logger().error(f'read loop stopped: {exc!r}')
 
-    def _sleep(self, seconds: float) -> None:
+    def _sleep(self, seconds: float, until_pause: bool = True) -> None:
+        # In short steps, so a pause (scan, id change) or shutdown never waits for a slow rate.
         deadline = time.monotonic() + seconds
-        while self._running and time.monotonic() < deadline:
+        while self._running and not (until_pause and self._pause) and \
+                time.monotonic() < deadline:
             time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
 
     def _wait_connected(self) -> bool:
@@ -391,7 +470,7 @@ class ServoBusNode(Node):
             self.get_logger().error(
                 f'no servo answers on {self.port} at {self.baud} baud: check power, wiring and '
                 f'the baud parameter; scanning again in {SCAN_RETRY_S:.0f} s')
-            self._sleep(SCAN_RETRY_S)
+            self._sleep(SCAN_RETRY_S, until_pause=False)
         if self.torque_on_start and self._wait_connected():
             for s in self.servos:
                 try:
@@ -402,43 +481,29 @@ class ServoBusNode(Node):
         self._startup_done = True
 
     def _run_cycles(self) -> None:
-        next_cycle = time.monotonic()
-        first_cycles = 0
+        plan = _ReadCycles(self)
         while self._running:
             if self._pause:
                 self._idle_while_paused()
+                plan.reset()
                 continue
             if not self.bus.connected:
                 # Keep servo_states (all offline) and diagnostics coming while the port is away.
                 self._publish(time.monotonic(), joints=False)
                 self.bus.wait_connected(1.0 / self.publish_rate_hz)
-                next_cycle = time.monotonic()
+                plan.reset()
                 continue
-            now = time.monotonic()
-            self._cycle(now)
-            self._cycle_count += 1
-            # Building and publishing messages runs on its own thread, while the next cycle's
-            # bytes are on the wire, instead of adding to every cycle.
-            with self._pub_cond:
-                self._pub_due = True
-                self._pub_cond.notify()
-            if first_cycles < OFFLINE_AFTER_FAILURES + 1:
-                first_cycles += 1
-                if first_cycles == OFFLINE_AFTER_FAILURES + 1:
-                    self._report_missing()
-            period = 1.0 / self.publish_rate_hz
-            next_cycle += period
-            delay = next_cycle - time.monotonic()
-            if delay > 0:
-                self._sleep(delay)
-            else:
-                if delay < -period and not self._behind_logged:
-                    self._behind_logged = True
-                    self.get_logger().warning(
-                        f'the bus cannot keep up with publish_rate_hz {self.publish_rate_hz:g} '
-                        f'({len(self.servos)} servos at {self.baud} baud): publishing as fast as '
-                        'it reads')
-                next_cycle = time.monotonic()
+            if not plan.in_cycle:
+                delay = plan.next_cycle - time.monotonic()
+                if delay > 0:
+                    self._sleep(delay)
+                    continue
+            try:
+                # Returns between cycles when the next one is not due yet, or early when a
+                # command, a service or a pause wants the bus.
+                self.bus.read_chain(plan, PRIORITY_LOOP)
+            except (LinkDown, BusBusy):
+                continue
 
     def _idle_while_paused(self) -> None:
         with self._pause_cond:
@@ -462,44 +527,45 @@ class ServoBusNode(Node):
                 self._pause -= 1
                 self._pause_cond.notify_all()
 
-    def _cycle(self, now: float) -> None:
-        """One READ per active servo, back to back; the hot path (no logging, no waits)."""
-        if self._pause or not self._running:
-            return
-        period = self.telemetry_period_s
+    def _plan_cycle(self, now: float) -> List[Tuple[_Servo, bool]]:
+        """Return (servo, telemetry READ?) for each servo to read in a cycle starting now."""
         plan = []
-        reads = []
         for s in self.servos:
             if s.failures >= OFFLINE_AFTER_FAILURES:
                 if now < s.next_probe:
                     continue
                 s.next_probe = now + REPROBE_PERIOD_S
-            telemetry = now >= s.next_telemetry
-            plan.append((s, telemetry))
-            if telemetry:
-                reads.append((s.telemetry_frame, s.id, TELEMETRY_LENGTH))
+            plan.append((s, now >= s.next_telemetry))
+        return plan
+
+    def _on_read(self, s: _Servo, telemetry: bool, now: float,
+                 reply: Optional[proto.Reply]) -> None:
+        """Take the result of one READ of the cycle that started at ``now`` (the hot path)."""
+        if reply is None:
+            self._failed(s)
+        elif telemetry:
+            period = self.telemetry_period_s
+            if s.telemetry_started or period <= 0:
+                s.next_telemetry = now + period
             else:
-                reads.append((s.read_frame, s.id, POSITION_LENGTH))
-        try:
-            replies = self.bus.read_sequence(reads, PRIORITY_LOOP)
-        except (LinkDown, BusBusy):
-            return
-        # Servos after the last reply were not read (a service took the bus): next cycle.
-        for (s, telemetry), reply in zip(plan, replies):
-            if reply is None:
-                self._failed(s)
-            elif telemetry:
-                if s.telemetry_started or period <= 0:
-                    s.next_telemetry = now + period
-                else:
-                    # Spread the telemetry reads of the servos evenly over the period.
-                    s.telemetry_started = True
-                    n = len(self.servos)
-                    s.next_telemetry = now + period * (s.index + 1) / n
-                self._update_telemetry(s, reply)
-            else:
-                p = reply.params
-                self._update_position(s, (p[0] << 8) | p[1], (p[2] << 8) | p[3], reply.status)
+                # Spread the telemetry reads of the servos evenly over the period.
+                s.telemetry_started = True
+                s.next_telemetry = now + period * (s.index + 1) / len(self.servos)
+            self._update_telemetry(s, reply)
+        else:
+            p = reply.params
+            self._update_position(s, (p[0] << 8) | p[1], (p[2] << 8) | p[3], reply.status)
+
+    def _cycle_done(self) -> None:
+        """Count a complete read cycle and have the publisher thread publish it."""
+        self._cycle_count += 1
+        # Building and publishing messages runs on its own thread, while the next cycle's
+        # bytes are on the wire, instead of adding to every cycle.
+        with self._pub_cond:
+            self._pub_due = True
+            self._pub_cond.notify()
+        if self._cycle_count == OFFLINE_AFTER_FAILURES + 1:
+            self._report_missing()
 
     def _update_position(self, s: _Servo, ticks: int, speed: int, status: int) -> None:
         if ticks != s.position_ticks and s.seen:

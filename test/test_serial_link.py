@@ -176,21 +176,63 @@ def test_spy_url_logs_the_traffic_and_still_works(device, tmp_path):
     assert 'e 9.' in text  # the reply as it came in (the spy logs each read)
 
 
-def test_a_sequence_sends_each_request_after_the_previous_reply_and_skips_a_silent_one(device):
+class ListChain:
+    """A request chain over a list; records each result with the frames sent by then."""
+
+    def __init__(self, link, numbers, retry_silent=0, fail_on=None):
+        self.link = link
+        self.todo = list(numbers)
+        self.retry_silent = retry_silent
+        self.fail_on = fail_on
+        self.current = None
+        self.results = []
+
+    def next_request(self):
+        if not self.todo:
+            return None
+        n = self.current = self.todo.pop(0)
+        return f'ask {n}\n'.encode(), lambda f: f == f're {n}'.encode(), 0.2
+
+    def on_result(self, frame):
+        self.results.append((frame, self.link.stats.frames_out))
+        if frame is None and self.retry_silent:
+            self.retry_silent -= 1
+            self.todo.insert(0, self.current)
+        if frame is not None and frame == self.fail_on:
+            raise RuntimeError('handler bug')
+
+
+def test_a_chain_sends_each_request_after_the_previous_reply_and_skips_a_silent_one(device):
     link, unsolicited, _ = make_link(device.port.path)
     try:
         assert link.wait_connected(2)
         device.mute = {b'2'}
-        items = [(f'ask {n}\n'.encode(), (lambda n: lambda f: f == f're {n}'.encode())(n), 0.2)
-                 for n in (1, 2, 3)]
-        assert link.request_sequence(items) == [b're 1', None, b're 3']
+        chain = ListChain(link, [1, 2, 3])
+        assert link.request_chain(chain) == 3
+        assert [frame for frame, _ in chain.results] == [b're 1', None, b're 3']
         # Each request went out only after the previous one was answered or given up.
         assert device.received[-3:] == [b'ask 1', b'ask 2', b'ask 3']
         # ask 3 waited for ask 2's timeout (a lower bound: a slow machine only makes it later).
         assert device.arrivals[-1] - device.arrivals[-2] >= 0.19
         assert link.stats.timeouts == 1
-        stop_after_one = link.request_sequence(items, should_continue=lambda: False)
-        assert stop_after_one == [b're 1'] and device.received[-1] == b'ask 1'
+        # A reply is handed over once the next request is on its way (re 1 with ask 2 sent); a
+        # timeout before the next request goes out, so the chain can still decide on a retry.
+        sent_before = link.stats.frames_out - 3
+        assert [n - sent_before for _, n in chain.results] == [2, 2, 3]
         assert unsolicited == []
+    finally:
+        link.stop()
+
+
+def test_a_chain_can_retry_a_silent_request_at_once_and_survives_a_handler_bug(device):
+    link, _, _ = make_link(device.port.path)
+    try:
+        assert link.wait_connected(2)
+        device.mute = {b'2'}
+        chain = ListChain(link, [1, 2, 3], retry_silent=1, fail_on=b're 1')
+        assert link.request_chain(chain) == 4
+        assert device.received[-4:] == [b'ask 1', b'ask 2', b'ask 2', b'ask 3']
+        assert [frame for frame, _ in chain.results] == [b're 1', None, None, b're 3']
+        assert link.request_chain(ListChain(link, [])) == 0
     finally:
         link.stop()

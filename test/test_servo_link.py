@@ -108,3 +108,58 @@ def test_the_bus_lock_serves_higher_priorities_first():
     assert order == [PRIORITY_URGENT, PRIORITY_SERVICE, PRIORITY_LOOP]
     assert lock.acquire(PRIORITY_LOOP, 0.1)
     assert not lock.acquire(PRIORITY_URGENT, 0.05)
+
+
+class Plan:
+    """A read plan over a list of servo ids (position READs), recording what it is told."""
+
+    def __init__(self, ids, retries=1, on_reply=None):
+        self.todo = list(ids)
+        self.retries = retries
+        self.on_reply = on_reply
+        self.results = []
+
+    def next_read(self):
+        if not self.todo:
+            return None
+        servo_id = self.todo.pop(0)
+        return proto.encode_read(servo_id, 0x38, 4), servo_id, 4, self.retries, servo_id
+
+    def on_read(self, tag, reply):
+        self.results.append((tag, None if reply is None else reply.servo_id))
+        if self.on_reply is not None:
+            self.on_reply(self)
+
+
+def test_a_read_chain_retries_a_lost_reply_at_once_and_reports_a_missing_servo(bus):
+    dev, wire, link = bus
+    mark = wire.mark()
+    retries = link.link.stats.retries
+    transactions, failed = link.transactions, link.failed_transactions
+    dev.runner.faults.drop_next = 1
+    plan = Plan([1, 2, 77, 3])
+    assert link.read_chain(plan) == 6
+    assert plan.results == [(1, 1), (2, 2), (77, None), (3, 3)]
+    assert [r.servo_id for r in wire.requests(mark)] == [1, 1, 2, 77, 77, 3]
+    assert link.link.stats.retries == retries + 2
+    assert (link.transactions, link.failed_transactions) == (transactions + 4, failed + 1)
+    # A READ planned without retries is given up after its first silence.
+    plan = Plan([77, 1], retries=0)
+    assert link.read_chain(plan) == 2 and plan.results == [(77, None), (1, 1)]
+
+
+def test_a_read_chain_yields_the_bus_between_two_reads_to_a_waiting_service(bus):
+    _, wire, link = bus
+    pings = []
+
+    def ask_once(plan):
+        if len(plan.results) == 3:
+            threading.Thread(target=lambda: pings.append(link.ping(2).servo_id)).start()
+    mark = wire.mark()
+    plan = Plan([1] * 10000, on_reply=ask_once)
+    sent = link.read_chain(plan)
+    # The chain gave up the bus soon after the service queued, not after 10000 READs.
+    assert 3 <= sent < 10000 and len(plan.results) == sent
+    wait_for(lambda: pings == [2], 5, what='the PING of the waiting service')
+    requests = [r for r in wire.requests(mark)]
+    assert requests[sent].instruction == proto.Instruction.PING

@@ -7,6 +7,7 @@ import math
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
+from ros_harness import wait_for
 from servo_rig import start_rig, stop_rig
 from uav_serial_drivers.srv import SetTorque, WriteRegister
 
@@ -97,6 +98,26 @@ def test_garbage_on_the_line_is_skipped(rig):
     with rig.locked():
         want = rig.sim_servo(2).position_ticks
     assert msg.servos[1].position_ticks == want
+
+
+def test_a_lost_reply_is_read_again_at_once_and_costs_the_servo_nothing(rig):
+    msg = rig.states.wait(all_online, 5, start=len(rig.states), what='all online')
+    errors = [s.error_count for s in msg.servos]
+    retries = bus_value(rig.diag('servo_bus: bus', lambda s: True, start=len(rig.diags)),
+                        'retries')
+    dropped = rig.dev.runner.replies_dropped
+    rig.dev.runner.faults.drop_next = 1
+    wait_for(lambda: rig.dev.runner.replies_dropped == dropped + 1, 5, what='a reply dropped')
+    start = len(rig.states)
+    msg = rig.states.wait(all_online, 5, start=start + 3, what='states after the drop')
+    # The READ was sent again within the same cycle: no failed transaction, no data gap.
+    assert [s.error_count for s in msg.servos] == errors
+    rig.diag('servo_bus: bus', lambda s: bus_value(s, 'retries') == retries + 1,
+             start=len(rig.diags))
+
+
+def bus_value(status, key):
+    return int({v.key: v.value for v in status.values}[key])
 
 
 def test_unplug_and_replug_recover_without_a_restart(rig):

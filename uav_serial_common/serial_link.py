@@ -82,63 +82,94 @@ class _Waiter:
         return True
 
 
-class _Sequence:
-    """Requests sent one after the other, each as soon as the previous one is answered.
+class RequestChain(Protocol):
+    """Requests sent one after the other, each the moment the previous one is settled."""
 
-    The reader thread sends the next request the moment it has matched a reply, so a chain of
-    half-duplex transactions costs no thread hand-off between its links; the caller only steps
-    in when a reply is overdue (it skips that one) and once at the end.
+    def next_request(self) -> Optional[Tuple[bytes, Match, float]]:
+        """Return the next (data, match, timeout), or None to end the chain."""
+
+    def on_result(self, frame: Any) -> None:
+        """Take the reply of the request before (None: it timed out)."""
+
+
+class _Chain:
+    """A running :class:`RequestChain`: the reader thread sends each next request itself.
+
+    On a reply the next request goes out first and ``on_result`` runs while it is on the wire,
+    so the bus never waits for the handling of a reply; on a timeout (detected by the caller's
+    thread) ``on_result(None)`` comes first, so the chain can retry that request at once.
     """
 
-    def __init__(self, link: 'SerialLink', items: List[Tuple[bytes, Match, float]],
-                 flush: bool, should_continue: Optional[Callable[[], bool]]) -> None:
+    def __init__(self, link: 'SerialLink', chain: RequestChain, flush: bool) -> None:
         self.link = link
-        self.items = items
+        self.chain = chain
         self.flush = flush
-        self.should_continue = should_continue
         self.lock = threading.Lock()
         self.event = threading.Event()
-        self.results: List[Any] = []
-        self.index = 0
+        self.match: Match = _match_nothing
         self.deadline = 0.0
+        self.sent = 0
         self.done = False
         self.error: Optional[LinkError] = None
 
     def offer(self, frame: Any) -> bool:
         """Take `frame` if it answers the current request, and send the next (reader thread)."""
         with self.lock:
-            if self.done or not self.items[self.index][1](frame):
+            if self.done or not self.match(frame):
                 return False
-            self.results.append(frame)
-            self.advance()
+            # The reader thread has just taken in everything the port had: no stale reply can
+            # be waiting there, and flushing a pty costs a slow ioctl per request.
+            self.send_next(flush_port=False)
+            self._deliver(frame)
             return True
 
-    def send_current(self) -> None:
-        """Send the current request (lock held)."""
-        data, _, timeout = self.items[self.index]
+    def expire(self) -> None:
+        """Report the current request as timed out and go on (caller's thread, lock held)."""
+        self.link.stats.timeouts += 1
+        self._deliver(None)
+        self.send_next()
+
+    def send_next(self, flush_port: bool = True) -> None:
+        """Send the chain's next request, or finish (lock held).
+
+        With `flush` set, input is discarded first: the port's (when `flush_port`; a late reply
+        may be on its way after a timeout) and the decoder's partial frame.
+        """
+        try:
+            item = self.chain.next_request()
+        except Exception:  # noqa: BLE001 - a planner bug ends the chain, not the reader
+            self.link._log.error(f'request chain failed:\n{traceback.format_exc()}')
+            item = None
+        if item is None:
+            self.finish()
+            return
+        data, self.match, timeout = item
         try:
             if self.flush:
-                self.link.flush_input()
+                self.link.flush_input(port=flush_port)
             self.link.write(data)
         except LinkError as exc:
             self.error = exc
             self.finish()
             return
+        self.sent += 1
         self.deadline = time.monotonic() + timeout
 
-    def advance(self) -> None:
-        """Go on to the next request, or finish (lock held)."""
-        self.index += 1
-        if self.index < len(self.items) and \
-                (self.should_continue is None or self.should_continue()):
-            self.send_current()
-        else:
-            self.finish()
+    def _deliver(self, frame: Any) -> None:
+        try:
+            self.chain.on_result(frame)
+        except Exception:  # noqa: BLE001 - a handler bug must not kill the reader
+            self.link._log.error(f'request chain handler failed:\n{traceback.format_exc()}')
 
     def finish(self) -> None:
         """Wake the caller (lock held)."""
         self.done = True
+        self.match = _match_nothing
         self.event.set()
+
+
+def _match_nothing(frame: Any) -> bool:
+    return False
 
 
 class SerialLink:
@@ -180,7 +211,7 @@ class SerialLink:
         self._fast_fd: Optional[int] = None
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
-        self._waiters: List[_Waiter] = []
+        self._waiters: List[Any] = []  # _Waiter and _Chain
         self._waiters_lock = threading.Lock()
         self._stop = threading.Event()
         self._connected = threading.Event()
@@ -276,56 +307,49 @@ class SerialLink:
                 if waiter in self._waiters:
                     self._waiters.remove(waiter)
 
-    def request_sequence(
-        self,
-        items: List[Tuple[bytes, Match, float]],
-        flush: bool = False,
-        should_continue: Optional[Callable[[], bool]] = None,
-    ) -> List[Any]:
-        """Send requests one after the other, each once the previous one is answered.
+    def request_chain(self, chain: RequestChain, flush: bool = False) -> int:
+        """Run `chain` until its ``next_request()`` returns None; return the requests sent.
 
-        `items` are (data, match, timeout). Returns one entry per request sent: its reply, or
-        None when none came within its timeout (the next request is sent then). Before each
-        request after the first, `should_continue()` may end the sequence early (a caller of
-        higher priority is waiting for the bus); the result is then shorter than `items`.
-        Raises LinkDown when the port is not open or closes meanwhile.
+        Each request goes out the moment the previous one is answered (from the reader thread:
+        no thread hand-off between two links of the chain) or has timed out. Results reach
+        ``chain.on_result`` in order, one per request, on the reader thread (replies) or on this
+        thread (timeouts, None), never two at a time. Raises LinkDown when the port is not open
+        or closes meanwhile; the request in flight then gets no result.
         """
-        if not items:
-            return []
-        seq = _Sequence(self, items, flush, should_continue)
+        run = _Chain(self, chain, flush)
         with self._waiters_lock:
-            self._waiters.append(seq)
+            self._waiters.append(run)
         try:
-            with seq.lock:
-                seq.send_current()
+            with run.lock:
+                run.send_next()
             while True:
-                with seq.lock:
-                    if seq.done:
+                with run.lock:
+                    if run.done:
                         break
-                    remaining = seq.deadline - time.monotonic()
+                    remaining = run.deadline - time.monotonic()
                     if remaining <= 0:
-                        seq.results.append(None)
-                        self.stats.timeouts += 1
-                        seq.advance()
+                        run.expire()
                         continue
-                seq.event.wait(remaining)
+                run.event.wait(remaining)
                 if not self._connected.is_set():
+                    with run.lock:
+                        run.finish()
                     raise LinkDown(f'{self.url} closed while waiting for a reply')
-            if seq.error is not None:
-                raise seq.error
-            return seq.results
+            if run.error is not None:
+                raise run.error
+            return run.sent
         finally:
             with self._waiters_lock:
-                if seq in self._waiters:
-                    self._waiters.remove(seq)
+                if run in self._waiters:
+                    self._waiters.remove(run)
 
-    def flush_input(self) -> None:
-        """Discard unread input and any partial frame."""
+    def flush_input(self, port: bool = True) -> None:
+        """Discard unread input (unless `port` is False) and any partial frame."""
         with self._rx_lock:
-            port = self._serial
-            if port is not None:
+            serial_port = self._serial if port else None
+            if serial_port is not None:
                 try:
-                    port.reset_input_buffer()
+                    serial_port.reset_input_buffer()
                 except (serial.SerialException, OSError):
                     pass
             self._decoder.reset()

@@ -69,6 +69,8 @@ class VirtualDeviceRunner:
         self._pending_garbage = b''
         self._replug_at: Optional[float] = None
         self._taps: list = []
+        self._last_tick = 0.0
+        self._tick_due = 0.0
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -160,18 +162,24 @@ class VirtualDeviceRunner:
                         self._log.exception('device model failed on input %s', data.hex(' '))
                         output = None
                 self._send(output, reply=True, ready_at=arrival)
-            self._tick()
+            if time.monotonic() >= self._tick_due:
+                self._tick()
 
     def _poll_timeout(self) -> float:
-        if self._next_event is None:
-            return self._tick_period
-        with self._lock:
-            when = self._next_event()
-        if when is None:
-            return self._tick_period
-        return min(self._tick_period, max(0.0, when - time.monotonic()))
+        """Return how long to wait for input before the model's next tick is due."""
+        due = self._last_tick + self._tick_period
+        if self._next_event is not None:
+            with self._lock:
+                when = self._next_event()
+            if when is not None:
+                due = min(due, when)
+        self._tick_due = due
+        return max(0.0, due - time.monotonic())
 
     def _tick(self) -> None:
+        # Only when due, not after every request: the model advances on input anyway, and the
+        # device must be back listening as soon as its reply is out.
+        self._last_tick = time.monotonic()
         if self._on_tick is None:
             output = None
         else:
