@@ -1,5 +1,7 @@
 """The shared serial link: reader thread, request matching, timeouts, retries, reconnect."""
 
+import os
+import tempfile
 import threading
 import time
 
@@ -110,6 +112,45 @@ def test_writing_while_the_port_is_missing_fails_at_once(tmp_path):
         link.stop()
 
 
+def test_a_port_the_user_may_not_open_is_reported_with_the_dialout_hint():
+    # A device node of another group, as /dev/ttyUSB0 (root:dialout, 660) is for a new user.
+    # Root may open anything, so as root the attempt is made by a child that became nobody.
+    directory = tempfile.mkdtemp(prefix='uav-perm-')
+    os.chmod(directory, 0o755)
+    port = VirtualSerialPort(os.path.join(directory, 'ttyUSB0')).open()
+    os.chmod(port.device_name, 0)
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child reports through the pipe
+        code = 1
+        try:
+            if os.geteuid() == 0:
+                os.setgroups([])
+                os.setgid(65534)
+                os.setuid(65534)
+            link, _, _ = make_link(port.path)
+            try:
+                wait_for(lambda: link.last_error, 5, what='an open error')
+                os.write(write_end, f'{link.connected}|{link.last_error}'.encode())
+                code = 0
+            finally:
+                link.stop()
+        finally:
+            os._exit(code)
+    try:
+        os.close(write_end)
+        with os.fdopen(read_end, 'rb') as pipe:
+            report = pipe.read().decode()
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0, report
+    finally:
+        port.close()
+        os.rmdir(directory)
+    connected, message = report.split('|', 1)
+    assert connected == 'False'
+    assert 'permission denied' in message and 'dialout' in message and port.path in message
+
+
 def test_unplug_is_noticed_and_the_link_reopens_the_same_path_after_replug(device):
     link, _, states = make_link(device.port.path)
     try:
@@ -136,6 +177,42 @@ def test_a_request_in_flight_fails_fast_when_the_port_goes_away(device):
         with pytest.raises(LinkDown):
             link.request(b'ask 3\n', lambda f: f == b're 3', timeout=5.0)
         assert time.monotonic() - start < 4.0
+    finally:
+        link.stop()
+
+
+def test_a_chain_whose_next_request_cannot_be_written_fails_fast_and_the_link_recovers(device):
+    # The cable is pulled between a reply and the next request of the chain, which the reader
+    # thread writes itself: it finds the port gone (and used to deadlock on its own lock).
+    link, _, _ = make_link(device.port.path)
+
+    class PullBeforeTwo(ListChain):
+        def next_request(self):
+            if self.todo and self.todo[0] == 2:
+                device.stop()  # its select would hold the pty open a little longer
+                device.port.unplug()
+            return super().next_request()
+    try:
+        assert link.wait_connected(2)
+        outcome = []
+
+        def run():
+            try:
+                outcome.append(link.request_chain(PullBeforeTwo(link, [1, 2, 3])))
+            except LinkDown as exc:
+                outcome.append(exc)
+        worker = threading.Thread(target=run, daemon=True)
+        worker.start()
+        worker.join(5)
+        assert not worker.is_alive(), 'the chain hung when the port went away'
+        assert len(outcome) == 1 and isinstance(outcome[0], LinkDown)
+        assert device.received[-1] == b'ask 1'
+        assert 'write failed' in link.last_error or 'cannot open' in link.last_error
+        device.port.replug()
+        echo = Echo(device.port)
+        wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        assert link.request(b'ask 4\n', lambda f: f == b're 4', timeout=1.0) == b're 4'
+        echo.stop()
     finally:
         link.stop()
 

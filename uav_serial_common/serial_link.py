@@ -19,7 +19,7 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, List, Optional, Protocol, Tuple
+from typing import Any, Callable, Iterable, Optional, Protocol, Tuple
 
 import serial
 
@@ -211,7 +211,9 @@ class SerialLink:
         self._fast_fd: Optional[int] = None
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
-        self._waiters: List[Any] = []  # _Waiter and _Chain
+        # _Waiter and _Chain objects. Copy-on-write under the lock: the reader thread reads it
+        # without the lock, so a waiter may close the port (a failed write) while it is offered.
+        self._waiters: Tuple[Any, ...] = ()
         self._waiters_lock = threading.Lock()
         self._stop = threading.Event()
         self._connected = threading.Event()
@@ -286,8 +288,7 @@ class SerialLink:
         where a late reply to an earlier request must not be taken for this one.
         """
         waiter = _Waiter(match)
-        with self._waiters_lock:
-            self._waiters.append(waiter)
+        self._add_waiter(waiter)
         try:
             for attempt in range(retries + 1):
                 if attempt:
@@ -303,9 +304,7 @@ class SerialLink:
             raise LinkTimeout(f'no reply within {timeout * 1000:.0f} ms '
                               f'after {retries + 1} attempt(s)')
         finally:
-            with self._waiters_lock:
-                if waiter in self._waiters:
-                    self._waiters.remove(waiter)
+            self._remove_waiter(waiter)
 
     def request_chain(self, chain: RequestChain, flush: bool = False) -> int:
         """Run `chain` until its ``next_request()`` returns None; return the requests sent.
@@ -317,8 +316,7 @@ class SerialLink:
         or closes meanwhile; the request in flight then gets no result.
         """
         run = _Chain(self, chain, flush)
-        with self._waiters_lock:
-            self._waiters.append(run)
+        self._add_waiter(run)
         try:
             with run.lock:
                 run.send_next()
@@ -339,9 +337,7 @@ class SerialLink:
                 raise run.error
             return run.sent
         finally:
-            with self._waiters_lock:
-                if run in self._waiters:
-                    self._waiters.remove(run)
+            self._remove_waiter(run)
 
     def flush_input(self, port: bool = True) -> None:
         """Discard unread input (unless `port` is False) and any partial frame."""
@@ -448,11 +444,18 @@ class SerialLink:
                                     f'{traceback.format_exc()}')
 
     def _deliver_to_waiter(self, frame: Any) -> bool:
-        with self._waiters_lock:
-            for waiter in self._waiters:
-                if waiter.offer(frame):
-                    return True
+        for waiter in self._waiters:
+            if waiter.offer(frame):
+                return True
         return False
+
+    def _add_waiter(self, waiter: Any) -> None:
+        with self._waiters_lock:
+            self._waiters = self._waiters + (waiter,)
+
+    def _remove_waiter(self, waiter: Any) -> None:
+        with self._waiters_lock:
+            self._waiters = tuple(w for w in self._waiters if w is not waiter)
 
     def _open(self) -> bool:
         try:
@@ -506,9 +509,8 @@ class SerialLink:
             except Exception:  # noqa: BLE001 - closing a vanished device may fail any way
                 pass
         # Wake every waiter: their request fails at once rather than at its timeout.
-        with self._waiters_lock:
-            for waiter in self._waiters:
-                waiter.event.set()
+        for waiter in self._waiters:
+            waiter.event.set()
         if was_connected:
             self._notify(False, reason)
 
