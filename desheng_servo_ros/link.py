@@ -163,8 +163,10 @@ class ServoBusLink:
         self.transactions = 0
         self.failed_transactions = 0
         self.unexpected_frames = 0
+        self.requests_by_id = [0] * 256
+        self.replies_by_id = [0] * 256
         self.link = SerialLink(port, baud, self.decoder, on_frame=self._on_unsolicited,
-                               on_connection=on_connection, logger=logger,
+                               on_connection=on_connection, on_tx=self._on_tx, logger=logger,
                                backoff_max_s=backoff_max_s)
         self._lock = _PriorityLock()
         self._idle_at = 0.0
@@ -211,8 +213,13 @@ class ServoBusLink:
         key = (servo_id, nparams)
         match = self._matchers.get(key)
         if match is None:
+            replies = self.replies_by_id
+
             def match(reply: Reply, servo_id=servo_id, nparams=nparams) -> bool:
-                return reply.servo_id == servo_id and len(reply.params) == nparams
+                if reply.servo_id == servo_id and len(reply.params) == nparams:
+                    replies[servo_id] += 1
+                    return True
+                return False
             self._matchers[key] = match
         return match
 
@@ -357,3 +364,18 @@ class ServoBusLink:
     def _on_unsolicited(self, frame: Reply) -> None:
         # Late replies (after a timeout) and duplicate-id replies (S24) end up here.
         self.unexpected_frames += 1
+        self.replies_by_id[frame.servo_id] += 1
+
+    def _on_tx(self, data: bytes) -> None:
+        # Every unicast instruction is answered (S13), broadcast ones never.
+        if len(data) > 4 and data[2] != proto.BROADCAST_ID:
+            self.requests_by_id[data[2]] += 1
+
+    def surplus_replies(self, servo_id: int) -> int:
+        """Return replies minus requests of ``servo_id`` so far; growing means a duplicate id.
+
+        Lost replies make it smaller; a reply comes late at most once per request. So when it
+        grows, more than one servo answers to this id (S24): on a real bus their replies
+        collide, and no reading of that id can be trusted.
+        """
+        return self.replies_by_id[servo_id] - self.requests_by_id[servo_id]

@@ -53,6 +53,10 @@ ID_ADDRESS = 0x05
 RUN_PRESET_ADDRESS = 0x3C
 ALL_IDS = (proto.MIN_ID, proto.MAX_ID)
 SWITCH_INTERVAL_S = 0.0005
+# Replies beyond the requests of one id within a diagnostics period that mean "two servos share
+# this id" (S24), and how long the fault is reported after the last sign of it.
+DUPLICATE_SURPLUS = 2
+DUPLICATE_HOLD_S = 5.0
 
 # Parameters that shape the servo list or the units: fixed for the life of the node.
 _STARTUP_ONLY = ('servo_ids', 'joint_names', 'ticks_per_revolution', 'zero_tick',
@@ -65,7 +69,8 @@ class _Servo:
     __slots__ = ('id', 'name', 'index', 'read_frame', 'telemetry_frame', 'online', 'seen',
                  'failures', 'error_count', 'position_ticks', 'position_rad', 'speed_raw',
                  'velocity', 'current_ma', 'temperature_c', 'status', 'torque_enabled',
-                 'next_telemetry', 'next_probe', 'direction', 'telemetry_started')
+                 'next_telemetry', 'next_probe', 'direction', 'telemetry_started',
+                 'surplus_mark', 'duplicate_until')
 
     def __init__(self, servo_id: int, name: str, index: int) -> None:
         self.id = servo_id
@@ -89,6 +94,8 @@ class _Servo:
         self.next_probe = 0.0
         self.direction = 1.0
         self.telemetry_started = False
+        self.surplus_mark: Optional[int] = None
+        self.duplicate_until = 0.0
 
     @property
     def faults(self) -> List[str]:
@@ -669,9 +676,24 @@ class ServoBusNode(Node):
             if now > t0:
                 self._cycle_rate_hz = (self._cycle_count - c0) / (now - t0)
             self._rate_mark = (now, self._cycle_count)
+            self._check_duplicate_ids(now)
             self._publish_diagnostics()
         except Exception as exc:  # noqa: BLE001
             self.get_logger().warning(f'diagnostics failed: {exc}', throttle_duration_sec=5.0)
+
+    def _check_duplicate_ids(self, now: float) -> None:
+        for s in self.servos:
+            surplus = self.bus.surplus_replies(s.id)
+            mark, s.surplus_mark = s.surplus_mark, surplus
+            if mark is None or surplus - mark < DUPLICATE_SURPLUS:
+                continue
+            if now >= s.duplicate_until:
+                self.get_logger().error(
+                    f'{s.name} (id {s.id}): more replies than requests, {surplus - mark} in '
+                    f'{DIAGNOSTICS_PERIOD_S:g} s: two servos answer to id {s.id}; their replies '
+                    'collide and its readings cannot be trusted. Connect them one at a time and '
+                    'give each its own id with ~/set_id')
+            s.duplicate_until = now + DUPLICATE_HOLD_S
 
     def bus_problem(self) -> Optional[Tuple[int, str]]:
         """Return (level, message) when the bus as a whole is in trouble."""
@@ -695,7 +717,7 @@ class ServoBusNode(Node):
     def _publish_diagnostics(self) -> None:
         with self._diag_lock:
             self._diag_dirty = False
-            self._last_diag = time.monotonic()
+            now = self._last_diag = time.monotonic()
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()
             servos = list(self.servos)
@@ -704,9 +726,15 @@ class ServoBusNode(Node):
             bus = DiagnosticStatus(name='servo_bus: bus', hardware_id=self.port)
             problem = self.bus_problem()
             offline = [s for s in servos if not s.online]
+            duplicates = [s for s in servos if now < s.duplicate_until]
             if problem is not None:
                 bus.level, bus.message = problem
                 self.get_logger().warning(problem[1], throttle_duration_sec=10.0)
+            elif duplicates:
+                bus.level = DiagnosticStatus.ERROR
+                bus.message = ('more than one servo answers to id(s) '
+                               + ', '.join(str(s.id) for s in duplicates)
+                               + ': give each servo its own id (~/set_id)')
             elif offline:
                 bus.level = DiagnosticStatus.WARN
                 bus.message = (f'{online}/{len(servos)} servos online; offline: '
@@ -731,7 +759,11 @@ class ServoBusNode(Node):
                 st = DiagnosticStatus(name=f'servo_bus: {s.name} (id {s.id})',
                                       hardware_id=self.port)
                 faults = s.faults
-                if not s.online:
+                if now < s.duplicate_until:
+                    st.level = DiagnosticStatus.ERROR
+                    st.message = (f'{s.name} (id {s.id}): duplicate id, more than one servo '
+                                  'answers; give each its own id (~/set_id)')
+                elif not s.online:
                     st.level = DiagnosticStatus.ERROR
                     st.message = (f'{s.name} (id {s.id}) offline: no reply '
                                   f'({s.error_count} failed transactions); check its power, cable '

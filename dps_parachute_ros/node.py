@@ -202,6 +202,10 @@ class ParachuteNode(Node):
                                         daemon=True)
         self._worker.start()
         self.link.start()
+        # A threshold parameter is accepted only once the module has confirmed it, so the
+        # callback waits on the module (bounded by PARAM_WRITE_BUDGET_S). It runs in the
+        # parameter services' callback group, the node's default one, which nothing else uses:
+        # deploy, arm, the answer service and the monitor have groups of their own.
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f'DPS-S parachute driver on {self.port} at {self.baud} baud; trigger requests: '

@@ -97,6 +97,9 @@ class VirtualParachute:
         self.corrupt_replies = 0
         self.reply_delay_s = 0.0
         self.igniter_fault = False
+        # Command codes of host frames lost on the way in (a bad RX line, a glitching
+        # connector): the module never sees them, and keeps streaming.
+        self.lost_commands: set[int] = set()
 
         # Counters for tests and the wrapper's diagnostics.
         self.requests_sent = 0
@@ -144,6 +147,8 @@ class VirtualParachute:
             for frame in self.decoder.feed(data):
                 if not self.powered:
                     break  # shut down by an earlier frame of the same chunk
+                if frame.code in self.lost_commands:
+                    continue
                 self._handle(frame)
                 self._evaluate()
         return self._collect()

@@ -237,6 +237,35 @@ def test_deploy_success_event_and_black_box(rig):
     assert len(rig.events) == events_before + 1
 
 
+def test_unacknowledged_deploys_stop_before_the_third_frame_until_the_module_reboots(rig):
+    rig.fresh()
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}
+        before = (rig.sim.deployments, rig.sim.failed_attempts_total)
+    try:
+        mark = rig.wire.mark()
+        reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+        assert not reply.success and 'NOT acknowledged after 2 attempts' in reply.message
+        assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY_FRAME] * 2
+        # A second call must not send a third frame (P11: the module's protection mode).
+        mark = rig.wire.mark()
+        reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+        assert not reply.success and '2 deploy frames in a row went unacknowledged' in \
+            reply.message and 'reboot' in reply.message
+        assert rig.wire.since(mark, p.CMD_DEPLOY) == []
+    finally:
+        with rig.model():
+            rig.sim.lost_commands = set()
+    with rig.model():
+        assert (rig.sim.deployments, rig.sim.failed_attempts_total) == before
+    # A module reboot clears the count: deploying works again.
+    rig.fresh()
+    rig.arm()
+    reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+    assert reply.success, reply.message
+
+
 def test_deploy_arms_first_when_asked(rig):
     rig.fresh()
     mark = rig.wire.mark()

@@ -120,6 +120,24 @@ def bus_value(status, key):
     return int({v.key: v.value for v in status.values}[key])
 
 
+def test_two_servos_answering_to_one_id_are_reported_as_a_duplicate_id(rig):
+    with rig.locked():
+        rig.sim.add_servo(2, allow_duplicate=True)
+    try:
+        status = rig.diag('servo_bus: tilt (id 2)', lambda s: s.level == ERROR,
+                          start=len(rig.diags))
+        assert 'duplicate id' in status.message and '~/set_id' in status.message
+        bus = rig.diag('servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
+        assert 'id(s) 2' in bus.message
+        # The servos with ids of their own are not suspected.
+        rig.diag('servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
+    finally:
+        with rig.locked():
+            rig.sim.servos.pop()
+    rig.diag('servo_bus: tilt (id 2)', lambda s: s.level == OK, timeout=10,
+             start=len(rig.diags))
+
+
 def test_unplug_and_replug_recover_without_a_restart(rig):
     rig.dev.runner.unplug()
     status = rig.diag('servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
