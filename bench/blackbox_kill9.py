@@ -87,6 +87,12 @@ def run(rounds: int = 20, wire_rounds: int = 5) -> Dict:
                     response = future.result()
                     if not response.success:
                         errors.append(f'round {i}: deploy failed: {response.message}')
+                else:
+                    wait_for(lambda: future.done() or not node.alive(), 10.0, interval=0.001,
+                             what='the kill at the acknowledgement')
+                    if node.alive():
+                        raise RuntimeError(f'no acknowledgement to kill at: the driver answered '
+                                           f'{future.result().message!r}')
                 node.popen.wait(10)
                 records = _records(rig.blackbox_dir, node.pid)
                 if wire:

@@ -1,8 +1,9 @@
 """Plain-Python model of a bus of Desheng servos: request bytes in, reply bytes out.
 
 No I/O, no threads, no ROS and no clock: every call that lets time pass takes ``now`` (seconds,
-any monotonic origin) from the caller, so runs are deterministic. A wrapper (pty, wire timing,
-ROS node) applies ``reply_delay_s`` and the queued garbage bytes; this module only produces them.
+any monotonic origin) from the caller, so runs are deterministic. Faults of the wire (lost,
+corrupted, late replies, noise) are the runner's
+(:class:`uav_serial_common.virtual_device.WireFaults`), the same for every device.
 
 Behaviour where the vendor document is silent is listed as decisions S13.. in
 ``docs/protocols.md``.
@@ -319,7 +320,7 @@ class ServoBusSim:
     """A half-duplex bus of simulated servos driven by the host's request bytes.
 
     ``feed(data, now)`` decodes requests (any split, any garbage) and returns the reply frames
-    the servos put on the wire, after the fault hooks (dropped / corrupted replies) are applied.
+    the servos put on the wire.
     """
 
     def __init__(self, ids: Iterable[int] = (1, 2, 3), *, now: float = 0.0,
@@ -332,16 +333,10 @@ class ServoBusSim:
         self.ambient_c = ambient_c
         self.over_temperature_limit_c = over_temperature_limit_c
         self.reset_keeps_id = reset_keeps_id
-        self.reply_delay_s = 0.0
         self.requests_handled = 0
         self.requests_ignored = 0
         self.replies_sent = 0
-        self.replies_dropped = 0
-        self.replies_corrupted = 0
         self._now = now
-        self._drop = 0
-        self._corrupt = 0
-        self._garbage = bytearray()
         self.servos: list[SimServo] = []
         for servo_id in ids:
             self.add_servo(servo_id)
@@ -379,14 +374,6 @@ class ServoBusSim:
         replies: list[bytes] = []
         for request in self.decoder.feed(data):
             for reply in self._handle(request):
-                if self._drop:
-                    self._drop -= 1
-                    self.replies_dropped += 1
-                    continue
-                if self._corrupt:
-                    self._corrupt -= 1
-                    self.replies_corrupted += 1
-                    reply = reply[:-1] + bytes((reply[-1] ^ 0xFF,))
                 self.replies_sent += 1
                 replies.append(reply)
         return replies
@@ -506,24 +493,6 @@ class ServoBusSim:
         """Power-cycle servos: RAM registers reset, persisted ones kept, torque off."""
         for s in self._select(servo_id):
             s.power_cycle()
-
-    def drop_replies(self, count: int) -> None:
-        """Swallow the next ``count`` replies (the requests still take effect)."""
-        self._drop = max(0, int(count))
-
-    def corrupt_replies(self, count: int) -> None:
-        """Send the next ``count`` replies with an inverted (wrong) checksum."""
-        self._corrupt = max(0, int(count))
-
-    def inject_garbage(self, data: bytes) -> None:
-        """Queue line noise for the wrapper to put on the wire (see :meth:`take_garbage`)."""
-        self._garbage += data
-
-    def take_garbage(self) -> bytes:
-        """Return and clear the queued line noise."""
-        data = bytes(self._garbage)
-        self._garbage.clear()
-        return data
 
     def _select(self, servo_id: Optional[int]) -> list[SimServo]:
         if servo_id is None:

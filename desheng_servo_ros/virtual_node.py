@@ -2,9 +2,9 @@
 
 :class:`VirtualServoBus` (no ROS) joins the plain-Python :class:`ServoBusSim` to a
 :class:`VirtualDeviceRunner`, which gives it real time, wire timing at the baud for request and
-reply bytes, and the wire faults. The simulator's own ``reply_delay_s`` and queued garbage are
-applied through the runner, so each fault exists once. Tests use the class directly; the node
-adds parameters and scenario services (``~/set_fault``, ``~/disconnect``, ``~/inject_garbage``).
+reply bytes, and the wire faults (``runner.faults``, ``runner.inject_garbage``). Tests use the
+class directly; the node adds parameters and scenario services (``~/set_fault``,
+``~/disconnect``, ``~/inject_garbage``).
 """
 
 from __future__ import annotations
@@ -52,21 +52,11 @@ class VirtualServoBus:
         """Stop the device thread and remove the pty."""
         self.runner.stop()
 
-    def _forward_sim_faults(self) -> None:
-        # Called with the model lock held: the sim's reply delay and garbage go out via the runner.
-        self.runner.faults.reply_delay_s = self.sim.reply_delay_s
-        garbage = self.sim.take_garbage()
-        if garbage:
-            self.runner.inject_garbage(garbage)
-
     def _on_input(self, data: bytes, now: float) -> List[bytes]:
-        replies = self.sim.feed(data, now)
-        self._forward_sim_faults()
-        return replies
+        return self.sim.feed(data, now)
 
     def _on_tick(self, now: float) -> None:
         self.sim.advance(now)
-        self._forward_sim_faults()
         return None
 
     def set_fault(self, servo_id: int, fault: str, active: bool = True) -> str:
@@ -142,7 +132,6 @@ class VirtualServoBusNode(Node):
         with runner.locked():
             for param in params:
                 if param.name == 'reply_delay_s':
-                    self.bus.sim.reply_delay_s = float(param.value)
                     runner.faults.reply_delay_s = float(param.value)
                 elif param.name == 'response_delay_s':
                     runner.response_delay_s = float(param.value)

@@ -40,11 +40,10 @@ class VirtualParachute:
     ``freefall_trigger_enabled``, ``baud_code``, ``tilt_deg``, ``accel_g``,
     ``cell_voltage_v``, ``charge_voltage_v``.
 
-    Fault injection (the wrapper sets these): ``drop_replies`` (drop the next N replies),
-    ``corrupt_replies`` (spoil the checksum of the next N replies), ``reply_delay_s``,
-    ``igniter_fault`` (trigger attempts do not deploy), and ``inject_garbage(data)``. A
-    reply is everything the module sends in answer to one host frame; unsolicited frames
-    (heartbeats, stream, trigger requests) are not affected.
+    Faults of the module itself: ``igniter_fault`` (trigger attempts do not deploy) and
+    ``lost_commands`` (command codes of host frames that never reach it). Faults of the wire
+    (lost, corrupted, late replies, noise) are the runner's
+    (:class:`uav_serial_common.virtual_device.WireFaults`), the same for every device.
     """
 
     def __init__(self, now: float = 0.0, *, flag_layout: p.FlagLayout = 'table',
@@ -93,9 +92,6 @@ class VirtualParachute:
         self._freefall_end: float | None = None
 
         # Fault injection.
-        self.drop_replies = 0
-        self.corrupt_replies = 0
-        self.reply_delay_s = 0.0
         self.igniter_fault = False
         # Command codes of host frames lost on the way in (a bad RX line, a glitching
         # connector): the module never sees them, and keeps streaming.
@@ -219,10 +215,6 @@ class VirtualParachute:
                 self._failed_attempt()
             return False
         return self._fire(p.SOURCE_PWM)
-
-    def inject_garbage(self, data: bytes) -> None:
-        """Send ``data`` now as it is (line noise, a stray partial frame ...)."""
-        self._queue(self._now, bytes(data))
 
     # -- read-only views -------------------------------------------------------------------
 
@@ -418,13 +410,7 @@ class VirtualParachute:
         heapq.heappush(self._out, (due, self._seq, data))
 
     def _reply(self, *frames: bytes) -> None:
-        if self.drop_replies > 0:
-            self.drop_replies -= 1
-            return
-        if self.corrupt_replies > 0:
-            self.corrupt_replies -= 1
-            frames = tuple(f[:-1] + bytes(((f[-1] + 1) & 0xFF,)) for f in frames)
-        self._queue(self._now + max(0.0, self.reply_delay_s), b''.join(frames))
+        self._queue(self._now, b''.join(frames))
 
     def _collect(self) -> bytes:
         out = bytearray()

@@ -16,6 +16,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
@@ -66,6 +67,8 @@ class VirtualParachuteNode(Node):
           float_range=(0.0, 1.0))
         d('garbage_probability', 0.0, 'chance of noise before a reply', float_range=(0.0, 1.0))
         d('reply_delay_s', 0.0, 'extra delay before every reply [s]', float_range=(0.0, 5.0))
+        d('lost_commands', Parameter.Type.INTEGER_ARRAY, 'command codes 0..255 of host frames '
+          'lost before the module sees them, e.g. [17] (0x11): every deploy frame')
 
         self.sim = VirtualParachute(now=time.monotonic(), stream_period_s=1.0 / rate)
         self.runner = create_runner(self.sim, link, baud)
@@ -118,8 +121,15 @@ class VirtualParachuteNode(Node):
                 faults.garbage_probability = value
             elif name == 'reply_delay_s':
                 faults.reply_delay_s = value
+            elif name == 'lost_commands':
+                sim.lost_commands = set(value or ())
 
     def _on_set_parameters(self, params) -> SetParametersResult:
+        for param in params:
+            if param.name == 'lost_commands' and any(
+                    not 0 <= code <= 255 for code in param.value or ()):
+                return SetParametersResult(successful=False,
+                                           reason='lost_commands: codes are 0..255')
         for param in params:
             self._apply(param.name, param.value)
         return SetParametersResult(successful=True)

@@ -450,42 +450,8 @@ def test_sensor_zeroing_takes_the_present_tilt_as_level():
 
 
 # ---------------------------------------------------------------------------------------------
-# Fault injection and clock
+# Faults of the module and clock
 # ---------------------------------------------------------------------------------------------
-
-def test_drop_next_reply():
-    sim = booted()
-    sim.drop_replies = 1
-    assert sim.receive(p.encode_armed_query()) == b''
-    assert sim.receive(p.encode_armed_query()) == h('41 75 30 01 00 31')
-
-
-def test_corrupted_reply_fails_the_checksum():
-    sim = booted()
-    sim.corrupt_replies = 1
-    data = sim.receive(p.encode_armed_query())
-    decoder = p.StreamDecoder()
-    assert decoder.feed(data) + decoder.flush() == [] and decoder.checksum_errors == 1
-    assert sim.receive(p.encode_armed_query()) == h('41 75 30 01 00 31')
-
-
-def test_delayed_reply_arrives_after_the_delay():
-    sim = booted()
-    sim.reply_delay_s = 0.3
-    assert sim.receive(p.encode_armed_query(), 2.0) == b''
-    assert sim.next_event_time() == pytest.approx(2.3)
-    assert sim.step(2.29) == b''
-    assert sim.step(2.3) == h('41 75 30 01 00 31')
-
-
-def test_injected_garbage_goes_out_before_the_next_reply():
-    sim = booted()
-    sim.inject_garbage(b'\x41\x75\x35\x00\x13')
-    data = sim.receive(p.encode_armed_query())
-    assert data == b'\x41\x75\x35\x00\x13' + h('41 75 30 01 00 31')
-    armed_state = [m for m in msgs(data + h('41 75 32 07 0a 00 01 44') * 2)]
-    assert isinstance(armed_state[0], p.ArmedState)
-
 
 def test_host_bytes_split_across_reads_are_reassembled():
     sim = booted()
@@ -495,11 +461,19 @@ def test_host_bytes_split_across_reads_are_reassembled():
 
 
 def test_an_earlier_time_is_taken_as_the_current_time():
-    sim = booted()
-    sim.reply_delay_s = 0.2
-    sim.receive(p.encode_armed_query())
+    sim = booted(stream_period_s=0.2)
+    sim.receive(p.encode_streaming(True))
     assert sim.step(0.5) == b'' and sim.now == pytest.approx(1.0)
-    assert sim.advance(0.2) == h('41 75 30 01 00 31') and sim.now == pytest.approx(1.2)
+    assert len(msgs(sim.advance(0.2))) == 1 and sim.now == pytest.approx(1.2)
+
+
+def test_a_lost_command_never_reaches_the_module():
+    sim = armed()
+    sim.lost_commands = {p.CMD_DEPLOY}
+    assert sim.receive(p.encode_deploy()) == b'' and not sim.triggered
+    assert sim.failed_attempts_total == 0
+    sim.lost_commands = set()
+    assert sim.receive(p.encode_deploy()) == h('41 75 11 01 01 13') and sim.triggered
 
 
 def test_constructor_rejects_unknown_options():

@@ -4,6 +4,8 @@ import json
 import os
 import signal
 
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
 from std_srvs.srv import SetBool, Trigger
 from std_msgs.msg import String
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus
@@ -36,6 +38,20 @@ def test_driver_and_virtual_module_talk_to_each_other(ros, launch, tmp_path):
     assert ros.call(SetBool, '/virtual_parachute/disconnect',
                     SetBool.Request(data=False)).success
     status.wait(lambda m: m.online, 10, what='online again', start=len(status) - 1)
+    # Deploy frames lost on their way in: the driver gives up after two of them, and refuses
+    # a third until the module has rebooted.
+    assert set_lost_commands(ros, [0x11]).successful
+    reply = ros.call(Deploy, '/parachute/deploy',
+                     Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
+    assert not reply.success and 'NOT acknowledged after 2 attempts' in reply.message
+    assert not set_lost_commands(ros, [256]).successful
+    assert set_lost_commands(ros, []).successful
+    reply = ros.call(Deploy, '/parachute/deploy', Deploy.Request(confirm='DEPLOY'))
+    assert not reply.success and 'reboot' in reply.message
+    assert ros.call(Trigger, '/virtual_parachute/power_cycle').success
+    config.wait(lambda m: m.boot_count == first + 2, 10, what='boot count after power cycle')
+    status.wait(lambda m: m.online and m.streaming, 10, what='streaming after the reboot',
+                start=len(status) - 1)
     # The deploy acknowledgement is on disk before the service answers: SIGKILL keeps it.
     reply = ros.call(Deploy, '/parachute/deploy',
                      Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
@@ -45,3 +61,9 @@ def test_driver_and_virtual_module_talk_to_each_other(ros, launch, tmp_path):
     box = next((tmp_path / 'bb').glob('parachute-*.jsonl'))
     # Only lines after the last sync may be cut short by the kill.
     assert any('"what":"deploy acknowledged"' in line for line in box.read_text().splitlines())
+
+
+def set_lost_commands(ros, codes):
+    value = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=codes)
+    request = SetParameters.Request(parameters=[Parameter(name='lost_commands', value=value)])
+    return ros.call(SetParameters, '/virtual_parachute/set_parameters', request).results[0]
