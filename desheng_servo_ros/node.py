@@ -946,6 +946,7 @@ class ServoBusNode(Node):
         if not (proto.is_servo_id(first) and proto.is_servo_id(last) and first <= last):
             raise ValueError(f'need 1 <= first_id <= last_id <= 250, got {first}..{last}')
         with self._loop_paused():
+            surplus = [self.bus.surplus_replies(i) for i in range(first, last + 1)]
             found = self.bus.scan(range(first, last + 1))
             versions = []
             for servo_id in found:
@@ -954,11 +955,17 @@ class ServoBusNode(Node):
                     versions.append(decode_value(by_name('firmware_version'), data))
                 except LinkTimeout:
                     versions.append('')
+            # An id that answered one of these requests twice belongs to more than one servo.
+            twice = [i for i in found if self.bus.surplus_replies(i) > surplus[i - first]]
         resp.ids = found
         resp.firmware_versions = versions
         resp.success = True
         resp.message = (f'found {len(found)} servo(s) in {first}..{last}: ' +
                         ', '.join(f'{i} ({v})' for i, v in zip(found, versions)))
+        if twice:
+            resp.message += ('; more than one servo answers to id(s) '
+                             + ', '.join(map(str, twice))
+                             + ': connect them one at a time and give each its own id')
         return resp
 
     def _srv_go_to_preset(self, req: GoToPreset.Request,

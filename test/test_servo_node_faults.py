@@ -9,7 +9,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
 from ros_harness import wait_for
 from servo_rig import start_rig, stop_rig
-from uav_serial_drivers.srv import SetTorque, WriteRegister
+from uav_serial_drivers.srv import ScanBus, SetTorque, WriteRegister
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
@@ -131,6 +131,9 @@ def test_two_servos_answering_to_one_id_are_reported_as_a_duplicate_id(rig):
         assert 'id(s) 2' in bus.message
         # The servos with ids of their own are not suspected.
         rig.diag('servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
+        scan = rig.call(ScanBus, 'scan', first_id=1, last_id=5)
+        assert scan.success and list(scan.ids) == [1, 2, 3]
+        assert 'more than one servo answers to id(s) 2:' in scan.message, scan.message
     finally:
         with rig.locked():
             rig.sim.servos.pop()

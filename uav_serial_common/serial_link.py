@@ -394,6 +394,14 @@ class SerialLink:
             return b''
         try:
             data = os.read(fd, 4096)
+            if not data:
+                # Another thread may have flushed the input between select and read (a request
+                # flushes stale bytes while a late reply comes in): only a port that still says
+                # "readable" and still has nothing to give is gone.
+                ready, _, _ = select.select([fd], [], [], 0)
+                if not ready:
+                    return b''
+                data = os.read(fd, 4096)
         except BlockingIOError:
             return b''
         if not data:
