@@ -217,6 +217,37 @@ def test_a_chain_whose_next_request_cannot_be_written_fails_fast_and_the_link_re
         link.stop()
 
 
+def test_flushing_while_bytes_arrive_is_not_taken_for_a_disconnect(tmp_path):
+    # A request flushes stale input while a late reply may be coming in. When the flush empties
+    # the port between the reader's select and its read, the empty read is not a lost device.
+    port = VirtualSerialPort(str(tmp_path / 'dev')).open()
+    link, unsolicited, states = make_link(port.path)
+    streaming = threading.Event()
+    streaming.set()
+
+    def stream():
+        while streaming.is_set():
+            port.write(b'tick\n')
+    writer = threading.Thread(target=stream, daemon=True)
+    try:
+        assert link.wait_connected(2)
+        writer.start()
+        wait_for(lambda: unsolicited, 2, what='the stream')
+        deadline = time.monotonic() + 1.0
+        flushes = 0
+        while time.monotonic() < deadline:
+            link.flush_input()
+            flushes += 1
+        assert flushes > 100
+        assert states == [True] and link.connected and link.stats.reconnects == 0, \
+            link.last_error
+    finally:
+        streaming.clear()
+        writer.join(2)
+        link.stop()
+        port.close()
+
+
 def test_loop_url_works_for_plain_python_use():
     link, unsolicited, _ = make_link('loop://')
     try:

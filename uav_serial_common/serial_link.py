@@ -392,18 +392,19 @@ class SerialLink:
         if abort in ready:
             os.read(abort, 1000)
             return b''
-        try:
-            data = os.read(fd, 4096)
-            if not data:
-                # Another thread may have flushed the input between select and read (a request
-                # flushes stale bytes while a late reply comes in): only a port that still says
-                # "readable" and still has nothing to give is gone.
-                ready, _, _ = select.select([fd], [], [], 0)
-                if not ready:
-                    return b''
+        # Under the lock that flush_input takes: another thread may have flushed the input
+        # between select and here (a request flushes stale bytes while a late reply comes in),
+        # and only a port that still says "readable" and has nothing to give is gone.
+        with self._rx_lock:
+            try:
                 data = os.read(fd, 4096)
-        except BlockingIOError:
-            return b''
+                if not data:
+                    ready, _, _ = select.select([fd], [], [], 0)
+                    if not ready:
+                        return b''
+                    data = os.read(fd, 4096)
+            except BlockingIOError:
+                return b''
         if not data:
             raise serial.SerialException('device reports readiness to read but returned no data '
                                          '(device disconnected?)')
