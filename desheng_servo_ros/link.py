@@ -11,9 +11,11 @@ ACTION) holding the bus for their own wire time.
 from __future__ import annotations
 
 from collections import deque
+from contextlib import contextmanager
 import threading
 import time
-from typing import Any, Callable, Deque, Dict, Iterable, Optional, Protocol, Sequence, Tuple
+from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, Optional, Protocol,
+                    Sequence, Tuple)
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Reply, StreamDecoder
@@ -232,6 +234,19 @@ class ServoBusLink:
             if delay > 0:
                 time.sleep(delay)
 
+    @contextmanager
+    def _holding(self, priority: int) -> Iterator[None]:
+        """Own the bus for transactions that wait for their replies (the bus is idle after)."""
+        self._take(priority)
+        try:
+            yield
+        except LinkError:
+            self.failed_transactions += 1
+            raise
+        finally:
+            self._idle_at = 0.0
+            self._lock.release()
+
     def transact(self, frame: bytes, servo_id: int, reply_params: int,
                  priority: int = PRIORITY_SERVICE, retries: Optional[int] = None,
                  timeout: Optional[float] = None) -> Reply:
@@ -241,16 +256,9 @@ class ServoBusLink:
         if retries is None:
             retries = self.max_retries
         match = self._matcher(servo_id, reply_params)
-        self._take(priority)
-        try:
+        with self._holding(priority):
             self.transactions += 1
             return self.link.request(frame, match, timeout, retries, flush=True)
-        except LinkError:
-            self.failed_transactions += 1
-            raise
-        finally:
-            self._idle_at = 0.0
-            self._lock.release()
 
     def read_chain(self, plan: 'ReadPlan', priority: int = PRIORITY_LOOP) -> int:
         """READ servos back to back, as ``plan.next_read()`` gives them, until it returns None.
@@ -263,15 +271,8 @@ class ServoBusLink:
         when a caller of higher priority waits for the bus. Returns the READs sent.
         """
         chain = _ReadChain(self, plan, priority)
-        self._take(priority)
-        try:
+        with self._holding(priority):
             return self.link.request_chain(chain, flush=True)
-        except LinkError:
-            self.failed_transactions += 1
-            raise
-        finally:
-            self._idle_at = 0.0
-            self._lock.release()
 
     def send(self, frame: bytes, priority: int = PRIORITY_SERVICE) -> None:
         """Send a frame that gets no reply; the bus stays taken for its wire time."""

@@ -1,4 +1,4 @@
-"""Process plumbing shared by the test harness and the benchmarks (no rclpy import here).
+"""Process plumbing shared by the test harness, the benchmarks and the demo (no rclpy import).
 
 - `claim_domain_id()`: a ROS_DOMAIN_ID that no other test session or benchmark run on this machine
   holds, locked with a file until the process exits, so parallel runs never see each other.

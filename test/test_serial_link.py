@@ -1,5 +1,6 @@
 """The shared serial link: reader thread, request matching, timeouts, retries, reconnect."""
 
+import contextlib
 import os
 import tempfile
 import threading
@@ -74,31 +75,34 @@ def make_link(path, **kwargs):
     return link, unsolicited, states
 
 
-def test_a_reply_is_matched_to_its_request_and_others_go_to_the_handler(device):
-    link, unsolicited, _ = make_link(device.port.path)
+@contextlib.contextmanager
+def open_link(path, **kwargs):
+    """Yield (link, unsolicited frames, connection states) once the port is open; stop after."""
+    link, unsolicited, states = make_link(path, **kwargs)
     try:
         assert link.wait_connected(2)
+        yield link, unsolicited, states
+    finally:
+        link.stop()
+
+
+def test_a_reply_is_matched_to_its_request_and_others_go_to_the_handler(device):
+    with open_link(device.port.path) as (link, unsolicited, _):
         device.port.write(b'hello\n')
         reply = link.request(b'ask 7\n', lambda f: f == b're 7', timeout=1.0)
         assert reply == b're 7'
         wait_for(lambda: b'hello' in unsolicited, 2, what='the unsolicited frame')
         assert b're 7' not in unsolicited
         assert link.stats.frames_in >= 2 and link.stats.bytes_out == len(b'ask 7\n')
-    finally:
-        link.stop()
 
 
 def test_no_reply_times_out_after_the_retries_and_counts_them(device):
-    link, _, _ = make_link(device.port.path)
-    try:
-        assert link.wait_connected(2)
+    with open_link(device.port.path) as (link, _, _):
         device.silent = True
         with pytest.raises(LinkTimeout):
             link.request(b'ask 1\n', lambda f: f == b're 1', timeout=0.05, retries=2)
         wait_for(lambda: device.received.count(b'ask 1') == 3, 2, what='three attempts')
         assert link.stats.timeouts == 1 and link.stats.retries == 2
-    finally:
-        link.stop()
 
 
 def test_writing_while_the_port_is_missing_fails_at_once(tmp_path):
@@ -152,9 +156,7 @@ def test_a_port_the_user_may_not_open_is_reported_with_the_dialout_hint():
 
 
 def test_unplug_is_noticed_and_the_link_reopens_the_same_path_after_replug(device):
-    link, _, states = make_link(device.port.path)
-    try:
-        assert link.wait_connected(2)
+    with open_link(device.port.path) as (link, _, states):
         device.port.unplug()
         wait_for(lambda: states[-1] is False, 2, what='the link to notice the unplug')
         assert not link.connected
@@ -163,22 +165,16 @@ def test_unplug_is_noticed_and_the_link_reopens_the_same_path_after_replug(devic
         assert link.request(b'ask 2\n', lambda f: f == b're 2', timeout=1.0) == b're 2'
         assert states == [True, False, True]
         assert link.stats.reconnects == 1
-    finally:
-        link.stop()
 
 
 def test_a_request_in_flight_fails_fast_when_the_port_goes_away(device):
-    link, _, _ = make_link(device.port.path)
-    try:
-        assert link.wait_connected(2)
+    with open_link(device.port.path) as (link, _, _):
         device.silent = True
         threading.Timer(0.1, device.port.unplug).start()
         start = time.monotonic()
         with pytest.raises(LinkDown):
             link.request(b'ask 3\n', lambda f: f == b're 3', timeout=5.0)
         assert time.monotonic() - start < 4.0
-    finally:
-        link.stop()
 
 
 def test_a_chain_whose_next_request_cannot_be_written_fails_fast_and_the_link_recovers(device):
@@ -249,12 +245,8 @@ def test_flushing_while_bytes_arrive_is_not_taken_for_a_disconnect(tmp_path):
 
 
 def test_loop_url_works_for_plain_python_use():
-    link, unsolicited, _ = make_link('loop://')
-    try:
-        assert link.wait_connected(2)
+    with open_link('loop://') as (link, unsolicited, _):
         assert link.request(b'ping\n', lambda f: f == b'ping', timeout=1.0) == b'ping'
-    finally:
-        link.stop()
 
 
 def test_a_failing_frame_handler_does_not_stop_the_reader(device):
@@ -273,12 +265,8 @@ def test_a_failing_frame_handler_does_not_stop_the_reader(device):
 def test_spy_url_logs_the_traffic_and_still_works(device, tmp_path):
     # spy:// wraps the port to log every byte: the link must go through its read and write.
     log = tmp_path / 'spy.txt'
-    link, _, _ = make_link(f'spy://{device.port.path}?file={log}')
-    try:
-        assert link.wait_connected(2)
+    with open_link(f'spy://{device.port.path}?file={log}') as (link, _, _):
         assert link.request(b'ask 9\n', lambda f: f == b're 9', timeout=1.0) == b're 9'
-    finally:
-        link.stop()
     text = log.read_text()
     assert 'TX   0000  61 73 6B 20 39 0A' in text  # "ask 9\n" as it went out
     assert 'e 9.' in text  # the reply as it came in (the spy logs each read)
@@ -311,9 +299,7 @@ class ListChain:
 
 
 def test_a_chain_sends_each_request_after_the_previous_reply_and_skips_a_silent_one(device):
-    link, unsolicited, _ = make_link(device.port.path)
-    try:
-        assert link.wait_connected(2)
+    with open_link(device.port.path) as (link, unsolicited, _):
         device.mute = {b'2'}
         chain = ListChain(link, [1, 2, 3])
         assert link.request_chain(chain) == 3
@@ -328,19 +314,13 @@ def test_a_chain_sends_each_request_after_the_previous_reply_and_skips_a_silent_
         sent_before = link.stats.frames_out - 3
         assert [n - sent_before for _, n in chain.results] == [2, 2, 3]
         assert unsolicited == []
-    finally:
-        link.stop()
 
 
 def test_a_chain_can_retry_a_silent_request_at_once_and_survives_a_handler_bug(device):
-    link, _, _ = make_link(device.port.path)
-    try:
-        assert link.wait_connected(2)
+    with open_link(device.port.path) as (link, _, _):
         device.mute = {b'2'}
         chain = ListChain(link, [1, 2, 3], retry_silent=1, fail_on=b're 1')
         assert link.request_chain(chain) == 4
         assert device.received[-4:] == [b'ask 1', b'ask 2', b'ask 2', b'ask 3']
         assert [frame for frame, _ in chain.results] == [b're 1', None, None, b're 3']
         assert link.request_chain(ListChain(link, [])) == 0
-    finally:
-        link.stop()

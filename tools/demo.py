@@ -8,7 +8,6 @@ calls their services, with a compact live view. Exit code 0 on success, 1 with t
 from __future__ import annotations
 
 import argparse
-import ctypes
 import math
 import os
 import random
@@ -22,12 +21,9 @@ from pathlib import Path
 from typing import Any, Callable, List, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGE = 'uav_serial_drivers'
-
-
-def _die_with_parent() -> None:
-    # The kernel kills every process the demo started if the demo itself is killed.
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+# The process plumbing the tests and the benchmarks use as well.
+sys.path.insert(0, str(ROOT / 'test'))
+from ros_domain import die_with_parent, executable_path  # noqa: E402
 
 
 class DemoFailure(Exception):
@@ -44,14 +40,13 @@ class Processes:
     def start(self, executable: str, params: dict) -> subprocess.Popen:
         """Start an installed executable with a parameter file."""
         import yaml
-        from ament_index_python.packages import get_package_prefix
-        path = Path(get_package_prefix(PACKAGE), 'lib', PACKAGE, executable)
+        path = executable_path(executable)
         params_file = self.workdir / f'{executable}.yaml'
         params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': params}}))
         log = open(self.workdir / f'{executable}.log', 'wb')
-        proc = subprocess.Popen([str(path), '--ros-args', '--params-file', str(params_file)],
+        proc = subprocess.Popen([path, '--ros-args', '--params-file', str(params_file)],
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                preexec_fn=_die_with_parent)
+                                preexec_fn=die_with_parent)
         self.items.append((executable, proc, log))
         return proc
 
