@@ -30,14 +30,13 @@ PAGE_SIZE = os.sysconf('SC_PAGE_SIZE')
 # A private ROS domain
 # ------------------------------------------------------------------------------------------
 
-sys.path.insert(0, str(ROOT / 'test'))
-# wait_for raises ros_domain.WaitTimeout, a TimeoutError (what the benchmarks catch).
-from ros_domain import die_with_parent, executable_path, wait_for  # noqa: E402,F401
-from ros_domain import claim_domain_id as _claim  # noqa: E402
+# wait_for raises process.WaitTimeout, a TimeoutError (what the benchmarks catch).
+from uav_serial_common.process import (  # noqa: E402,F401
+    claim_domain_id as _claim, die_with_parent, executable_path, wait_for)
 
 
 def claim_domain_id() -> int:
-    """Lock a ROS_DOMAIN_ID no test session or other benchmark holds (see test/ros_domain.py).
+    """Lock a ROS_DOMAIN_ID no test session or other benchmark holds (uav_serial_common.process).
 
     Never the one in this process's environment: a test session that started the benchmark
     holds that one.
@@ -233,15 +232,15 @@ def median(values: List[float]) -> float:
 class RosClient:
     """A private rclpy Context on the benchmark's domain, with one node spinning in a thread.
 
-    The context, node and single-threaded executor are `test/ros_harness.py`'s
-    `RosTestHarness` (rclpy's multi-threaded executor can spin hot in Python while tasks are in
+    The context, node and single-threaded executor are `uav_serial_common.ros_client`'s
+    `RosHarness` (rclpy's multi-threaded executor can spin hot in Python while tasks are in
     flight and starve the in-process virtual devices of the GIL); this adds callback
     subscriptions and calls that raise TimeoutError.
     """
 
     def __init__(self, name: str = 'bench_client') -> None:
-        from ros_harness import RosTestHarness
-        self._ros = RosTestHarness(name, domain_id=claim_domain_id())
+        from uav_serial_common.ros_client import RosHarness
+        self._ros = RosHarness(name, domain_id=claim_domain_id())
         self.context = self._ros.context
         self.node = self._ros.node
         self.executor = self._ros.executor

@@ -18,7 +18,7 @@ import pytest
 sys.path.insert(0, os.path.dirname(__file__))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from ros_domain import claim_domain_id  # noqa: E402
+from uav_serial_common.process import claim_domain_id  # noqa: E402
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -36,13 +36,14 @@ def pytest_report_header(config: pytest.Config) -> str:
     return f'ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID")} (localhost discovery)'
 
 
-from ros_harness import LaunchedProcesses, RosTestHarness  # noqa: E402
+from uav_serial_common.process import LaunchedProcesses  # noqa: E402
+from uav_serial_common.ros_client import RosHarness  # noqa: E402
 
 
 @pytest.fixture
 def ros():
     """Give a test its own rclpy context, node and spinning executor."""
-    harness = RosTestHarness()
+    harness = RosHarness()
     try:
         yield harness
     finally:

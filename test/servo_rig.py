@@ -11,8 +11,9 @@ from typing import Any, Dict, List, Optional
 from desheng_servo_ros.protocol import Instruction, StreamDecoder
 from desheng_servo_ros.virtual_node import VirtualServoBus
 from diagnostic_msgs.msg import DiagnosticArray
-from ros_harness import LaunchedProcess, LaunchedProcesses, RosTestHarness
 from sensor_msgs.msg import JointState
+from uav_serial_common.process import LaunchedProcess, LaunchedProcesses
+from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ServoStateArray
 
 NODE = '/servo_bus'
@@ -55,7 +56,7 @@ class Wire:
 class Rig:
     dev: VirtualServoBus
     wire: Wire
-    ros: RosTestHarness
+    ros: RosHarness
     procs: LaunchedProcesses
     node: LaunchedProcess
     joints: Any
@@ -100,7 +101,7 @@ def start_rig(tmp: Path, name: str, ids=(1, 2, 3), parameters: Optional[Dict] = 
     sys.setswitchinterval(0.0005)
     dev = VirtualServoBus(str(tmp / 'servobus'), list(ids), **bus_kwargs).start()
     wire = Wire(dev.runner)
-    ros = RosTestHarness()
+    ros = RosHarness()
     procs = LaunchedProcesses(tmp, name)
     # The virtual bus shares this process (and its GIL) with the test's rclpy executor, which is
     # busy right when the node publishes; its replies can then be tens of ms late, an artefact of

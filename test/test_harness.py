@@ -4,7 +4,7 @@ import os
 
 from std_msgs.msg import String
 
-from ros_harness import executable_path
+from uav_serial_common.process import executable_path
 
 
 def test_the_session_has_its_own_domain_and_localhost_discovery():

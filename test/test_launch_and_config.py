@@ -9,7 +9,7 @@ from rcl_interfaces.srv import ListParameters
 import pytest
 import yaml
 
-from ros_harness import executable_path
+from uav_serial_common.process import executable_path
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILES = ['parachute.launch.py', 'servo_bus.launch.py', 'virtual_bringup.launch.py']

@@ -12,7 +12,7 @@ from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkTimeout, ParachuteLink
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.virtual_node import create_runner
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 
 
 @pytest.fixture

@@ -17,7 +17,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.virtual_node import create_runner
-from ros_harness import LaunchedProcesses, RosTestHarness, wait_for
+from uav_serial_common.process import LaunchedProcesses, wait_for
+from uav_serial_common.ros_client import RosHarness
 from sensor_msgs.msg import BatteryState
 from std_msgs.msg import Bool
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
@@ -57,7 +58,7 @@ class Rig:
         self.sim = VirtualParachute(now=time.monotonic())
         self.runner = create_runner(self.sim, str(tmp / 'vpara')).start()
         self.wire = Wire(self.runner)
-        self.ros = RosTestHarness()
+        self.ros = RosHarness()
         self.procs = LaunchedProcesses(tmp, 'parachute_node')
         sub = self.ros.subscribe
         self.status = sub(ParachuteStatus, f'{NODE}/status')

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 from uav_serial_common.pty_port import VirtualSerialPort
 from uav_serial_common.serial_link import LinkDown, LinkTimeout, SerialLink
 

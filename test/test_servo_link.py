@@ -9,7 +9,7 @@ from desheng_servo_ros.link import (_PriorityLock, DERIVED_MARGIN_S, LinkTimeout
                                     ServoBusLink)
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 from servo_rig import Wire
 from uav_serial_common.pty_port import wire_time
 

@@ -9,7 +9,7 @@ import math
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Instruction
 import pytest
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 from servo_rig import start_rig, stop_rig
 from std_srvs.srv import Trigger
 from uav_serial_drivers.msg import ServoCommand

@@ -7,7 +7,7 @@ import math
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 from servo_rig import start_rig, stop_rig
 from uav_serial_drivers.srv import ScanBus, SetTorque, WriteRegister
 

@@ -1,7 +1,7 @@
 """servo_bus_node when the bus cannot carry publish_rate_hz: it says so once and keeps going."""
 
 from desheng_servo_ros import protocol as proto
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 from servo_rig import start_rig, stop_rig
 from std_srvs.srv import Trigger
 from uav_serial_drivers.srv import ReadRegister

@@ -5,7 +5,7 @@ import time
 import pytest
 import serial
 
-from ros_harness import wait_for
+from uav_serial_common.process import wait_for
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 

@@ -22,8 +22,7 @@ from typing import Any, Callable, List, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 # The process plumbing the tests and the benchmarks use as well.
-sys.path.insert(0, str(ROOT / 'test'))
-from ros_domain import die_with_parent, executable_path  # noqa: E402
+from uav_serial_common.process import die_with_parent, executable_path  # noqa: E402
 
 
 class DemoFailure(Exception):

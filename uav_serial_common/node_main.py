@@ -1,48 +1,105 @@
-"""The Jazzy `main()` pattern, shared by every executable of the package."""
+"""The `main()` of every executable of the package: spin, and a shutdown that always completes.
+
+It follows the Jazzy pattern (init, spin, shut down on Ctrl-C or an external shutdown, destroy
+the node, ``try_shutdown``) with one difference that a driver of real hardware needs: Ctrl-C
+under ``ros2 launch`` arrives twice (the terminal signals the whole process group and launch
+forwards its own SIGINT), and with rclpy's default handlers the second one raises
+``KeyboardInterrupt`` inside the node's shutdown: the servo bus never gets its torque-off, the
+parachute's black box is never closed. So the executor spins in a thread and the main thread
+only waits; SIGINT and SIGTERM set a flag, and once shutdown has begun further signals are
+logged and ignored. ``ros2 launch`` escalates to SIGKILL only after its timeouts (5 s + 5 s).
+"""
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from typing import Callable, List, Optional
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+_WAIT_STEP_S = 0.2
+"""The main thread wakes this often, so a signal is seen promptly."""
+
+
+class _Signals:
+    """SIGINT/SIGTERM as a flag: the first starts the shutdown, later ones are only noted."""
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+        self.count = 0
+        self.previous = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self.previous[sig] = signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        self.count += 1
+        if self.stop.is_set():
+            print(f'{signal.Signals(signum).name} again: shutdown in progress, finishing it',
+                  file=sys.stderr, flush=True)
+        self.stop.set()
 
 
 def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
              threads: int = 4) -> int:
-    """Create the node, spin it on a multi-threaded executor, shut down cleanly on Ctrl-C.
+    """Create the node, spin it until SIGINT/SIGTERM, then shut down completely.
 
     A node may define ``on_shutdown()``: it runs after spinning stops and before the node is
-    destroyed, so a driver can still talk to its device (torque off, lock) as its last act.
-    Returns the process exit code.
+    destroyed, so a driver can still talk to its device (torque off, motors stopped) as its last
+    act; signals arriving meanwhile do not interrupt it. Returns the process exit code.
     """
+    signals = _Signals()
     node = None
+    executor = None
     code = 0
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        if signals.stop.is_set():
+            return 0
         node = factory()
         executor = MultiThreadedExecutor(num_threads=threads)
         executor.add_node(node)
-        try:
-            executor.spin()
-        finally:
-            executor.shutdown(timeout_sec=1.0)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        spinner = threading.Thread(target=_spin, args=(executor, signals.stop),
+                                   name='executor', daemon=True)
+        spinner.start()
+        while not signals.stop.wait(_WAIT_STEP_S):
+            pass
     except Exception as exc:  # noqa: BLE001 - report a startup failure as one clear line
         print(f'fatal: {exc}', file=sys.stderr)
         code = 1
     finally:
+        signals.stop.set()
+        if executor is not None:
+            try:
+                executor.shutdown(timeout_sec=1.0)
+            except Exception as exc:  # noqa: BLE001 - shutting down regardless
+                print(f'executor shutdown failed: {exc!r}', file=sys.stderr)
         if node is not None:
             hook = getattr(node, 'on_shutdown', None)
             if hook is not None:
                 try:
                     hook()
                 except Exception as exc:  # noqa: BLE001 - shutting down regardless
-                    print(f'shutdown hook failed: {exc}', file=sys.stderr)
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+                    print(f'shutdown hook failed: {exc!r}', file=sys.stderr)
+            try:
+                node.destroy_node()
+            except Exception as exc:  # noqa: BLE001 - shutting down regardless
+                print(f'destroying the node failed: {exc!r}', file=sys.stderr)
+        rclpy.try_shutdown()
     return code
+
+
+def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+    except Exception as exc:  # noqa: BLE001 - the main thread shuts down cleanly after it
+        print(f'executor failed: {exc!r}', file=sys.stderr, flush=True)
+    finally:
+        # An external shutdown (the context shut down elsewhere) ends the process too.
+        stop.set()

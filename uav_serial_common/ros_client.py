@@ -1,13 +1,15 @@
-"""Helpers behind the conftest fixtures: an rclpy harness and a process launcher."""
+"""A ROS client for tests, benchmarks and the demo: a private rclpy context with one spinning node.
+
+- `RosHarness`: its own rclpy Context (on the environment's ROS_DOMAIN_ID, or a given one), a node
+  and a single-threaded executor spinning in a thread, with helpers to record topics, publish,
+  and call services with timeouts.
+- `MessageLog`: every message of one subscription, with a condition to wait on.
+"""
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
 import threading
 import time
-from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
 
 import rclpy
@@ -16,9 +18,8 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-import yaml
 
-from ros_domain import die_with_parent, executable_path, wait_for  # noqa: F401 - re-exported
+from uav_serial_common.process import wait_for
 
 
 class MessageLog:
@@ -66,7 +67,7 @@ class MessageLog:
             return len(self.messages)
 
 
-class RosTestHarness:
+class RosHarness:
     """A private rclpy Context with one node and an executor spinning in a thread."""
 
     def __init__(self, node_name: str = 'test_client', domain_id: Optional[int] = None) -> None:
@@ -159,102 +160,3 @@ class RosTestHarness:
             if self.context.ok():
                 rclpy.shutdown(context=self.context)
             self._thread.join(timeout=2.0)
-
-
-class LaunchedProcess:
-    """One executable started by the `launch` fixture."""
-
-    def __init__(self, name: str, popen: subprocess.Popen, stderr_path: Path,
-                 stdout_path: Path) -> None:
-        self.name = name
-        self.popen = popen
-        self.stderr_path = stderr_path
-        self.stdout_path = stdout_path
-
-    @property
-    def pid(self) -> int:
-        """Return the process id."""
-        return self.popen.pid
-
-    def output(self) -> str:
-        """Return what the process wrote to stdout and stderr so far."""
-        text = ''
-        for path in (self.stdout_path, self.stderr_path):
-            try:
-                text += path.read_text(errors='replace')
-            except FileNotFoundError:
-                pass
-        return text
-
-    def alive(self) -> bool:
-        """Return whether the process still runs."""
-        return self.popen.poll() is None
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
-        """Send `sig`, wait up to `timeout` s, then kill; returns the exit code."""
-        if self.popen.poll() is None:
-            try:
-                os.kill(self.popen.pid, sig)
-            except ProcessLookupError:
-                pass
-            try:
-                self.popen.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(5)
-        return self.popen.returncode
-
-
-class LaunchedProcesses:
-    """Starts installed executables for one test and stops them all afterwards."""
-
-    def __init__(self, tmp_path: Path, test_name: str) -> None:
-        self.tmp_path = tmp_path
-        self.test_name = test_name
-        self.processes: List[LaunchedProcess] = []
-
-    def start(self, executable: str, parameters: Optional[Dict[str, Any]] = None,
-              node_name: Optional[str] = None, namespace: Optional[str] = None,
-              wait_service: Optional[str] = None, wait_topic: Optional[str] = None,
-              ros: Optional[RosTestHarness] = None, timeout: float = 20.0,
-              extra_env: Optional[Dict[str, str]] = None) -> LaunchedProcess:
-        """Start `executable` with `parameters`; wait for a service or topic via `ros`."""
-        index = len(self.processes)
-        args = [executable_path(executable), '--ros-args']
-        if node_name:
-            args += ['-r', f'__node:={node_name}']
-        if namespace:
-            args += ['-r', f'__ns:={namespace}']
-        if parameters:
-            params_file = self.tmp_path / f'{executable}-{index}.params.yaml'
-            params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
-            args += ['--params-file', str(params_file)]
-        stdout_path = self.tmp_path / f'{executable}-{index}.stdout'
-        stderr_path = self.tmp_path / f'{executable}-{index}.stderr'
-        env = dict(os.environ)
-        env.update(extra_env or {})
-        with open(stdout_path, 'wb') as out, open(stderr_path, 'wb') as err:
-            popen = subprocess.Popen(args, stdout=out, stderr=err, env=env,
-                                     start_new_session=True, preexec_fn=die_with_parent)
-        proc = LaunchedProcess(executable, popen, stderr_path, stdout_path)
-        self.processes.append(proc)
-        try:
-            if ros is not None and wait_service:
-                wait_for(lambda: not proc.alive() or any(
-                    n == wait_service for n, _ in ros.node.get_service_names_and_types()),
-                    timeout, interval=0.05, what=f'service {wait_service} of {executable}')
-            if ros is not None and wait_topic:
-                wait_for(lambda: not proc.alive() or ros.node.count_publishers(wait_topic) > 0,
-                         timeout, interval=0.05, what=f'topic {wait_topic} of {executable}')
-        except AssertionError as exc:
-            raise AssertionError(f'{exc}\n--- output of {executable} ---\n{proc.output()}') \
-                from None
-        if not proc.alive():
-            raise AssertionError(f'{executable} exited with {proc.popen.returncode}\n'
-                                 f'--- output ---\n{proc.output()}')
-        return proc
-
-    def stop_all(self) -> None:
-        """Stop every process this test started (SIGINT, then SIGKILL)."""
-        for proc in reversed(self.processes):
-            proc.stop()
