@@ -1,0 +1,188 @@
+"""Safety items 13-18 of the servo bus, through servo_bus_node as a process and the virtual bus.
+
+Each test is named after its item (issue 10). The rules behind them are tested in the core tests
+(test_servo_core.py); these prove that no message, unplugging or flood gets past the node.
+"""
+
+import json
+import math
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.protocol import Instruction
+import pytest
+from servo_rig import LOOP_READS, start_rig, stop_rig
+from std_srvs.srv import Trigger
+from uav_serial_common.process import wait_for
+from uav_serial_drivers.msg import ServoCommand
+from uav_serial_drivers.srv import (FactoryReset, GoToPreset, ReadRegister, ScanBus, SetId,
+                                    SetTorque, WritePositions, WriteRegister)
+
+HERE = Path(__file__).resolve().parent
+
+
+@pytest.fixture
+def rig(tmp_path, request):
+    rig = start_rig(tmp_path, request.node.name[:40])
+    yield rig
+    stop_rig(rig)
+
+
+def assert_alive_and_reading(rig, what):
+    assert rig.node.alive(), f'the node died ({what}):\n{rig.node.output()}'
+    start = len(rig.joints)
+    rig.joints.wait(lambda m: len(m.name) == 3, 10, start=start + 3,
+                    what=f'joint_states of every servo after {what}')
+    output = rig.node.output()
+    assert 'Traceback' not in output and 'fatal' not in output, output
+
+
+def test_safety_13_absurd_values_are_refused_and_the_node_lives(rig):
+    pub = rig.ros.publisher(ServoCommand, '/servo_bus/command')
+    mark = rig.wire.mark()
+    for bad in ([1e308], [-1e308], [math.inf], [-math.inf], [math.nan], [4.0], [-1e300],
+                [1.7976931348623157e308]):
+        pub.publish(ServoCommand(ids=[1], positions=bad))
+    for ms in (-2, -(2 ** 31), 2 ** 31 - 1, 65536):
+        pub.publish(ServoCommand(ids=[1], positions=[0.0], move_time_ms=ms))
+    pub.publish(ServoCommand(ids=[1] * 10000, positions=[0.0] * 10000))
+    pub.publish(ServoCommand(names=['servo_1'] * 10000, positions=[1e308] * 10000))
+    pub.publish(ServoCommand(names=['x' * 100000], positions=[0.0]))
+    for fields in (dict(ids=[1], positions=[1e308]), dict(ids=[2], positions=[-math.inf]),
+                   dict(ids=[3], positions=[math.nan], staged=True),
+                   dict(ids=[1], positions=[0.0], move_time_ms=-(2 ** 31)),
+                   dict(names=[f'n{k}' for k in range(10000)], positions=[0.0] * 10000)):
+        resp = rig.call(WritePositions, 'write_positions', **fields)
+        assert not resp.success and resp.message.startswith('refused'), resp.message[:300]
+    for srv, name, fields in (
+            (WriteRegister, 'write_register', dict(id=1, register_name='run_time',
+                                                   value=2 ** 63 - 1)),
+            (WriteRegister, 'write_register', dict(id=1, register_name='center_offset',
+                                                   value=-(2 ** 63))),
+            (ReadRegister, 'read_register', dict(id=1, address=255, length=255)),
+            (ReadRegister, 'read_register', dict(id=255, register_name='x' * 10000)),
+            (GoToPreset, 'go_to_preset', dict(ids=[1], preset=255)),
+            (SetTorque, 'set_torque', dict(ids=[0] * 10000, enable=True)),
+            (ScanBus, 'scan', dict(first_id=0, last_id=255)),
+            (SetId, 'set_id', dict(id=255, new_id=0)),
+            (FactoryReset, 'factory_reset', dict(id=255, confirm='RESET'))):
+        resp = rig.call(srv, name, **fields)
+        assert not resp.success and len(resp.message) < 600, (name, resp.message[:300])
+    # A good command after all that still moves servo 3: everything before it was handled.
+    pub.publish(ServoCommand(ids=[3], positions=[0.25], move_time_ms=7))
+    wanted = proto.encode_sync_write_positions([(3, 2048 + 163, 7)])
+    wait_for(lambda: wanted in [r.raw for r in rig.wire.commands(mark)], 10,
+             what='the good command on the wire')
+    assert [r.raw for r in rig.wire.commands(mark)] == [wanted]
+    assert_alive_and_reading(rig, 'absurd values')
+
+
+def test_safety_14_quick_unplug_replug_cycles_never_stop_the_joint_states(rig):
+    rng = random.Random(14)
+    rig.joints.wait(lambda m: len(m.name) == 3, 5, what='joint_states before the cycles')
+    for _ in range(15):
+        rig.dev.runner.unplug()
+        time.sleep(rng.uniform(0.0, 0.08))
+        rig.dev.runner.replug()
+        time.sleep(rng.uniform(0.0, 0.15))
+    assert_alive_and_reading(rig, '15 quick unplug/replug cycles')
+    start = len(rig.joints)
+    rig.joints.wait(lambda m: len(m.name) == 3, 10, start=start + 20,
+                    what='joint_states going on')
+    assert 'read loop stopped' not in rig.node.output()
+    assert 'read loop failed' not in rig.node.output()
+
+
+def test_safety_15_set_id_onto_an_offline_configured_id_is_refused(rig):
+    with rig.locked():
+        rig.sim.remove_servo(3)
+    rig.state(3, start=len(rig.states), pred=lambda s: not s.online, what='servo_3 offline')
+    mark = rig.wire.mark()
+    resp = rig.call(SetId, 'set_id', id=2, new_id=3)
+    assert not resp.success and 'servo_3' in resp.message and 'servo_ids' in resp.message
+    assert rig.wire.commands(mark) == []
+    assert rig.sim.ids == [1, 2]
+    start = len(rig.joints)
+    for k in range(5):
+        msg = rig.joints.wait(lambda m: True, 5, start=start + k)
+        assert len(set(msg.name)) == len(msg.name) and list(msg.name) == ['servo_1', 'servo_2']
+
+
+def test_safety_16_set_id_is_refused_when_two_servos_answer_at_the_old_id(rig):
+    # The driver's own advice used to destroy an id: reset servo 2 (it goes to the factory id 1,
+    # where servo 1 is), then set_id 1 -> 5 renamed both.
+    with rig.locked():
+        rig.sim.move_by_hand(2, 1000)
+    resp = rig.call(FactoryReset, 'factory_reset', id=2, confirm='RESET')
+    assert resp.success
+    assert 'WARNING' in resp.message and 'factory id 1' in resp.message, resp.message
+    assert 'servo_1' in resp.message
+    assert rig.sim.ids == [1, 1, 3]
+    mark = rig.wire.mark()
+    resp = rig.call(SetId, 'set_id', id=1, new_id=5)
+    assert not resp.success and 'more than one servo answers at id 1' in resp.message
+    assert [r for r in rig.wire.commands(mark) if r.instruction == Instruction.WRITE] == []
+    assert rig.sim.ids == [1, 1, 3]
+
+
+def test_safety_17_a_command_flood_keeps_the_reads_going_and_the_newest_command_wins(rig):
+    times = []
+    reads = []
+
+    def tap(direction, data, t):
+        if direction == 'rx':
+            times.append((t, bytes(data)))
+    rig.dev.runner.add_tap(tap)
+    # Baseline: joint_states over 2 s without commands.
+    t0 = time.monotonic()
+    n0 = len(rig.joints)
+    time.sleep(2.0)
+    baseline = (len(rig.joints) - n0) / (time.monotonic() - t0)
+    mark = rig.wire.mark()
+    flood = subprocess.run([sys.executable, str(HERE / 'flood_commands.py'), '1000', '10'],
+                           capture_output=True, text=True, timeout=60)
+    assert flood.returncode == 0, flood.stderr
+    report = json.loads(flood.stdout.strip().splitlines()[-1])
+    # joint_states stamps are the driver's (wall) publication times: count the flood's window,
+    # its first second left out.
+    lo, hi = report['t_start_wall'] + 1.0, report['t_last_wall']
+    during = [m for m in rig.joints.messages[n0:]
+              if lo <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 <= hi]
+    rate = len(during) / (hi - lo)
+    assert rate >= 0.5 * baseline, (rate, baseline)
+    x = report['last']
+    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in x]
+    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
+
+    def last_command():
+        syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
+        return syncs[-1].raw if syncs else None
+    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
+    assert len(syncs) < report['sent']
+    # The newest command reached the wire within a read cycle or so of its publication:
+    # count the read loop's READs between the two (3 servos per cycle), not seconds.
+    arrived = next(t for t, data in reversed(times) if wanted in data)
+    for t, data in times:
+        if report['t_last'] <= t <= arrived:
+            reads.extend(r for r in proto.StreamDecoder('request').feed(data)
+                         if r.instruction == Instruction.READ and tuple(r.params) in LOOP_READS)
+    assert len(reads) <= 3 * 3, len(reads)
+    assert_alive_and_reading(rig, 'the command flood')
+
+
+def test_safety_18_unknown_names_by_the_thousand_get_a_bounded_answer_and_log_line(rig):
+    names = [f'no_such_joint_{k}' for k in range(10000)]
+    resp = rig.call(WritePositions, 'write_positions', names=names, positions=[0.0] * 10000)
+    assert not resp.success and len(resp.message) < 300, len(resp.message)
+    assert "'no_such_joint_0'" in resp.message and 'and 9995 more' in resp.message
+    pub = rig.ros.publisher(ServoCommand, '/servo_bus/command')
+    pub.publish(ServoCommand(names=names, positions=[0.0] * 10000))
+    wait_for(lambda: '~/command refused' in rig.node.output(), 10, what='the refusal logged')
+    line = next(line for line in rig.node.output().splitlines() if '~/command refused' in line)
+    assert len(line) < 700 and 'and 9995 more' in line, line[:800]
+    assert rig.call(Trigger, 'emergency_stop').success
