@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import json
 import time
-from typing import List, Optional
+from typing import Optional
 
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -22,6 +21,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros.simulation import VirtualParachute
 from uav_serial_common.node_main import run_node
+from uav_serial_common.params import declare_parameters, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 
 GARBAGE = bytes.fromhex('00 ff 41 13 75 42 61 37 a5')
@@ -39,10 +39,6 @@ def create_runner(sim: VirtualParachute, link_path: Optional[str], baud: int = 1
         baud=baud,
         seed=seed,
     )
-
-
-def _float_range(lo: float, hi: float) -> List[FloatingPointRange]:
-    return [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
 
 
 class VirtualParachuteNode(Node):
@@ -92,13 +88,9 @@ class VirtualParachuteNode(Node):
 
     def _declare(self, name: str, default, description: str, read_only: bool = False,
                  int_range=None, float_range=None):
-        descriptor = ParameterDescriptor(description=description, read_only=read_only)
-        if int_range is not None:
-            descriptor.integer_range = [IntegerRange(from_value=int_range[0],
-                                                     to_value=int_range[1], step=1)]
-        if float_range is not None:
-            descriptor.floating_point_range = _float_range(*float_range)
-        return self.declare_parameter(name, default, descriptor).value
+        spec = ParamSpec(name, default, description, read_only=read_only, int_range=int_range,
+                         float_range=float_range)
+        return declare_parameters(self, [spec])[name]
 
     def _apply(self, name: str, value) -> None:
         sim, faults = self.sim, self.runner.faults
