@@ -82,19 +82,26 @@ def test_safety_13_absurd_values_are_refused_and_the_node_lives(rig):
 
 
 def test_safety_14_quick_unplug_replug_cycles_never_stop_the_joint_states(rig):
-    rng = random.Random(14)
+    # A flaky connector: the cable goes again right after the driver has reopened the port
+    # (it has set its baud on the pty), while it flushes stale input before its first READ; a
+    # vanished pty answers that tcflush with termios.error.
     rig.joints.wait(lambda m: len(m.name) == 3, 5, what='joint_states before the cycles')
-    for _ in range(15):
+    rng = random.Random(14)
+    port = rig.dev.runner.port
+    for _ in range(12):
         rig.dev.runner.unplug()
-        time.sleep(rng.uniform(0.0, 0.08))
+        time.sleep(rng.uniform(0.0, 0.02))
         rig.dev.runner.replug()
-        time.sleep(rng.uniform(0.0, 0.15))
-    assert_alive_and_reading(rig, '15 quick unplug/replug cycles')
+        wait_for(lambda: port.line_baud() == 115200, 5, interval=0.0002,
+                 what='the driver to reopen the port')
+    rig.dev.runner.unplug()
+    time.sleep(0.05)
+    rig.dev.runner.replug()
+    assert_alive_and_reading(rig, '12 quick unplug/replug cycles')
     start = len(rig.joints)
     rig.joints.wait(lambda m: len(m.name) == 3, 10, start=start + 20,
                     what='joint_states going on')
     assert 'read loop stopped' not in rig.node.output()
-    assert 'read loop failed' not in rig.node.output()
 
 
 def test_safety_15_set_id_onto_an_offline_configured_id_is_refused(rig):

@@ -199,8 +199,11 @@ class VirtualSerialPort:
                 return b''
             return os.read(master, max_bytes)
         except (OSError, ValueError) as exc:
-            # EIO: nobody holds the slave open; EBADF/ValueError: unplugged meanwhile.
-            if isinstance(exc, OSError) and exc.errno not in (errno.EIO, errno.EBADF):
+            # EIO: nobody holds the slave open; EBADF/ValueError: unplugged meanwhile; EAGAIN:
+            # unplugged and replugged meanwhile, and the new pty (the same descriptor number)
+            # has nothing to read yet.
+            gone = (errno.EIO, errno.EBADF, errno.EAGAIN)
+            if isinstance(exc, OSError) and exc.errno not in gone:
                 raise
             return b''
 

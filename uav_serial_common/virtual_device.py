@@ -146,38 +146,47 @@ class VirtualDeviceRunner:
     def _run(self) -> None:
         rx_busy_until = 0.0
         while self._running.is_set():
-            if not self.port.plugged:
-                if self._replug_at is not None and time.monotonic() >= self._replug_at:
-                    self.replug()
-                else:
-                    time.sleep(0.005)
-                    self._tick()
-                    continue
-            data = self.port.read(timeout=self._poll_timeout())
-            if data:
-                now = time.monotonic()
-                sender = self._check_line()
-                # The bytes reached the pty at once; on a wire the last one arrives only after
-                # all of them were clocked out, and a half-duplex device answers after that.
-                arrival = max(now, rx_busy_until) + wire_time(len(data), sender)
-                rx_busy_until = arrival
-                if sender != self.baud:
-                    # Our UART samples the driver's bits at our own speed.
-                    data = reframe(data, sender, self.baud)
-                    self.garbled_chunks += 1
-                sleep_until(arrival)
-                self.bytes_in += len(data)
-                for tap in self._taps:
-                    tap('rx', data, arrival)
-                with self._lock:
-                    try:
-                        output = self._on_input(data, arrival)
-                    except Exception:  # noqa: BLE001 - a model bug must not kill the device
-                        self._log.exception('device model failed on input %s', data.hex(' '))
-                        output = None
-                self._send(output, reply=True, ready_at=arrival)
-            if time.monotonic() >= self._tick_due:
+            try:
+                rx_busy_until = self._run_once(rx_busy_until)
+            except Exception:  # noqa: BLE001 - the device must outlive any fault of its pty
+                self._log.exception('virtual device: unexpected failure; going on')
+                time.sleep(0.005)
+
+    def _run_once(self, rx_busy_until: float) -> float:
+        """Serve one read (or an unplugged pause) and the tick if due; return rx_busy_until."""
+        if not self.port.plugged:
+            if self._replug_at is not None and time.monotonic() >= self._replug_at:
+                self.replug()
+            else:
+                time.sleep(0.005)
                 self._tick()
+                return rx_busy_until
+        data = self.port.read(timeout=self._poll_timeout())
+        if data:
+            now = time.monotonic()
+            sender = self._check_line()
+            # The bytes reached the pty at once; on a wire the last one arrives only after all
+            # of them were clocked out, and a half-duplex device answers after that.
+            arrival = max(now, rx_busy_until) + wire_time(len(data), sender)
+            rx_busy_until = arrival
+            if sender != self.baud:
+                # Our UART samples the driver's bits at our own speed.
+                data = reframe(data, sender, self.baud)
+                self.garbled_chunks += 1
+            sleep_until(arrival)
+            self.bytes_in += len(data)
+            for tap in self._taps:
+                tap('rx', data, arrival)
+            with self._lock:
+                try:
+                    output = self._on_input(data, arrival)
+                except Exception:  # noqa: BLE001 - a model bug must not kill the device
+                    self._log.exception('device model failed on input %s', data.hex(' '))
+                    output = None
+            self._send(output, reply=True, ready_at=arrival)
+        if time.monotonic() >= self._tick_due:
+            self._tick()
+        return rx_busy_until
 
     def _poll_timeout(self) -> float:
         """Return how long to wait for input before the model's next tick is due."""
