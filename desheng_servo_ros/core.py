@@ -185,10 +185,19 @@ class ServoSnapshot(NamedTuple):
     @property
     def faults(self) -> List[str]:
         """Names of the documented fault bits set in the last status byte (S4)."""
-        return [name for bit, name in ((proto.STATUS_OVERLOAD, 'overload'),
-                                       (proto.STATUS_OVER_TEMPERATURE, 'over-temperature'),
-                                       (proto.STATUS_VOLTAGE_FAULT, 'voltage fault'))
-                if self.status & bit]
+        return fault_names(self.status)
+
+
+def fault_names(status: int) -> List[str]:
+    """Return the names of the documented fault bits set in a status byte (S4)."""
+    return [name for bit, name in _FAULT_BITS if status & bit]
+
+
+_FAULT_BITS = ((proto.STATUS_OVERLOAD, 'overload'),
+               (proto.STATUS_OVER_TEMPERATURE, 'over-temperature'),
+               (proto.STATUS_VOLTAGE_FAULT, 'voltage fault'))
+# Immutable tuples on the hot path are built without NamedTuple's keyword handling.
+_new = tuple.__new__
 
 
 @dataclass(frozen=True)
@@ -378,6 +387,7 @@ class ServoBusCore:
         self.clock = clock
         self.units = Units(config.ticks_per_revolution, config.zero_tick)
         self._rad_per_tick = self.units.rad_per_tick
+        self._zero_tick = self.units.zero_tick
         joints = servo_list(config.servo_ids, config.joint_names)  # ValueError: bad config
         self._servos: Tuple[_Servo, ...] = tuple(_Servo(j, k) for k, j in enumerate(joints))
         self._configured_ids = frozenset(config.servo_ids)
@@ -480,12 +490,11 @@ class ServoBusCore:
         out = []
         for s in self._servos:
             r, t = s.reading, s.telemetry
-            out.append(ServoSnapshot(
-                id=s.id, name=s.name, online=s.online, seen=s.seen, position_ticks=r.ticks,
-                position_rad=r.rad, speed_raw=r.speed_raw, velocity=r.velocity,
-                current_ma=t.current_ma, temperature_c=t.temperature_c, status=r.status,
-                torque_enabled=t.torque_enabled, error_count=s.error_count,
-                duplicate=now < s.duplicate_until))
+            # The fields of ServoSnapshot, in order.
+            out.append(_new(ServoSnapshot, (
+                s.id, s.name, s.online, s.seen, r.ticks, r.rad, r.speed_raw, r.velocity,
+                t.current_ma, t.temperature_c, r.status, t.torque_enabled, s.error_count,
+                now < s.duplicate_until)))
         return BusSnapshot(self.bus.connected, tuple(out))
 
     # -- logging --------------------------------------------------------------------------------
@@ -691,8 +700,8 @@ class ServoBusCore:
         if ticks != old.ticks and s.seen:
             s.direction = 1.0 if ticks > old.ticks else -1.0
         rpt = self._rad_per_tick
-        s.reading = Reading(ticks, (ticks - self.units.zero_tick) * rpt, speed,
-                            s.direction * speed * rpt if speed else 0.0, status)
+        s.reading = _new(Reading, (ticks, (ticks - self._zero_tick) * rpt, speed,
+                                   s.direction * speed * rpt if speed else 0.0, status))
         changed = status != old.status or not s.online
         if not s.online and s.seen:
             self.log_info(f'{s.name} (id {s.id}) is back online')
@@ -1239,10 +1248,7 @@ class ServoBusCore:
                               values)
             return Health(ERROR, f'{who} offline: no reply ({s.error_count} failed '
                                  'transactions); check its power, cable and id (~/scan)', values)
-        faults = [name for bit, name in ((proto.STATUS_OVERLOAD, 'overload'),
-                                         (proto.STATUS_OVER_TEMPERATURE, 'over-temperature'),
-                                         (proto.STATUS_VOLTAGE_FAULT, 'voltage fault'))
-                  if r.status & bit]
+        faults = fault_names(r.status)
         if faults:
             return Health(WARN, f'{who}: ' + ', '.join(faults), values)
         return Health(OK, 'ok', values)
