@@ -39,6 +39,15 @@ def torque(rig, ids, enable):
     return resp
 
 
+def test_a_healthy_start_logs_no_warning(rig):
+    # Issue 11: it used to log "[WARN] ... is not open" right after "opened ...": a warning
+    # that means nothing teaches users to ignore warnings.
+    rig.joints.wait(lambda m: len(m.name) == 3, 5, what='joint_states of every servo')
+    output = rig.node.output()
+    assert 'opened' in output
+    assert '[WARN]' not in output and '[ERROR]' not in output, output
+
+
 def test_joint_states_are_in_rad_for_every_online_servo(rig):
     with rig.locked():
         rig.sim.move_by_hand(1, 3072)

@@ -141,3 +141,13 @@ def test_safety_20_parachute_at_115200_against_a_module_at_9600_says_check_the_b
     launch.start('parachute_node', {'port': link, 'blackbox_dir': str(tmp_path / 'bb')},
                  ros=ros, wait_service='/parachute/deploy')
     wait_error(diags, 'parachute', ['baud'], timeout=30.0)
+
+
+def test_a_servo_bus_in_a_namespace_reports_under_its_fully_qualified_name(ros, launch, tmp_path):
+    # Issue 11: statuses named 'servo_bus: ...' could not tell two buses apart.
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    missing = str(tmp_path / 'ttyUSB5')
+    launch.start('servo_bus_node', {'port': missing, 'servo_ids': [4]}, namespace='/uav2',
+                 ros=ros, wait_service='/uav2/servo_bus/emergency_stop')
+    wait_diag(diags, '/uav2/servo_bus: bus', ['no such device', missing])
+    wait_diag(diags, '/uav2/servo_bus: servo_4 (id 4)', ['offline'])
