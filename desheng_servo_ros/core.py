@@ -266,21 +266,21 @@ class ReadCycles:
     follow each other on the wire without a gap when ``publish_rate_hz`` asks for more than the
     bus carries; otherwise the chain ends after a cycle and the read loop waits for the next
     one. Runs on the link's reader thread (replies) and the read loop (timeouts). It knows the
-    rest of the driver only through what it is given: the clock, the servos, the period and
-    retries, whether reading is allowed, and where results and cycle starts/ends go.
+    rest of the driver only through what it is given: the clock, the servos, the period, where
+    results and cycle starts/ends go, and two attributes its owner sets: ``enabled`` (READs may
+    go out) and ``retries`` (per READ). Attributes, not calls: they are read for every READ.
     """
 
     def __init__(self, *, clock: Callable[[], float], servos: Callable[[], Sequence[_Servo]],
-                 period_s: Callable[[], float], retries: Callable[[], int],
-                 allowed: Callable[[], bool],
+                 period_s: Callable[[], float],
                  on_read: Callable[[_Servo, bool, float, Optional[proto.Reply]], None],
                  on_cycle_start: Callable[[float], None],
-                 on_cycle_done: Callable[[], None]) -> None:
+                 on_cycle_done: Callable[[], None], retries: int = 1) -> None:
         self._clock = clock
         self._servos = servos
         self._period_s = period_s
-        self._retries = retries
-        self._allowed = allowed
+        self.enabled = False
+        self.retries = retries
         self._on_read = on_read
         self._on_cycle_start = on_cycle_start
         self._on_cycle_done = on_cycle_done
@@ -306,7 +306,7 @@ class ReadCycles:
 
     def next_read(self) -> Optional[ReadItem]:
         """Return the next READ of this cycle, or of the next one when it is due, else None."""
-        if not self._allowed():
+        if not self.enabled:
             return None
         if self.pos >= len(self.plan) and not self._start_cycle():
             return None
@@ -314,7 +314,7 @@ class ReadCycles:
         self.pos += 1
         tag = (s, telemetry, self.started, self.pos == len(self.plan))
         # A servo that failed as often as it takes to be offline is probed without retries.
-        retries = self._retries() if s.failures < OFFLINE_AFTER_FAILURES else 0
+        retries = self.retries if s.failures < OFFLINE_AFTER_FAILURES else 0
         if telemetry:
             return s.telemetry_frame, s.id, TELEMETRY_READ[1], retries, tag
         return s.read_frame, s.id, POSITION_READ[1], retries, tag
@@ -405,9 +405,8 @@ class ServoBusCore:
         self._cycles = ReadCycles(
             clock=clock, servos=lambda: self._servos,
             period_s=lambda: 1.0 / self.config.publish_rate_hz,
-            retries=lambda: self.bus.max_retries, allowed=self._reading_allowed,
             on_read=self._on_read, on_cycle_start=self._cycle_started,
-            on_cycle_done=self._cycle_done)
+            on_cycle_done=self._cycle_done, retries=config.max_retries)
         self._running = False
         self._pause = 0
         self._loop_idle = False
@@ -417,6 +416,7 @@ class ServoBusCore:
         self.cycle_rate_hz = 0.0
         self._rate_mark: Optional[Tuple[float, int]] = None
         self._next_check = -math.inf
+        self._offline_report_at = -math.inf
         self._loop_failures = 0
         self._loop_failure = ''
         self._loop_failed_at = -math.inf
@@ -436,6 +436,7 @@ class ServoBusCore:
     def start(self, read_loop: bool = True) -> None:
         """Open the port and start the threads (without the read loop: tests call read_cycle)."""
         self._running = True
+        self._allow_reading()
         self.bus.start()
         for target, name in ((self._reporter_main, 'servo-reporter'),
                              (self._commander_main, 'servo-commands')):
@@ -450,6 +451,7 @@ class ServoBusCore:
     def stop(self) -> None:
         """Stop the threads, broadcast torque off as the last frame (if configured), close."""
         self._running = False
+        self._allow_reading()
         for cond in (self._pause_cond, self._report_cond, self._cmd_cond):
             with cond:
                 cond.notify_all()
@@ -475,7 +477,7 @@ class ServoBusCore:
         if 'response_timeout_ms' in runtime:
             self.bus.response_timeout_ms = runtime['response_timeout_ms']
         if 'max_retries' in runtime:
-            self.bus.max_retries = runtime['max_retries']
+            self.bus.max_retries = self._cycles.retries = runtime['max_retries']
 
     # -- what others read -----------------------------------------------------------------------
 
@@ -534,8 +536,9 @@ class ServoBusCore:
 
     # -- read loop ------------------------------------------------------------------------------
 
-    def _reading_allowed(self) -> bool:
-        return self._running and not self._pause
+    def _allow_reading(self) -> None:
+        # The read cycles check this flag before every READ (running and not paused).
+        self._cycles.enabled = self._running and not self._pause
 
     def _loop_main(self) -> None:
         backoff = 0.05
@@ -612,9 +615,13 @@ class ServoBusCore:
                 cycles.reset()
                 continue
             if not self.bus.connected:
-                # Keep servo_states (all offline) and diagnostics coming while the port is away.
-                self._report()
-                self.bus.wait_connected(1.0 / self.config.publish_rate_hz)
+                # Keep servo_states (all offline) and diagnostics coming while the port is away,
+                # at the publish rate, and look at the port often enough for a prompt shutdown.
+                now = self.clock()
+                if now >= self._offline_report_at:
+                    self._report()
+                    self._offline_report_at = now + 1.0 / self.config.publish_rate_hz
+                self.bus.wait_connected(min(0.1, 1.0 / self.config.publish_rate_hz))
                 cycles.reset()
                 continue
             if not cycles.in_cycle:
@@ -650,6 +657,7 @@ class ServoBusCore:
         """Hold the read loop between two READs (scan, id change, reset)."""
         with self._pause_cond:
             self._pause += 1
+            self._allow_reading()
             self._pause_cond.notify_all()
             loop = self._loop
             self._pause_cond.wait_for(
@@ -659,6 +667,7 @@ class ServoBusCore:
         finally:
             with self._pause_cond:
                 self._pause -= 1
+                self._allow_reading()
                 self._pause_cond.notify_all()
 
     def _set_servos(self, servos: Tuple[_Servo, ...]) -> None:
