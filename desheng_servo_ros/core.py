@@ -92,9 +92,13 @@ PROBE_READS = 5
 # pause that grows up to LOOP_BACKOFF_MAX_S.
 LOOP_FAILURE_HOLD_S = 10.0
 LOOP_BACKOFF_MAX_S = 1.0
-# Commands take at most this share of the bus: after a SYNC WRITE the next one waits this many
-# times its wire time, so a command flood leaves the read loop at least half of the bus.
+# Commands coming faster than the bus should take them are coalesced: after a SYNC WRITE the
+# next one waits until COMMAND_SPACING times its wire time has passed (from when it was written,
+# so the read loop gets at least as much bus time as the commands), and at least
+# COMMAND_CYCLE_SHARE of a read cycle (at most two command frames per cycle: every frame costs
+# a hand-off of the bus between two threads, which a loaded computer pays in scheduling delays).
 COMMAND_SPACING = 2.0
+COMMAND_CYCLE_SHARE = 0.5
 ALL_IDS = range(proto.MIN_ID, proto.MAX_ID + 1)
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -874,8 +878,9 @@ class ServoBusCore:
             try:
                 frames = self.bus.sync_write_positions(targets, PRIORITY_SERVICE)
                 self.command_frames_sent += len(frames)
-                # Leave the read loop at least as much bus time as the command took.
-                spacing = COMMAND_SPACING * wire_time(sum(map(len, frames)), self.config.baud)
+                spacing = max(COMMAND_SPACING * wire_time(sum(map(len, frames)),
+                                                          self.config.baud),
+                              COMMAND_CYCLE_SHARE / self.config.publish_rate_hz)
                 with self._cmd_cond:
                     self._next_command_at = time.monotonic() + spacing
             except LinkError as exc:
