@@ -61,6 +61,27 @@ def test_h2_golden_frames_decode(frame, type_, value, encoding):
     assert commands(decode_all(frame)) == [(type_, value, encoding)]
 
 
+OUR_GOLDEN = [
+    (T.SET_YAW, -180, 'int16', 'AA 04 01 4C FF 1C 55'),
+    (T.SET_ALTITUDE, 12.5, 'float32', 'AA 06 04 00 00 48 41 A1 55'),
+    (T.SET_LIGHTS, 75, 'int8', 'AA 03 05 4B E7 55'),
+    (T.SET_ROLL, -12, 'int8', 'AA 03 03 F4 5E 55'),
+    (T.SET_CAMERA_RECORD, True, 'json',
+     'AA 12 07 7B 22 72 65 63 6F 72 64 22 3A 20 74 72 75 65 7D B8 55'),
+    (T.SET_CAMERA_ANGLE, -30, 'json',
+     'AA 17 06 7B 22 63 61 6D 65 72 61 5F 61 6E 67 6C 65 22 3A 20 2D 33 30 7D AE 55'),
+]
+
+
+@pytest.mark.parametrize('type_,value,encoding,frame', OUR_GOLDEN,
+                         ids=[f'{t.name}-{e}' for t, _, e, _ in OUR_GOLDEN])
+def test_h5_golden_frames_of_the_other_encodings(type_, value, encoding, frame):
+    # Not from the document: pinned from the rules (docs/protocols.md), so they cannot drift.
+    assert p.encode_command(type_, value, encoding) == h(frame)
+    result = p.decode_frame(h(frame))
+    assert (result.type, result.value, result.encoding) == (type_, value, encoding)
+
+
 def test_h2_checksum_is_the_xor_of_everything_before_it_start_byte_included():
     assert p.checksum(YAW_90_INT8[:4]) == 0xF2
     # Leaving the start byte out gives another value: the document's code includes it.
@@ -123,7 +144,7 @@ def test_h3_resync_after_truncated_frame_finds_the_good_frame_behind_it():
     assert commands(results) == [(T.SET_YAW, 90.0, 'int8')]
 
 
-def test_h3_resync_after_truncated_long_frame_does_not_wait_for_its_length():
+def test_h12_h3_resync_after_truncated_long_frame_does_not_wait_for_its_length():
     # A cut JSON frame announces 16 bytes; the good frame inside them is delivered at once.
     decoder = p.StreamDecoder()
     results = decoder.feed(YAW_90_JSON[:5] + YAW_90_INT8)
@@ -211,7 +232,7 @@ def test_h3_idle_deadline_is_0_1_s_after_the_last_bytes():
     assert decoder.idle_deadline() is None
 
 
-def test_h3_counters_tell_the_kinds_of_rejection_apart():
+def test_h13_h3_counters_tell_the_kinds_of_rejection_apart():
     too_far = p.encode_command(T.SET_YAW, 200, check=False)
     bad_checksum = YAW_90_INT8[:-2] + b'\x00\x55'
     data = YAW_90_INT8 + p.build_frame(0x09, b'\x01') + too_far + bad_checksum
@@ -493,7 +514,7 @@ def test_frames_in_noise_split_anywhere_are_all_recovered_in_order(pieces, tail,
 
 @settings(max_examples=300)
 @given(st.binary(max_size=600), st.lists(st.integers(0, 10_000), max_size=20))
-def test_random_bytes_never_raise_and_every_byte_is_accounted_for(data, cuts):
+def test_h13_random_bytes_never_raise_and_every_byte_is_accounted_for(data, cuts):
     decoder = p.StreamDecoder()
     results = []
     for chunk in _split(data, cuts):
