@@ -153,6 +153,13 @@ def test_h12_h3_resync_after_truncated_long_frame_does_not_wait_for_its_length()
     assert decoder.pending == 0
 
 
+def test_h12_a_false_start_in_noise_does_not_delay_the_frames_behind_it():
+    # Noise AA FF announces a 258-byte frame; the real frame after it is taken at once.
+    decoder = p.StreamDecoder()
+    results = decoder.feed(h('00 AA FF 13') + YAW_90_INT8)
+    assert kinds(results) == ['Malformed', 'Command'] and decoder.pending == 0
+
+
 def test_h3_resync_after_bad_checksum():
     bad = bytearray(YAW_90_JSON)
     bad[-2] ^= 0x01
