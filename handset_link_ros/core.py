@@ -316,6 +316,7 @@ class HandsetCore:
                     self._apply(result, batch.time, emits)
                 self._flush_setpoint(emits)
                 self._flush_aux(emits)
+                self._prune(batch.time)
             self._emit(emits)
 
     def _on_connection(self, up: bool, reason: str) -> None:
@@ -469,12 +470,16 @@ class HandsetCore:
         return Failsafe(self._link_lost, self._battery_low, action, '; '.join(reasons),
                         self._battery, now)
 
-    def _link_state(self, now: float) -> LinkState:
-        # H18: frames counted over the last rate_window_s, divided by it.
+    def _prune(self, now: float) -> None:
+        """Forget frame times older than the rate window (bounded memory under any input)."""
         horizon = now - self.config.rate_window_s
         for times in (self._window, self._rejections, *self._window_by_type.values()):
             while times and times[0] <= horizon:
                 times.popleft()
+
+    def _link_state(self, now: float) -> LinkState:
+        # H18: frames counted over the last rate_window_s, divided by it.
+        self._prune(now)
         window = self.config.rate_window_s
         busiest = max(len(t) for t in self._window_by_type.values())
         age = NAN if self._last_valid is None else max(0.0, now - self._last_valid)
