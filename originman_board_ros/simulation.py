@@ -406,6 +406,13 @@ class VirtualOriginManBoardModel:
             self.imu_rate_hz = float(rate_hz)
             self._imu_at = self._now + 1.0 / rate_hz if rate_hz > 0 else None
 
+    def set_battery_period(self, period_s: float) -> None:
+        """Change the battery report period (1.05 s on the real board); the next is due then."""
+        if not period_s > 0:
+            raise ValueError(f'period_s must be positive, got {period_s!r}')
+        self.battery_period_s = float(period_s)
+        self._battery_at = self._now + self.battery_period_s
+
     def set_battery_mv(self, millivolts: int) -> None:
         """Set the battery voltage the board measures."""
         self.battery_mv = int(millivolts)
