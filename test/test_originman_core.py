@@ -354,7 +354,7 @@ def test_o40_commands_are_refused_while_the_board_is_offline(make_rig):
     assert r.core.stop_all_motors().ok and r.frames_out == sent + 1
 
 
-def test_led_and_buzzer_times_round_to_ms_and_never_become_0(rig):
+def test_o47_led_and_buzzer_times_round_to_ms_and_never_become_0(rig):
     mark = rig.mark()
     assert rig.core.set_led(2, 0.0004, 0.0, 0).ok
     assert rig.core.set_led(1, 65.535, 0.0015, 3).ok
@@ -372,6 +372,32 @@ def test_o18_o19_rgb_pixels_are_1_based_and_oled_text_fits(rig):
     wait_for(lambda: rig.model.rgb == [(0, 0, 9), (255, 0, 0)], 5, what='the pixels')
 
 
+def test_o45_write_only_commands_report_sent_not_done(rig):
+    result = rig.core.stop_bus_servos([1, 2])
+    assert result.ok and result.message == 'stop bus servos [1, 2]: sent'
+    assert rig.core.set_oled(1, 'hello').message == "OLED line 1: 'hello': sent"
+
+
+def test_o46_offsets_that_do_not_read_back_are_written_again_a_second_later(make_rig):
+    r = make_rig(pwm_servo_offsets_us=(25,), motor_timeout_s=0.0)
+    # Later than both attempts of the read-back (2 x 0.25 s): a late reply to the first attempt
+    # would still be a valid answer to the second.
+    r.board.runner.faults.reply_delay_s = 0.6
+    r.online()
+    snap = r.core.snapshot()
+    assert not snap.settings_ok and 'could not write the settings' in snap.settings_message
+    r.board.runner.faults.reply_delay_s = 0.0
+    wait_for(lambda: r.core.link.unexpected_replies == 2, 5, what='both late replies')
+    mark = r.mark()
+    r.clock.advance(0.9)
+    r.core.poll()
+    assert r.wire(mark) == []
+    r.clock.advance(0.1)
+    r.core.poll()
+    assert r.core.snapshot().settings_ok
+    assert r.wire(mark) == [p.PwmSetOffset(1, 25), p.PwmRead(p.PwmSub.READ_OFFSET, 1)]
+
+
 def test_o3_motor_ids_1_to_4_are_wire_ids_0_to_3(rig):
     mark = rig.mark()
     assert rig.core.set_motor_speeds([1, 4], [0.5, -6.0]).ok
@@ -386,7 +412,7 @@ def test_o10_pwm_servos_move_in_one_multi_frame(rig):
                               p.PwmMove(1, 1500, ((1, 500), (2, 2500)))]
 
 
-def test_bus_servo_moves_are_split_into_frames_that_fit(rig):
+def test_o49_bus_servo_moves_are_split_into_frames_that_fit(rig):
     mark = rig.mark()
     ids = list(range(100))
     assert rig.core.set_bus_servos(ids, [500] * 100, 1.0).ok
@@ -423,7 +449,7 @@ def test_o6_torque_on_sends_0x0c_and_is_read_back(rig):
                       p.BusTorque(9, False)]
 
 
-def test_set_id_is_refused_when_the_new_id_answers_and_renames_the_polled_servo(make_rig):
+def test_o44_set_id_is_refused_when_the_new_id_answers_and_renames_the_polled_servo(make_rig):
     r = make_rig(bus_servo_ids=(1, 2))
     r.online()
     mark = r.mark()
@@ -437,7 +463,7 @@ def test_set_id_is_refused_when_the_new_id_answers_and_renames_the_polled_servo(
     assert r.core.bus_servo_ids == [12, 2]
 
 
-def test_offset_and_limits_are_written_and_read_back(rig):
+def test_o48_offset_and_limits_are_written_and_read_back(rig):
     result = rig.core.set_bus_servo_offset(3, -60, True)
     assert result.ok and 'saved' in result.message
     assert rig.model.bus_servo(3).saved_offset == -60
@@ -453,7 +479,7 @@ def test_offset_and_limits_are_written_and_read_back(rig):
     assert not rig.core.set_bus_servo_limits(9, 0, 0, 5000, 9000, 0).ok
 
 
-def test_pwm_state_and_offset(rig):
+def test_o43_pwm_state_of_every_servo_and_offset(rig):
     assert rig.core.set_pwm_servo_offset(2, 40).ok
     rig.core.set_pwm_servos([2], [2000], 0.02)
     wait_for(lambda: rig.core.get_pwm_servo_state([2]).pulses_us == (2000,), 5,
@@ -490,6 +516,14 @@ def test_polling_reads_positions_at_the_rate_and_telemetry_every_period(make_rig
     assert states[1].position_rad == pytest.approx(math.radians(250 * 0.24))
     assert states[0].voltage_v == pytest.approx(7.4) and states[0].temperature_c == 30.0
     assert r.core.snapshot().bus_servos == tuple(states)
+
+
+def test_o43_get_state_without_ids_reads_every_polled_servo(make_rig):
+    r = make_rig(bus_servo_ids=(3, 1), bus_servo_poll_hz=0.0)
+    r.online()
+    result = r.core.get_bus_servo_state([])
+    assert result.ok and [s.id for s in result.servos] == [3, 1]
+    assert all(s.online and s.max_temperature_c == 85.0 for s in result.servos)
 
 
 def test_o42_a_missing_servo_goes_offline_and_is_reprobed_once_a_second(make_rig):

@@ -71,10 +71,14 @@ def test_bus_reads_return_the_addressed_servos_values(rig):
     assert link.bus_read(BusSub.READ_LOAD, 1) is False
 
 
-def test_o14_a_failed_read_raises_and_never_gives_a_value(rig):
+def test_o14_o41_a_failed_read_raises_at_once_and_never_gives_a_value(rig):
     board, link, _ = rig
+    mark = board.mark()
     with pytest.raises(BusServoFailure) as info:
         link.bus_read(BusSub.READ_POSITION, 9)
+    # The board's answer is final: not retried like a missing reply.
+    wait_for(lambda: board.commands(mark), 5, what='the request on the wire')
+    assert board.commands(mark) == [p.BusRead(BusSub.READ_POSITION, 9)]
     assert (info.value.servo_id, info.value.sub, info.value.success) == (9, 5, -1)
     assert 'no valid answer' in info.value.reason
     assert link.read_failures == 1 and link.read_timeouts == 0
@@ -88,7 +92,7 @@ def test_pwm_reads_return_pulse_and_offset(rig):
     wait_for(lambda: link.read_pwm_pulse(4) == 700, 5, what='the PWM servo at 700 us')
 
 
-def test_a_lost_or_corrupted_reply_is_retried(rig):
+def test_o41_a_lost_or_corrupted_reply_is_retried(rig):
     board, link, _ = rig
     quiet(board)
     retries = link.serial.stats.retries
@@ -111,7 +115,7 @@ def test_a_silent_board_times_out_after_every_retry(rig):
     assert link.read_timeouts == 1
 
 
-def test_a_late_reply_is_counted_not_taken(rig):
+def test_o41_a_late_reply_is_counted_not_taken(rig):
     board, link, _ = rig
     quiet(board)
     board.runner.faults.reply_delay_s = 0.15
@@ -124,7 +128,7 @@ def test_a_late_reply_is_counted_not_taken(rig):
     assert link.read_pwm_pulse(1) == 1500
 
 
-def test_one_read_outstanding_per_function(rig):
+def test_o41_one_read_outstanding_per_function_matched_by_sub_and_id(rig):
     board, link, _ = rig
     mark = board.mark()
     results = {}
