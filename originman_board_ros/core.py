@@ -17,11 +17,16 @@ Threads and state (who owns what):
 * the **worker thread** runs :meth:`poll` every ``WORKER_PERIOD_S``: online judgement (and
   ``on_online_change``), desired settings, the motor watchdog, the settings check and the bus
   servo poll (blocking reads, one at a time) with ``on_bus_servo_states``. It alone writes
-  ``_online``, ``_settings_*`` and the poll schedule; the servo table ``_servos`` is written by
-  it and by the read services, always under ``_lock``.
+  ``_online``, ``_status``, ``_settings_*`` (under ``_lock``, as snapshots read them) and the
+  poll schedule (``_next_poll``, ``_telemetry_at``, ``_reprobe_at``, ``_check_at``: worker
+  only, no lock).
 * **caller threads** (a node's executor) call the command methods. They validate, then write or
   read through the link (its write lock keeps frames whole; a lock per FUNCTION keeps one read
-  outstanding). ``_motor_command_at`` and the refusal counters are written under ``_lock``.
+  outstanding).
+* shared, always under ``_lock``: ``_motor_command_at`` / ``_motor_stopped`` (callers, the
+  worker's watchdog, the reader at connect), ``_servos`` (the poll and the read services),
+  ``_poll_ids`` (renamed by ``set_bus_servo_id``), ``_expected_offsets`` (the worker and
+  ``set_pwm_servo_offset``), the refusal and report counters.
 
 ``_lock`` is never held while calling a callback or doing I/O. Callbacks must be quick and must
 not call back into blocking methods of the core from the reader thread.
@@ -737,7 +742,6 @@ class OriginManCore:
     def _on_connection(self, up: bool, reason: str) -> None:
         now = self._clock()
         with self._lock:
-            self._port_opened = up
             if up:
                 self._connected_at = now
                 # O38: after (re)opening the port the motors' state is unknown; without a
