@@ -216,7 +216,7 @@ def test_deploy_success_event_and_black_box(rig):
     rig.status.wait(lambda m: m.triggered and not m.armed, 3, what='triggered status')
     rig.triggered.wait(lambda m: m.data, 3, what='~/triggered true')
     diag = rig.diagnostics.wait(lambda m: any(
-        s.name == 'parachute: state' and s.level == DiagnosticStatus.ERROR for s in m.status),
+        s.name == '/parachute: state' and s.level == DiagnosticStatus.ERROR for s in m.status),
         5, what='ERROR diagnostic while triggered')
     assert diag
     # The black box holds the frames both ways and the decision, synced before the reply.
@@ -472,7 +472,7 @@ def test_unplug_goes_offline_and_replug_recovers(rig):
     rig.runner.unplug()
     rig.status.wait(lambda m: not m.online, 2, start=start, what='offline status')
     rig.diagnostics.wait(lambda m: any(
-        s.name == 'parachute: link' and s.level == DiagnosticStatus.ERROR for s in m.status),
+        s.name == '/parachute: link' and s.level == DiagnosticStatus.ERROR for s in m.status),
         2, start=diag_start, what='link ERROR diagnostic')
     reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
     assert not reply.success and 'offline' in reply.message
