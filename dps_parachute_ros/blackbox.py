@@ -17,6 +17,7 @@ are removed first, never the current one (decision D14 in ``docs/protocols.md``)
 from __future__ import annotations
 
 from dataclasses import dataclass
+import errno
 import json
 import os
 import queue
@@ -69,8 +70,10 @@ class BlackBox:
 
     def __init__(self, directory: str, prefix: str = 'parachute',
                  max_bytes: Optional[int] = None, path: Optional[str] = None,
-                 on_problem: Optional[Callable[[str, bool], None]] = None) -> None:
+                 on_problem: Optional[Callable[[str, bool], None]] = None,
+                 reopen_period_s: float = REOPEN_PERIOD_S) -> None:
         """Open this run's file (or `path`, for tests); `on_problem(text, ok)` hears changes."""
+        self.reopen_period_s = reopen_period_s
         self.directory = os.path.abspath(os.path.expanduser(directory))
         self.prefix = prefix
         self.on_problem = on_problem
@@ -192,7 +195,7 @@ class BlackBox:
                         self._fd = None
                     return
                 if isinstance(item, _Sync):
-                    item.ok = self._flush() and self._fsync()
+                    item.ok = self._flush() and self._fsync() and self.status().writing
                     item.event.set()
                     last_flush = time.monotonic()
                     continue
@@ -215,7 +218,7 @@ class BlackBox:
 
     def _open(self) -> bool:
         """Create this run's file (or open the fixed path); False when it cannot be."""
-        self._next_open = time.monotonic() + REOPEN_PERIOD_S
+        self._next_open = time.monotonic() + self.reopen_period_s
         try:
             if self._fixed_path:
                 self._fd = os.open(self._fixed_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
@@ -278,10 +281,10 @@ class BlackBox:
         try:
             os.fsync(self._fd)
         except OSError as exc:
-            self._failed(f'fsync failed: {exc.strerror or exc}', 0)
-            return False
+            if exc.errno != errno.EINVAL:  # EINVAL: a special file, nothing to sync
+                self._failed(f'fsync failed: {exc.strerror or exc}', 0)
+                return False
         self.syncs += 1
-        self._recovered()
         return True
 
     def _failed(self, error: str, lost: int) -> None:

@@ -561,7 +561,7 @@ class ParachuteSession:
 
     def _on_heartbeat(self) -> None:
         # P5: nobody asked, so the module has just (re)booted. It sends two, 50 ms apart: one
-        # reboot. Until it is re-read its armed state is unknown (D15).
+        # reboot (D3). Until it is re-read its armed state is unknown (D15).
         now = self.clock()
         with self._lock:
             first = now - self._last_boot_heartbeat > POWER_UP_HEARTBEATS_S
