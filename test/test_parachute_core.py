@@ -133,7 +133,7 @@ def in_thread(fn, *args):
     return out
 
 
-# -- deploy rules ----------------------------------------------------------------------------------
+# -- deploy rules -----------------------------------------------------------------------------
 
 def test_deploy_refusals_send_nothing(rig):
     mark = rig.wire.mark()
@@ -181,7 +181,7 @@ def test_unacknowledged_deploys_stop_before_a_third_frame_until_a_reboot(rig):
     assert rig.session.deploy('DEPLOY').ok
 
 
-# -- online / offline ------------------------------------------------------------------------
+# -- online / offline -------------------------------------------------------------------------
 
 def test_online_offline_judgement(rig):
     assert rig.snap.streaming
@@ -217,7 +217,7 @@ def test_an_unanswered_request_makes_the_module_offline(tmp_path):
         rig.close()
 
 
-# -- settings -------------------------------------------------------------------------------------
+# -- settings ---------------------------------------------------------------------------------
 
 def test_settings_are_reapplied_after_a_reboot(rig):
     with rig.model():
@@ -245,7 +245,7 @@ def test_a_parameter_set_is_written_all_or_nothing(rig):
         assert rig.sim.attitude_threshold_deg == 75 and rig.sim.freefall_threshold_raw == 3
 
 
-# -- trigger-request policy -----------------------------------------------------------------------
+# -- trigger-request policy -------------------------------------------------------------------
 
 def ask(rig):
     """Arm the module on external power and tilt it past its threshold: it asks the host."""
@@ -307,7 +307,7 @@ def test_deferred_request_answered_true_deploys(rig):
     assert rig.heard.events[0].source == p.SOURCE_ATTITUDE
 
 
-# -- safety rules (issue 10) ----------------------------------------------------------------------
+# -- safety rules (issue 10) ------------------------------------------------------------------
 
 @pytest.mark.parametrize('fault', ['drop_next', 'corrupt_next'])
 def test_safety_2_a_lost_deploy_ack_is_reported_as_deployed_and_never_retried(rig, fault):
