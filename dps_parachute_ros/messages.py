@@ -15,8 +15,8 @@ from sensor_msgs.msg import BatteryState
 from std_msgs.msg import Bool
 
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.session import (Deployment, RequestDecision, SETTINGS, Snapshot,
-                                       source_name)
+from dps_parachute_ros.state import (Deployment, RequestDecision, SETTINGS, Snapshot,
+                                     source_name)
 from uav_serial_drivers.msg import (ParachuteConfig, ParachuteStatus, TriggerEvent,
                                     TriggerRecord, TriggerRequest)
 

@@ -27,10 +27,10 @@ from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros import messages as m
-from dps_parachute_ros.session import (Deployment, FLAG_SETTINGS, LAYOUTS, Listener,
-                                       LOW_BATTERY_V, ParachuteSession, POLICIES,
-                                       RequestDecision, Result, SessionConfig, SETTINGS,
-                                       Snapshot, TRIGGER_MODES, value_problem)
+from dps_parachute_ros.session import LOW_BATTERY_V, ParachuteSession
+from dps_parachute_ros.state import (Deployment, FLAG_SETTINGS, LAYOUTS, Listener, POLICIES,
+                                     RequestDecision, Result, SessionConfig, SETTINGS, Snapshot,
+                                     TRIGGER_MODES, value_problem)
 from uav_serial_common.diagnostics import DiagnosticsUpdater, ERROR, OK, Status, WARN
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,

@@ -50,13 +50,13 @@ class Wire:
             return len(self.frames)
 
     def since(self, mark: int, code: Optional[int] = None) -> List[bytes]:
-        """Host frames received since `mark`, only those of command `code` if given."""
+        """Return the host frames received since `mark` (of command `code` if given)."""
         with self._lock:
             return [raw for _, raw in self.frames[mark:] if code is None or raw[2] == code]
 
 
 def blackbox_records(directory: Path, pattern: str = 'parachute-*.jsonl') -> List[dict]:
-    """Every complete record of the black-box files in `directory`, oldest file first."""
+    """Return every complete record of the black-box files in `directory`, oldest first."""
     records = []
     for path in sorted(Path(directory).glob(pattern)):
         for line in path.read_text().splitlines():
@@ -68,7 +68,7 @@ def blackbox_records(directory: Path, pattern: str = 'parachute-*.jsonl') -> Lis
 
 
 def parameter_value(value) -> ParameterValue:
-    """A ParameterValue for a Python str, float, bool or int."""
+    """Return the ParameterValue of a Python str, float, bool or int."""
     if isinstance(value, str):
         return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
     if isinstance(value, bool):
@@ -140,7 +140,7 @@ class Rig:
         return self.ros.call(SetParameters, f'{NODE}/set_parameters', request).results[0]
 
     def blackbox(self) -> List[dict]:
-        """The records of the node's black box so far."""
+        """Return the records of the node's black box so far."""
         return blackbox_records(self.blackbox_dir)
 
     def close(self, failed):

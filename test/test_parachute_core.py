@@ -16,8 +16,9 @@ import pytest
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
-from dps_parachute_ros.session import Listener, ParachuteSession, SessionConfig
+from dps_parachute_ros.session import ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
+from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
 from uav_serial_common.process import wait_for

@@ -141,8 +141,8 @@ def test_safety_3_sigint_during_a_deploy_records_an_unknown_outcome_not_a_refusa
     assert 'success' not in outcomes[0] and 'shutting down' in outcomes[0]['reason']
 
 
-def test_safety_11_a_blackbox_dir_under_a_regular_file_leaves_the_driver_working(make_rig,
-                                                                                  tmp_path):
+def test_safety_11_a_blackbox_dir_under_a_regular_file_leaves_the_driver_working(
+        make_rig, tmp_path):
     blocker = tmp_path / 'a-file'
     blocker.write_text('not a directory')
     rig = make_rig(blackbox_dir=str(blocker / 'bb'))
