@@ -122,7 +122,8 @@ class ParachuteNode(Node, Listener):
 
         s = self.session
         self._service(Deploy, 'deploy', lambda q, r: self._deploy(q, r))
-        self._service(SetBool, 'arm', lambda q, r: self._reply(r, s.arm(bool(q.data))))
+        self._service(SetBool, 'arm', lambda q, r: self._reply(r, s.arm(bool(q.data)),
+                                                               log=False))
         self._service(SetBool, 'answer_trigger_request',
                       lambda q, r: self._reply(r, s.answer_trigger_request(bool(q.data))))
         self._service(SetThresholds, 'set_thresholds', self._set_thresholds)

@@ -1,9 +1,9 @@
 """The DPS-S parachute module as a device: link, black box, state, rules and policies. No ROS.
 
-`ParachuteSession` owns the `ParachuteLink`, the `BlackBox` and the module state (the types are
-in `dps_parachute_ros.state`), and applies
-the rules of the README's "Safety model of deploy" and the driver decisions (D..) of
-``docs/protocols.md``. It reports through a `Listener`, takes its clock (monotonic seconds) from
+`ParachuteSession` owns the `ParachuteLink`, the `BlackBox` and the module state (its types are
+in `dps_parachute_ros.state`), and applies the rules of the README's "Safety model of deploy" and
+the driver decisions (D..) of ``docs/protocols.md``. It reports through a `Listener`, takes its
+clock (monotonic seconds, for every rule that judges time; waits are bounded in real time) from
 the caller, and its services are calls that return a `Result`. The ROS node only translates.
 
 Threads, what each owns, and the lock that guards what they share:
@@ -14,8 +14,8 @@ Threads, what each owns, and the lock that guards what they share:
   reply (only it delivers replies).
 - worker (``parachute-worker``): (re-)initializes the module, polls light, charging and voltage,
   sends heartbeats, fetches trigger records. Owns its schedule (``next_*`` locals).
-- monitor (``parachute-monitor``): judges online/offline and the defer deadline from the clock;
-  no I/O except the answer the policy gives a pending request.
+- monitor (``parachute-monitor``): judges online/offline and the defer deadline from the clock
+  (``tick()``); no I/O.
 - callers (the node's service threads): deploy, arm, settings, queries. ``_actuation``
   serializes deploy and arm (never taken on the reader thread or by a trigger-request answer).
 
