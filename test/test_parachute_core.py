@@ -9,6 +9,8 @@ the time-based rules (the test moves it; the module keeps its own real time). Te
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -649,3 +651,15 @@ def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     result = rig.session.preflight_check()
     assert not result.ok and result.message.startswith('FAIL')
     assert 'not checked' in result.message and 'OK   black box writable' in result.message
+
+
+def test_the_core_and_everything_below_it_import_no_ros():
+    code = ('import sys\n'
+            'import dps_parachute_ros.session, dps_parachute_ros.simulation\n'
+            "ros = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('rclpy', 'rcl_interfaces', 'uav_serial_drivers') or m.endswith('_msgs'))\n"
+            'print(ros)\n')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=60, cwd=os.path.dirname(os.path.dirname(__file__)))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == '[]'
