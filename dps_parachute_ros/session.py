@@ -270,11 +270,6 @@ class ParachuteSession:
             self._lock.notify_all()
             return True
 
-    def _new_epoch(self) -> int:
-        with self._lock:
-            self._epoch += 1
-            return self._epoch
-
     def _current_epoch(self) -> int:
         with self._lock:
             return self._epoch
