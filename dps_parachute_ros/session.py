@@ -1177,6 +1177,16 @@ class ParachuteSession:
         attempts = 0
         while True:
             snap = self.snapshot
+            if attempts and not (snap.fresh and snap.armed):
+                # It rebooted (or was locked) during the wait: a retry would go out on old
+                # knowledge (D15). The triggered query just said it did not deploy.
+                snap = self._wait_fresh()
+                if not snap.fresh or not snap.armed:
+                    state = 'is locked now' if snap.fresh else 'rebooted and was not re-read'
+                    return self._deploy_end(
+                        'not deployed', f'deploy NOT acknowledged after {attempts} attempt(s), '
+                        f'the module reports it is not triggered: it did NOT deploy, and it '
+                        f'{state}; not retrying', t0=t0)
             if snap.failed_deploys >= MAX_FAILED_DEPLOYS:
                 if attempts:
                     return self._deploy_end(

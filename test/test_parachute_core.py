@@ -489,6 +489,25 @@ def check_deploy_after_reboot(rig):
     assert rig.session.deploy('DEPLOY', True).ok
 
 
+def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # the frame is lost: no acknowledgement
+
+    def reboot_on_deploy(direction, data, t):
+        if direction == 'rx' and DEPLOY in data:
+            rig.clock.advance(0.5)
+            rig.sim.power_cycle()  # runner thread: the model's only user right now
+    rig.runner.add_tap(reboot_on_deploy)
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \
+        result.message, result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]  # no retry to the rebooted module
+    with rig.model():
+        assert rig.sim.failed_attempts_total == 0 and not rig.sim.triggered
+
+
 def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(tmp_path):
     rig = Rig(tmp_path, baud=115200)
     try:
