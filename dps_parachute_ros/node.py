@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import asdict
 import math
-import signal
 import threading
 from typing import Any, Callable, Dict, Optional
 
@@ -349,13 +348,7 @@ class ParachuteNode(Node, Listener):
 
 def main(args: Optional[list] = None) -> int:
     """Run the parachute driver until Ctrl-C."""
-    code = run_node(ParachuteNode, args, threads=12)
-    # The shutdown is complete. Python restores the default action of the signals it handled
-    # while the interpreter exits, so a second Ctrl-C from `ros2 launch` landing now would end
-    # the process as killed by SIGINT; ignored signals stay ignored.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    return code
+    return run_node(ParachuteNode, args, threads=12)
 
 
 if __name__ == '__main__':
