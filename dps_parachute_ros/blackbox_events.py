@@ -762,7 +762,7 @@ class FlightAnalysis:
                          file=self.file, line=self.line)
         if self.last_status is not None:
             dep.tilt_deg, dep.accel_g = self.last_status[1], self.last_status[2]
-            dep.status_age_s = t - self.last_status[0]
+            dep.status_age_s = max(0.0, t - self.last_status[0])
         self._deployment = dep
         if len(self.deployments) < MAX_DEPLOYMENTS:
             self.deployments.append(dep)
@@ -812,8 +812,8 @@ class FlightAnalysis:
         if len(self.trigger_records) < MAX_RECORDS_KEPT:
             self.trigger_records[key] = record
         self.counts['trigger records read'] += 1
-        dep = self.current_deployment(t)
-        if dep is not None and not dep.record:
+        dep = self._deployment  # a record read after a reboot still tells of the deployment
+        if dep is not None and not dep.record and t - dep.last_t <= DEPLOYMENT_WINDOW_S:
             dep.record = record_text(record)
             dep.source = dep.source or source_text(record.source)
             dep.step(t, 'record', f'trigger record read: {dep.record}')
@@ -1375,7 +1375,8 @@ def _kind_start(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     policy = run['parameters'].get('trigger_request_policy')
     if policy and len(a.policy_changes) < 100:
         a.policy_changes.append((t, str(policy)))
-    a.band('port', t, False)
+    for name in BANDS:
+        a.band(name, t, None)  # nothing is known until the driver has learned it
     a.event(t, 'blackbox', 'info', f'driver started on {run["port"]} at {run["baud"]} baud'
             + (f', policy {policy}' if policy else ''), mark='>')
 
@@ -1448,7 +1449,11 @@ def _kind_trigger_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> 
     via = record.get('via')
     via_text = VIA_NAMES.get(via, str(via)) if via is not None else 'unknown'
     a.counts['trigger events'] += 1
-    dep = a.current_deployment(t)
+    # The driver publishes one trigger event per deployment, possibly after fetching the record
+    # for a while: it belongs to the last deployment even if the module rebooted meanwhile.
+    dep = a._deployment
+    if dep is not None and (t - dep.last_t > DEPLOYMENT_WINDOW_S or dep.first('event')):
+        dep = None
     if dep is None:
         dep = a.open_deployment(t, 'event', f'the driver learned of a deployment from '
                                 f'{via_text}', 'the module (no host decision seen)')

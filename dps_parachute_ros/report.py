@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import datetime
 import html
 import io
+import math
 import os
 import sys
 import time
@@ -40,6 +41,8 @@ MAX_EVENT_ROWS = 600
 """Events listed in the HTML table; the counts above it are complete."""
 MAX_ANNOTATIONS = 24
 """Trigger requests and deployments labelled on the timeline; the rest get markers only."""
+MAX_LINES = 40
+"""Deployments and reboots drawn as lines across the timeline; with more, markers only."""
 PROGRESS_MIN_BYTES = 4 << 20
 """Below this the progress bar is not worth drawing, even on a terminal."""
 LEVEL_COLORS = {'ok': '#2e7d32', 'info': '#607d8b', 'warn': '#ef6c00', 'bad': '#c62828',
@@ -48,6 +51,8 @@ LANE_MARKERS = {'calls': 'o', 'request': 'D', 'deploy': '^', 'module': 's', 'set
                 'link': 'X', 'blackbox': 'v', 'other': '*'}
 BAND_COLORS = {'port': '#78909c', 'online': '#43a047', 'streaming': '#1e88e5',
                'armed': '#fb8c00', 'triggered': '#e53935'}
+BAND_OFF_COLORS = {'port': '#ef9a9a', 'online': '#ef9a9a'}
+"""A closed port and an offline module are problems: drawn in red, not grey."""
 BAND_TITLES = {'port': 'port open', 'online': 'online', 'streaming': 'streaming',
                'armed': 'armed', 'triggered': 'TRIGGERED'}
 
@@ -283,23 +288,33 @@ def _plot_threshold(ax, history: List[Tuple[float, float]], t0: float, t_end: fl
 def _plot_bands(ax, a: FlightAnalysis, t0: float, t_end: float) -> None:
     from matplotlib.patches import Patch
     for row, name in enumerate(reversed(BANDS)):
-        y = row
+        # One collection per state and band, however many spans (bounded by the buckets).
+        ranges: Dict[Any, List[Tuple[float, float]]] = {
+            True: [], False: [], 'mixed': [], None: []}
         for start, end, state in a.bands[name].spans(t_end):
-            x0, w = start - t0, max(end - start, 0.0)
-            if state is True:
-                ax.broken_barh([(x0, w)], (y + 0.15, 0.7), facecolors=BAND_COLORS[name])
-            elif state is False:
-                ax.broken_barh([(x0, w)], (y + 0.15, 0.7), facecolors='#eceff1')
-            elif state == 'mixed':
-                ax.broken_barh([(x0, w)], (y + 0.15, 0.7), facecolors='#b0bec5',
-                               hatch='////', edgecolor=BAND_COLORS[name], linewidth=0)
-            else:
-                ax.broken_barh([(x0, w)], (y + 0.15, 0.7), facecolors='white',
-                               hatch='..', edgecolor='#cfd8dc', linewidth=0)
+            ranges[state].append((start - t0, max(end - start, 0.0)))
+        y = (row + 0.15, 0.7)
+        # Edges keep a state that lasted less than a pixel visible.
+        if ranges[True]:
+            ax.broken_barh(ranges[True], y, facecolors=BAND_COLORS[name],
+                           edgecolor=BAND_COLORS[name], linewidth=0.5)
+        if ranges[False]:
+            off = BAND_OFF_COLORS.get(name, '#eceff1')
+            ax.broken_barh(ranges[False], y, facecolors=off, edgecolor=off, linewidth=0.5)
+        if ranges['mixed']:
+            # Changing within a bucket: drawn in the colour of the state that matters (a
+            # flapping link in the problem colour, a short TRIGGERED in its own).
+            color = BAND_OFF_COLORS.get(name, BAND_COLORS[name])
+            ax.broken_barh(ranges['mixed'], y, facecolors=color, alpha=0.7, hatch='////',
+                           edgecolor=color, linewidth=0.5)
+        if ranges[None]:
+            ax.broken_barh(ranges[None], y, facecolors='white', hatch='..',
+                           edgecolor='#cfd8dc', linewidth=0)
     ax.set_yticks([r + 0.5 for r in range(len(BANDS))])
     ax.set_yticklabels([BAND_TITLES[n] for n in reversed(BANDS)], fontsize=8)
     ax.set_ylim(0, len(BANDS))
     ax.legend(handles=[Patch(facecolor='#eceff1', label='no / locked / off'),
+                       Patch(facecolor='#ef9a9a', label='port closed / offline'),
                        Patch(facecolor='white', hatch='..', edgecolor='#cfd8dc',
                              label='unknown'),
                        Patch(facecolor='#b0bec5', hatch='////', label='changing faster\nthan '
@@ -362,29 +377,46 @@ def _label(ax, text: str, x: float, y: float, dy: int, **style: Any) -> None:
 
 def _annotate(ax, a: FlightAnalysis, t0: float,
               window: Optional[Tuple[float, float]] = None) -> None:
-    n = 0
+    lo, hi = ax.get_xlim()
+    # A 7-point character is at most about 6 pixels wide at 100 dpi: a label that would
+    # overlap the last one drawn in its lane is left out (its marker stays).
+    per_char = (hi - lo) * 6.0 / max(ax.bbox.width, 1.0)
+
+    def thinned(items: List[Tuple[float, str]]) -> List[Tuple[float, str]]:
+        out: List[Tuple[float, str]] = []
+        last_end = -math.inf
+        for t, text in items:
+            if window is not None and not window[0] <= t <= window[1]:
+                continue
+            x, width = t - t0, (len(text) + 1) * per_char
+            start = x - width if hi > lo and (x - lo) / (hi - lo) > 0.8 else x
+            if start < last_end:
+                continue
+            last_end = start + width
+            out.append((t, text))
+            if len(out) >= MAX_ANNOTATIONS:
+                break
+        return out
+
+    requests = []
     for req in a.requests:
-        if window is not None and not window[0] <= req.t <= window[1]:
-            continue
-        if n >= MAX_ANNOTATIONS:
-            break
-        n += 1
         label = (req.decision or 'no decision recorded').upper()
         if req.latency_ms is not None:
             label += f' {req.latency_ms:.2f} ms'
-        _label(ax, label, req.t - t0, _lane_y('request'), 7, color='#4e342e')
-    for t in a.reboots[:MAX_ANNOTATIONS]:
-        if window is None or window[0] <= t <= window[1]:
-            _label(ax, 'reboot', t - t0, _lane_y('module'), 7, color=LEVEL_COLORS['unknown'])
-    for dep in a.deployments[:MAX_ANNOTATIONS]:
-        if window is not None and not window[0] <= dep.t <= window[1]:
-            continue
-        ack = dep.first('ack')
-        frame = dep.first('frame')
+        requests.append((req.t, label))
+    for t, text in thinned(requests):
+        _label(ax, text, t - t0, _lane_y('request'), 7, color='#4e342e')
+    for t, text in thinned([(t, 'reboot') for t in a.reboots]):
+        _label(ax, text, t - t0, _lane_y('module'), 7, color=LEVEL_COLORS['unknown'])
+    deployments = []
+    for dep in a.deployments:
+        ack, frame = dep.first('ack'), dep.first('frame')
         label = f'#{dep.number} {dep.outcome}'
         if ack is not None and frame is not None:
             label += f', ack {span(ack.t - frame.t)} after the frame'
-        _label(ax, label, dep.t - t0, _lane_y('deploy'), -12, color=LEVEL_COLORS['bad'],
+        deployments.append((dep.t, label))
+    for t, text in thinned(deployments):
+        _label(ax, text, t - t0, _lane_y('deploy'), 7, color=LEVEL_COLORS['bad'],
                fontweight='bold')
 
 
@@ -393,14 +425,18 @@ def _vertical_marks(axes, a: FlightAnalysis, t0: float, files: List[FileInfo],
     def inside(t: float) -> bool:
         return window is None or window[0] <= t <= window[1]
 
-    for dep in a.deployments[:50]:
-        if inside(dep.t):
-            for ax in axes:
-                ax.axvline(dep.t - t0, color=LEVEL_COLORS['bad'], linewidth=1.0, alpha=0.7)
-    for t in a.reboots[:50]:
-        if inside(t):
-            for ax in axes:
-                ax.axvline(t - t0, color=LEVEL_COLORS['unknown'], linestyle=':', linewidth=1.2)
+    # Lines across every panel while they stay few enough to read; else the markers alone.
+    if window is not None or a.counts['deployments'] <= MAX_LINES:
+        for dep in a.deployments:
+            if inside(dep.t):
+                for ax in axes:
+                    ax.axvline(dep.t - t0, color=LEVEL_COLORS['bad'], linewidth=1.0, alpha=0.7)
+    if window is not None or len(a.reboots) <= MAX_LINES:
+        for t in a.reboots:
+            if inside(t):
+                for ax in axes:
+                    ax.axvline(t - t0, color=LEVEL_COLORS['unknown'], linestyle=':',
+                               linewidth=1.2)
     for info in files:
         if info.truncated and info.last_time is not None and inside(info.last_time):
             for ax in axes:
@@ -482,9 +518,11 @@ def _series_axes(ax_tilt, ax_acc, a: FlightAnalysis, t0: float, t_end: float) ->
         ax.tick_params(labelsize=8)
 
 
-def zoom_png(a: FlightAnalysis, zoom: Any, files: List[FileInfo]) -> bytes:
+def zoom_png(a: FlightAnalysis, zoom: Any, files: List[FileInfo], t_end: float) -> bytes:
     """Draw the full-resolution close-up of one deployment; return it as PNG."""
     dep = zoom.deployment
+    # Not beyond the black box: a deployment near its start or end gets a narrower window.
+    zoom.start, zoom.end = max(zoom.start, a.t0), min(zoom.end, max(t_end, dep.last_t))
     t_ref = dep.t
     fig = _figure(14, 6.5)
     grid = fig.add_gridspec(3, 1, height_ratios=[2, 2, 3.2], hspace=0.08,
@@ -496,9 +534,10 @@ def zoom_png(a: FlightAnalysis, zoom: Any, files: List[FileInfo]) -> bytes:
     xs = [s[0] - t_ref for s in zoom.samples]
     if xs:
         ax_tilt.plot(xs, [s[1] for s in zoom.samples], '.-', color='#1565c0', markersize=3,
-                     linewidth=1, label='tilt (every status frame)')
+                     linewidth=1, label='tilt (every status frame)', drawstyle='steps-post')
         ax_acc.plot(xs, [s[2] for s in zoom.samples], '.-', color='#00897b', markersize=3,
-                    linewidth=1, label='acceleration (every status frame)')
+                    linewidth=1, label='acceleration (every status frame)',
+                    drawstyle='steps-post')
         for ax in (ax_tilt, ax_acc):
             start = None
             for s in zoom.samples:
@@ -863,7 +902,7 @@ def build_report(paths: Sequence[str], output_html: Optional[str] = None,
     title = (f'{files[0].name if len(files) == 1 else f"{len(files)} black-box files"}: '
              f'{wall(start)} – {wall(end)} ({span(t_end - t0)})')
     timeline = timeline_png(a, files, t0, t_end, title)
-    zooms = [(zoom.deployment, zoom_png(a, zoom, files)) for zoom in a.zooms]
+    zooms = [(zoom.deployment, zoom_png(a, zoom, files, t_end)) for zoom in a.zooms]
     for directory in {os.path.dirname(os.path.abspath(x)) for x in (output_html, png_path)}:
         os.makedirs(directory, exist_ok=True)
     with open(png_path, 'wb') as handle:
