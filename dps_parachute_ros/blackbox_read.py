@@ -30,6 +30,11 @@ HEAD_SCAN_LINES = 2000
 """Lines read from the start of a file to find its first timed record (to order the files)."""
 CLOCK_STEP_S = 1.0
 """A wall clock that moves this far against the monotonic clock has been stepped."""
+BACKWARD_LIMIT_S = 1.0
+"""Records are queued from several threads, so a little disorder is normal; more is damage."""
+FORWARD_LIMIT_S = 30 * 86400.0
+"""A record this far after the one before it has a damaged time (a module may be unplugged
+for hours with nothing recorded, not for a month)."""
 
 Progress = Callable[[int], None]
 """Called with the number of bytes read so far, over all files."""
@@ -57,6 +62,7 @@ class FileInfo:
     bad_lines: int = 0
     bad_samples: List[BadLine] = field(default_factory=list)
     untimed: int = 0
+    bad_times: int = 0
     first_time: Optional[float] = None
     last_time: Optional[float] = None
     starts: int = 0
@@ -238,6 +244,10 @@ class FlightFiles:
                     else:
                         record, reason = None, f'a line longer than {MAX_LINE_BYTES} bytes'
                     if record is None:
+                        zeros = raw.count(b'\0')
+                        if zeros and raw.strip(b'\0\n'):
+                            reason = (f'{zeros} zero bytes after {len(raw) - zeros} of text (a '
+                                      'crash or a full disk leaves these)')
                         if not raw.endswith(b'\n') and complete:
                             reason = f'partial last line ({len(raw)} bytes, no newline); {reason}'
                         bad = BadLine(line_no, offset, reason, _excerpt(raw))
@@ -262,6 +272,14 @@ class FlightFiles:
                                 info.clock_steps += 1
                                 info.clock_step_max_s = step
                     when = record_time(record, info.clock_offset)
+                    if when is not None and info.last_time is not None and not (
+                            -BACKWARD_LIMIT_S < when - info.last_time < FORWARD_LIMIT_S):
+                        info.bad_times += 1  # placed at the time before it, not trusted
+                        when = None
+                    elif when is not None and info.first_time is None and not (
+                            0 < when < 1e11):
+                        info.bad_times += 1  # before 1970 or after year 5000: not a time
+                        when = None
                     if when is None:
                         info.untimed += 1
                     else:

@@ -112,7 +112,10 @@ def wall(t: Optional[float], ms: bool = True) -> str:
     """Format a time as UTC wall clock."""
     if t is None:
         return 'unknown'
-    stamp = datetime.datetime.fromtimestamp(t, datetime.timezone.utc)
+    try:
+        stamp = datetime.datetime.fromtimestamp(t, datetime.timezone.utc)
+    except (OverflowError, OSError, ValueError):
+        return f'{t:.3f} s since 1970'
     text = stamp.strftime('%Y-%m-%d %H:%M:%S')
     if ms:
         text += f'.{stamp.microsecond // 1000:03d}'
@@ -460,7 +463,10 @@ def _wall_axis(ax, t0: float, duration: float) -> None:
     from matplotlib.ticker import FuncFormatter
 
     def label(x: float, _pos: Any) -> str:
-        stamp = datetime.datetime.fromtimestamp(t0 + x, datetime.timezone.utc)
+        try:
+            stamp = datetime.datetime.fromtimestamp(t0 + x, datetime.timezone.utc)
+        except (OverflowError, OSError, ValueError):
+            return ''
         if duration < 30:
             return stamp.strftime('%H:%M:%S.') + f'{stamp.microsecond // 1000:03d}'[:2]
         if duration < 2 * 86400:
@@ -514,7 +520,9 @@ def _series_axes(ax_tilt, ax_acc, a: FlightAnalysis, t0: float, t_end: float) ->
     ax_acc.set_ylabel('acceleration [g]', fontsize=9)
     for ax in (ax_tilt, ax_acc):
         ax.grid(color='#eceff1')
-        ax.legend(loc='upper left', bbox_to_anchor=(1.002, 1.0), fontsize=7, frameon=False)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc='upper left', bbox_to_anchor=(1.002, 1.0), fontsize=7,
+                      frameon=False)
         ax.tick_params(labelsize=8)
 
 
@@ -567,7 +575,9 @@ def zoom_png(a: FlightAnalysis, zoom: Any, files: List[FileInfo], t_end: float) 
     for ax in (ax_tilt, ax_acc):
         ax.tick_params(labelbottom=False, labelsize=8)
         ax.grid(color='#eceff1')
-        ax.legend(loc='upper left', bbox_to_anchor=(1.002, 1.0), fontsize=7, frameon=False)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc='upper left', bbox_to_anchor=(1.002, 1.0), fontsize=7,
+                      frameon=False)
     ax_tilt.set_xlim(zoom.start - t_ref, zoom.end - t_ref)
     ax_ev.set_xlabel(f'seconds from deployment {dep.number} (+{dep.t - a.t0:.3f} s, '
                      f'{wall(dep.t)})', fontsize=9)
@@ -814,6 +824,9 @@ def _warnings(a: FlightAnalysis, files: List[FileInfo]) -> List[str]:
         if mid > 0:
             out.append(f'{info.name}: {mid} unreadable lines inside the file were skipped '
                        '(listed under Files).')
+        if info.bad_times:
+            out.append(f'{info.name}: {info.bad_times} records with a damaged time were placed '
+                       'at the time of the record before them.')
         if info.clock_steps:
             out.append(f'{info.name}: the wall clock was stepped {info.clock_steps} times (up '
                        f'to {info.clock_step_max_s:.1f} s); times here follow the monotonic '

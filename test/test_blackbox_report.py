@@ -428,6 +428,66 @@ def test_unknown_kinds_fields_and_older_lines_are_listed_not_fatal(normal_run, t
     assert dep.outcome == 'unknown' and 'OUTCOME UNKNOWN' in dep.paragraph
 
 
+def _variant(lines, name):
+    """A black box in one of the states real files are found in."""
+    if name == 'empty':
+        return b''
+    data = ('\n'.join(lines) + '\n').encode()
+    if name == 'zero-filled tail':  # a crash with delayed allocation leaves zero blocks
+        return data[:len(data) * 2 // 3] + b'\0' * 4096
+    if name == 'garbage inside':
+        return data.replace(b'\n', b'\n{"kind":"frame","dir":"rx","hex":\xff\xfe\n', 1)
+    if name == 'no final newline':
+        return data[:-1]
+    if name == 'older, without mono':
+        return ('\n'.join(json.dumps({k: v for k, v in json.loads(line).items() if k != 'mono'})
+                          for line in lines) + '\n').encode()
+    if name == 'a damaged time':
+        record = json.loads(lines[len(lines) // 2])
+        record['mono'] = 1e15
+        lines = lines[:len(lines) // 2] + [json.dumps(record)] + lines[len(lines) // 2 + 1:]
+        return ('\n'.join(lines) + '\n').encode()
+    raise ValueError(name)
+
+
+@pytest.mark.parametrize('name', ['empty', 'zero-filled tail', 'garbage inside',
+                                  'no final newline', 'older, without mono', 'a damaged time'])
+def test_files_in_any_state_still_give_a_report(normal_run, tmp_path, name):
+    path = tmp_path / 'box.jsonl'
+    path.write_bytes(_variant(Path(normal_run).read_text().splitlines(), name))
+    summary, text = report(tmp_path, path)
+    seen = visible(text)
+    (info,) = summary.files
+    assert png_size(summary.png_path)[0] >= 1000
+    if name == 'empty':
+        assert info.records == 0 and 'Run start unknown' in seen
+        return
+    assert summary.counts['status frames'] >= 10
+    if name == 'zero-filled tail':
+        assert info.truncated and 'zero bytes' in info.tail.reason
+        assert 'TRUNCATED: the last complete record is line' in seen
+    elif name == 'garbage inside':
+        assert not info.truncated and info.bad_lines == 1
+        assert '1 unreadable lines inside the file were skipped' in seen
+        assert info.clean_end
+    elif name == 'a damaged time':
+        assert info.bad_times == 1 and info.clean_end
+        assert summary.duration_s < 60
+        assert '1 records with a damaged time' in seen
+    else:
+        assert info.clean_end and not info.truncated and info.bad_lines == 0
+        assert 'ends cleanly with the stop record' in seen
+
+
+def test_progress_is_reported_up_to_the_whole_size(normal_run, tmp_path):
+    seen = []
+    build_report([normal_run], str(tmp_path / 'r.html'),
+                 progress=lambda done, total: seen.append((done, total)))
+    size = Path(normal_run).stat().st_size
+    assert seen and seen[-1] == (size, size)
+    assert [d for d, _ in seen] == sorted(d for d, _ in seen)
+
+
 def test_the_console_script_writes_the_report_beside_the_file(normal_run, tmp_path):
     target = tmp_path / 'copy.jsonl'
     target.write_bytes(Path(normal_run).read_bytes())
