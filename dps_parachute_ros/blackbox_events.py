@@ -294,7 +294,6 @@ class Event:
     text: str
     file: int = 0
     line: int = 0
-    mark: str = ''
 
 
 class EventLog:
@@ -490,7 +489,6 @@ class FlightAnalysis:
         self._call: Optional[Dict[str, Any]] = None
         self._deployment: Optional[Deployment] = None
         self._open_request: Optional[TriggerRequestSeen] = None
-        self._last_heartbeat_t = -math.inf
         self._decode_cache: Dict[str, Any] = {}
         self._prev_t: Optional[float] = None
         self._prev_file = -1
@@ -526,7 +524,7 @@ class FlightAnalysis:
                 self._unknown(self.unknown_fields, (kind, name), record)
         try:
             rule.handler(self, record, t)
-        except (TypeError, ValueError, KeyError, AttributeError, IndexError) as exc:
+        except Exception as exc:  # noqa: BLE001 - one odd record must not cost the report
             # A field of a type this version does not expect: the record is listed, not fatal.
             self.counts['records not understood'] += 1
             self._unknown(self.unknown_kinds, f'{kind} (not understood: {type(exc).__name__})',
@@ -557,9 +555,9 @@ class FlightAnalysis:
                        f'no record for {t - prev:.1f} s while the module was online and '
                        'streaming: records lost, or the driver stalled')
 
-    def event(self, t: float, lane: str, level: str, text: str, mark: str = '') -> Event:
+    def event(self, t: float, lane: str, level: str, text: str) -> Event:
         """Add an event to a lane."""
-        ev = Event(t, lane, level, text, self.file, self.line, mark)
+        ev = Event(t, lane, level, text, self.file, self.line)
         self.lanes[lane].add(ev)
         self._recent_events.append(ev)
         for zoom in self._active_zooms:
@@ -592,7 +590,7 @@ class FlightAnalysis:
                     continue
                 self.counts['unanswered requests'] += 1
                 self.event(req.last_tx, 'link', 'warn', f'no reply to {name} ({req.hex}) within '
-                           f'{REPLY_TIMEOUT_S:.1f} s: request or reply lost', mark='x')
+                           f'{REPLY_TIMEOUT_S:.1f} s: request or reply lost')
 
     def finish(self) -> None:
         """Close the flight after its last record: requests still waiting were cut short."""
@@ -608,6 +606,10 @@ class FlightAnalysis:
             return
         self.counts['requests to the module'] += 1
         expect = str(record.get('expect') or '')
+        if not expect:
+            # Nothing says which reply would answer it: it cannot be matched, nor called lost.
+            self.counts['requests without an expected reply'] += 1
+            return
         if self._pending.get(expect):
             self._expire(t, expect=expect)
         req = _Pending(t, hex_text, raw[2] if len(raw) > 2 else -1,
@@ -628,7 +630,7 @@ class FlightAnalysis:
         if req.tx > 1:
             self.counts['requests answered after a retry'] += 1
             self.event(t, 'link', 'warn', f'{COMMAND_NAMES.get(req.code, hex(req.code))} '
-                       f'answered only after {req.tx - 1} retry (a timeout)', mark='r')
+                       f'answered only after {req.tx - 1} retry (a timeout)')
         return req
 
     # -- frames ------------------------------------------------------------------------------
@@ -654,12 +656,12 @@ class FlightAnalysis:
                 msg = p.decode_module_frame(p.parse_frame(bytes.fromhex(hex_text)))
             except p.ChecksumError:
                 self.counts['checksum errors'] += 1
-                self.event(t, 'link', 'warn', f'frame with a bad checksum: {hex_text}', 'c')
+                self.event(t, 'link', 'warn', f'frame with a bad checksum: {hex_text}')
                 return
             except (p.ProtocolError, ValueError, IndexError):
                 self.counts['unreadable frames'] += 1
                 self.event(t, 'link', 'warn', f'received bytes that are no DPS-S frame: '
-                           f'{short(hex_text, 60)}', 'c')
+                           f'{short(hex_text, 60)}')
                 return
             if len(self._decode_cache) > 4096:
                 self._decode_cache.clear()
@@ -714,7 +716,7 @@ class FlightAnalysis:
         if len(self.reboots) > 1000:
             del self.reboots[:500]
         self.counts['reboots'] += 1
-        self.event(t, 'module', level, f'module rebooted ({evidence})', mark='R')
+        self.event(t, 'module', level, f'module rebooted ({evidence})')
         self.band('streaming', t, False)
         self.band('armed', t, False)
         self.band('triggered', t, False)
@@ -800,7 +802,7 @@ class FlightAnalysis:
         elif dep.outcome in ('unknown', 'requested'):
             dep.outcome, dep.outcome_text = 'deployed', 'the module reports TRIGGERED'
         dep.step(t, 'triggered', f'the module reports TRIGGERED ({via})')
-        self.event(t, 'deploy', 'bad', f'module TRIGGERED ({via})', mark='T')
+        self.event(t, 'deploy', 'bad', f'module TRIGGERED ({via})')
 
     def trigger_record(self, t: float, record: p.TriggerRecord) -> None:
         """Note a trigger record from the module's history (16-byte 0x35 frame)."""
@@ -855,7 +857,7 @@ def _rx_trigger_request(a: FlightAnalysis, msg: p.TriggerRequest, t: float,
     seen = TriggerRequestSeen(t)
     a.requests.append(seen)
     a._open_request = seen
-    a.event(t, 'request', 'warn', 'the module asks to deploy (trigger request 0x39)', mark='?')
+    a.event(t, 'request', 'warn', 'the module asks to deploy (trigger request 0x39)')
 
 
 def _rx_deploy_ack(a: FlightAnalysis, msg: p.DeployAck, t: float,
@@ -863,7 +865,7 @@ def _rx_deploy_ack(a: FlightAnalysis, msg: p.DeployAck, t: float,
     dep = a.current_deployment(t)
     if msg.success:
         a.counts['deploy acknowledgements'] += 1
-        a.event(t, 'deploy', 'bad', 'module acknowledged the deploy (D4 01)', mark='A')
+        a.event(t, 'deploy', 'bad', 'module acknowledged the deploy (D4 01)')
         if dep is None:
             dep = a.open_deployment(t, 'ack', 'a deploy acknowledgement nobody was seen asking '
                                     'for (late, or the call was not recorded)')
@@ -873,7 +875,7 @@ def _rx_deploy_ack(a: FlightAnalysis, msg: p.DeployAck, t: float,
     else:
         a.counts['deploys refused by the module'] += 1
         a.event(t, 'deploy', 'warn', 'module answered the deploy with D4 00: not deployed '
-                '(locked, already triggered or in protection)', mark='N')
+                '(locked, already triggered or in protection)')
         if dep is not None:
             dep.step(t, 'ack', 'the module answered D4 00: it did NOT deploy')
             dep.outcome, dep.outcome_text = 'refused', 'refused by the module (D4 00)'
@@ -886,7 +888,7 @@ def _rx_setting(a: FlightAnalysis, msg: Any, t: float, req: Optional[_Pending]) 
         sent = a._set_sent.get(code)
         if sent is not None and not p.is_set_ack(msg, sent[1]):
             a.event(t, 'settings', 'bad', f'{name}: the module did not acknowledge '
-                    f'{sent[1] * step:g}{unit} (answered {msg.value})', mark='S')
+                    f'{sent[1] * step:g}{unit} (answered {msg.value})')
             a._set_sent.pop(code, None)
         return
     a.setting_value(t, code, msg.value)
@@ -896,11 +898,11 @@ def _rx_setting(a: FlightAnalysis, msg: Any, t: float, req: Optional[_Pending]) 
     wrote, read = round(sent[1] * step, 3), round(msg.value * step, 3)
     if msg.value == sent[1]:
         a.counts['settings written and verified'] += 1
-        a.event(t, 'settings', 'ok', f'{name} {wrote:g}{unit} written and verified', mark='S')
+        a.event(t, 'settings', 'ok', f'{name} {wrote:g}{unit} written and verified')
     else:
         a.counts['settings not verified'] += 1
         a.event(t, 'settings', 'bad', f'{name}: wrote {wrote:g}{unit}, the module reads back '
-                f'{read:g}{unit}', mark='S')
+                f'{read:g}{unit}')
 
 
 def _rx_flags(a: FlightAnalysis, msg: p.AutoTriggerFlags, t: float,
@@ -911,11 +913,11 @@ def _rx_flags(a: FlightAnalysis, msg: p.AutoTriggerFlags, t: float,
         a.counts['settings written and verified'] += 1
         a.event(t, 'settings', 'ok', f'auto triggers set: attitude '
                 f'{"on" if msg.attitude_enabled else "off"}, free fall '
-                f'{"on" if msg.freefall_enabled else "off"}', mark='S')
+                f'{"on" if msg.freefall_enabled else "off"}')
     elif before != a.flags and None not in before.values():
         a.event(t, 'settings', 'warn', f'auto triggers now: attitude '
                 f'{"on" if msg.attitude_enabled else "off"}, free fall '
-                f'{"on" if msg.freefall_enabled else "off"}', mark='S')
+                f'{"on" if msg.freefall_enabled else "off"}')
 
 
 def _rx_boot_count(a: FlightAnalysis, msg: p.BootCount, t: float,
@@ -925,7 +927,7 @@ def _rx_boot_count(a: FlightAnalysis, msg: p.BootCount, t: float,
 
 def _rx_baud(a: FlightAnalysis, msg: p.BaudRate, t: float, req: Optional[_Pending]) -> None:
     a.module_baud = msg.baud
-    a.event(t, 'settings', 'warn', f'module baud rate set to {msg.baud or msg.code}', mark='S')
+    a.event(t, 'settings', 'warn', f'module baud rate set to {msg.baud or msg.code}')
 
 
 def _rx_streaming(a: FlightAnalysis, msg: p.StreamingReply, t: float,
@@ -963,7 +965,7 @@ def _rx_charging(a: FlightAnalysis, msg: p.Charging, t: float, req: Optional[_Pe
 
 def _rx_shutdown(a: FlightAnalysis, msg: p.ShutdownAck, t: float,
                  req: Optional[_Pending]) -> None:
-    a.event(t, 'module', 'warn', 'the module announced it is switching off (0x12)', mark='O')
+    a.event(t, 'module', 'warn', 'the module announced it is switching off (0x12)')
 
 
 def _rx_unknown(a: FlightAnalysis, msg: p.UnknownFrame, t: float,
@@ -973,7 +975,7 @@ def _rx_unknown(a: FlightAnalysis, msg: p.UnknownFrame, t: float,
         return
     a.counts['frames of unknown meaning'] += 1
     a.event(t, 'link', 'info', f'frame of unknown meaning ({msg.reason}): '
-            f'{msg.raw.hex(" ")}', mark='u')
+            f'{msg.raw.hex(" ")}')
 
 
 RX_MESSAGES: Dict[type, Callable[..., None]] = {
@@ -1015,7 +1017,7 @@ def _tx_deploy(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
                                 'for', 'unknown (no record of who decided)')
     dep.attempts = max(dep.attempts, 1)
     dep.step(t, 'frame', f'deploy frame on the wire ({frame.raw.hex(" ")})')
-    a.event(t, 'deploy', 'warn', 'deploy frame sent (42 61 11 02 01)', mark='F')
+    a.event(t, 'deploy', 'warn', 'deploy frame sent (42 61 11 02 01)')
 
 
 def _tx_confirm(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
@@ -1027,7 +1029,7 @@ def _tx_confirm(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
         req.t_confirm = t
         if req.deployment is not None:
             req.deployment.step(t, 'frame', 'confirmation frame on the wire (42 61 39 a5 01)')
-    a.event(t, 'request', 'warn', 'confirmation sent (42 61 39 a5 01)', mark='F')
+    a.event(t, 'request', 'warn', 'confirmation sent (42 61 39 a5 01)')
 
 
 def _tx_setting(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
@@ -1049,12 +1051,12 @@ def _tx_arm(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
 
 
 def _tx_shutdown(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
-    a.event(t, 'calls', 'warn', 'shutdown frame sent to the module', mark='O')
+    a.event(t, 'calls', 'warn', 'shutdown frame sent to the module')
 
 
 def _tx_baud(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
     if frame.data[0] == p.CTRL_SET:
-        a.event(t, 'settings', 'warn', f'baud rate change sent (code {frame.value})', mark='S')
+        a.event(t, 'settings', 'warn', f'baud rate change sent (code {frame.value})')
 
 
 TX_COMMANDS: Dict[int, Callable[[FlightAnalysis, p.Frame, float], None]] = {
@@ -1115,7 +1117,7 @@ def _decision_unacked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> No
     a.counts['deploy frames unacknowledged'] += 1
     dep.step(t, 'noack', f'no acknowledgement of attempt {record.get("attempt", "?")}')
     a.event(t, 'deploy', 'warn', f'deploy attempt {record.get("attempt", "?")} not '
-            'acknowledged', mark='?')
+            'acknowledged')
     if dep.outcome in ('requested', 'unknown'):
         dep.outcome, dep.outcome_text = 'unknown', 'no acknowledgement: outcome not known'
 
@@ -1156,7 +1158,7 @@ def _decision_deploy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
         level = 'unknown' if outcome == 'unknown' else 'warn'
         if outcome == 'unknown':
             a.counts['deploys with unknown outcome'] += 1
-        a.event(t, 'deploy', level, f'deploy outcome: {dep.outcome_text}', mark='?')
+        a.event(t, 'deploy', level, f'deploy outcome: {dep.outcome_text}')
         a._call = None
         return
     if record.get('success') is False:
@@ -1173,10 +1175,10 @@ def _decision_deploy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
                 else:
                     dep.outcome, dep.outcome_text = 'failed', reason
             a.event(t, 'deploy', 'unknown' if dep.outcome == 'unknown' else 'bad',
-                    f'deploy call ended: {short(reason, 120)}', mark='?')
+                    f'deploy call ended: {short(reason, 120)}')
         else:
             a.counts['deploy calls refused'] += 1
-            a.event(t, 'calls', 'warn', f'~/deploy refused: {short(reason, 140)}', mark='X')
+            a.event(t, 'calls', 'warn', f'~/deploy refused: {short(reason, 140)}')
         a._call = None
         return
     a.event(t, 'deploy', 'info', f'deploy decision: {describe_fields(record)}')
@@ -1199,7 +1201,7 @@ def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: floa
     latency = f', {req.latency_ms:.2f} ms' if req.latency_ms is not None else ''
     level = 'bad' if decision == 'confirmed' else 'warn'
     a.event(t, 'request', level, f'trigger request {decision.upper()} by policy {req.policy}'
-            f'{latency}: {short(req.reason, 100)}', mark='D')
+            f'{latency}: {short(req.reason, 100)}')
     if decision == 'confirmed':
         who = (f'policy {req.policy!r}' if req.policy != 'defer'
                else 'a person or program answering ~/answer_trigger_request (policy defer)')
@@ -1223,14 +1225,14 @@ def _decision_deferred(a: FlightAnalysis, record: Dict[str, Any], t: float) -> N
     if req is not None and not req.decision:
         req.deferred = True
     a.event(t, 'request', 'info', 'trigger request deferred: waiting up to '
-            f'{record.get("deadline_s", "?")} s for ~/answer_trigger_request', mark='d')
+            f'{record.get("deadline_s", "?")} s for ~/answer_trigger_request')
 
 
 def _decision_policy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     policy = str(record.get('policy', '?'))
     if len(a.policy_changes) < 100:
         a.policy_changes.append((t, policy))
-    a.event(t, 'settings', 'warn', f'trigger_request_policy changed to {policy}', mark='P')
+    a.event(t, 'settings', 'warn', f'trigger_request_policy changed to {policy}')
 
 
 def _decision_other(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1238,8 +1240,7 @@ def _decision_other(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None
     a._unknown(a.unknown_whats, ('decision', what), record)
     level = 'unknown'
     if 'deploy' in what:
-        a.event(t, 'deploy', level, f'deploy decision {what!r}: {describe_fields(record)}',
-                mark='?')
+        a.event(t, 'deploy', level, f'deploy decision {what!r}: {describe_fields(record)}')
     else:
         a.event(t, 'other', level, f'decision {what!r}: {describe_fields(record)}')
 
@@ -1270,15 +1271,15 @@ def _state_port(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
         a.counts['port opened'] += 1
         if seen_before:
             a.counts['reconnects'] += 1
-            a.event(t, 'link', 'ok', f'port open again (reconnect): {reason}', mark='+')
+            a.event(t, 'link', 'ok', f'port open again (reconnect): {reason}')
         else:
-            a.event(t, 'link', 'info', f'port open: {reason}', mark='+')
+            a.event(t, 'link', 'info', f'port open: {reason}')
     else:
         a.counts['port closed'] += 1
         a._expire(t, reason='before the port closed')
         a.band('online', t, False)
         a.band('streaming', t, None)
-        a.event(t, 'link', 'bad', f'port closed: {reason}', mark='-')
+        a.event(t, 'link', 'bad', f'port closed: {reason}')
 
 
 def _state_online(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1286,10 +1287,9 @@ def _state_online(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a.band('online', t, online)
     if not online:
         a.counts['offline'] += 1
-        a.event(t, 'link', 'bad', f'module OFFLINE: {short(record.get("reason", ""), 140)}',
-                mark='o')
+        a.event(t, 'link', 'bad', f'module OFFLINE: {short(record.get("reason", ""), 140)}')
     else:
-        a.event(t, 'link', 'ok', 'module online', mark='o')
+        a.event(t, 'link', 'ok', 'module online')
 
 
 def _state_armed(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1298,10 +1298,10 @@ def _state_armed(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a.band('armed', t, armed)
     if via in ('arm', 'lock'):
         a.event(t, 'calls', 'ok' if armed == (via == 'arm') else 'bad',
-                f'{"ARMED" if armed else "locked"} (verified by query after ~/arm)', mark='a')
+                f'{"ARMED" if armed else "locked"} (verified by query after ~/arm)')
     elif via == 'status':
         a.event(t, 'deploy', 'info', f'module now {"armed" if armed else "locked"} '
-                '(status frame)', mark='a')
+                '(status frame)')
 
 
 def _state_triggered(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1334,10 +1334,9 @@ def _state_initialized(a: FlightAnalysis, record: Dict[str, Any], t: float) -> N
     a.counts['initializations'] += 1
     if mismatch:
         a.event(t, 'settings', 'bad', f'module initialized (boot #{count}); settings do NOT '
-                f'match: {short("; ".join(map(str, a.last_mismatch)), 140)}', mark='I')
+                f'match: {short("; ".join(map(str, a.last_mismatch)), 140)}')
     else:
-        a.event(t, 'settings', 'ok', f'module initialized (boot #{count}), settings verified',
-                mark='I')
+        a.event(t, 'settings', 'ok', f'module initialized (boot #{count}), settings verified')
 
 
 def _state_reboot(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1378,12 +1377,12 @@ def _kind_start(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     for name in BANDS:
         a.band(name, t, None)  # nothing is known until the driver has learned it
     a.event(t, 'blackbox', 'info', f'driver started on {run["port"]} at {run["baud"]} baud'
-            + (f', policy {policy}' if policy else ''), mark='>')
+            + (f', policy {policy}' if policy else ''))
 
 
 def _kind_stop(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a._expire(t, reason='before the driver stopped')
-    a.event(t, 'blackbox', 'info', 'driver stopped (black box closed)', mark='<')
+    a.event(t, 'blackbox', 'info', 'driver stopped (black box closed)')
     for name in ('port', 'online'):
         a.band(name, t, None)
 
@@ -1411,11 +1410,11 @@ def _kind_request(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
         a.counts['deploy calls'] += 1
         a.event(t, 'calls', 'warn', '~/deploy called' + (
             '' if token_ok is not False else ' with a WRONG confirmation token')
-            + (' (arm_if_locked)' if record.get('arm_if_locked') else ''), mark='!')
+            + (' (arm_if_locked)' if record.get('arm_if_locked') else ''))
         return
     detail = describe_fields(record, COMMON_FIELDS | {'what'})
     a.event(t, 'calls', 'info', f'{_CALL_TEXT.get(what, what)} called'
-            + (f' ({detail})' if detail else ''), mark='c')
+            + (f' ({detail})' if detail else ''))
 
 
 def _kind_decision(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1440,8 +1439,7 @@ def _kind_parameter(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None
     a.counts['parameter changes' if accepted else 'parameter changes refused'] += 1
     a.event(t, 'calls', 'ok' if accepted else 'bad',
             f'parameter {name} := {short(value, 30)}: '
-            f'{"accepted" if accepted else "REFUSED"}' + (f' ({reason})' if reason else ''),
-            mark='p')
+            f'{"accepted" if accepted else "REFUSED"}' + (f' ({reason})' if reason else ''))
 
 
 def _kind_trigger_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1470,7 +1468,7 @@ def _kind_trigger_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> 
             dep.record = dep.record or record_text(decoded)
     dep.step(t, 'event', f'trigger event published: source {source}, learned from {via_text}')
     a.event(t, 'deploy', 'bad', f'PARACHUTE DEPLOYED: source {source} (learned from '
-            f'{via_text})', mark='E')
+            f'{via_text})')
 
 
 def _blackbox_problem(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1483,7 +1481,7 @@ def _blackbox_problem(a: FlightAnalysis, record: Dict[str, Any], t: float) -> No
         a.counts['black-box records lost (as the driver counted)'] = max(
             a.counts['black-box records lost (as the driver counted)'], lost)
     a.counts['black-box write problems'] += 1
-    a.event(t, 'blackbox', 'bad', f'black-box problem: {describe_fields(record)}', mark='W')
+    a.event(t, 'blackbox', 'bad', f'black-box problem: {describe_fields(record)}')
 
 
 RULES: Dict[str, Rule] = {rule.kind: rule for rule in (

@@ -800,9 +800,9 @@ def _html(summary: ReportSummary, a: FlightAnalysis, timeline: bytes,
                    'them.</p>')
         rows = [('kind', k, v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])
                 for k, v in a.unknown_kinds.items()]
-        rows += [('field', f'{k[0]}.{k[1]}', v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])
+        rows += [('field', _field_name(k), v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])
                  for k, v in a.unknown_fields.items()]
-        rows += [('decision', k[1], v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])
+        rows += [('decision', _field_name(k), v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])
                  for k, v in a.unknown_whats.items()]
         out.append(_table(rows, ('what', 'name', 'count', 'first at', 'example')))
     out.append('<h2>All counts</h2>')
@@ -810,6 +810,11 @@ def _html(summary: ReportSummary, a: FlightAnalysis, timeline: bytes,
     out.append(f'<p class="lead">Report made in {summary.elapsed_s:.1f} s from '
                f'{sum(f.size for f in summary.files):,} bytes.</p></body></html>')
     return '\n'.join(out)
+
+
+def _field_name(key: Any) -> str:
+    """Name an unknown field ``kind.field`` (or the catch-all past the listed ones)."""
+    return '.'.join(map(str, key)) if isinstance(key, tuple) else str(key)
 
 
 def _warnings(a: FlightAnalysis, files: List[FileInfo]) -> List[str]:
@@ -902,7 +907,7 @@ def build_report(paths: Sequence[str], output_html: Optional[str] = None,
                             end=end, counts=dict(a.counts), deployments=[], events=[],
                             reboots=[t - t0 for t in a.reboots],
                             unknown_kinds={str(k): v[0] for k, v in a.unknown_kinds.items()},
-                            unknown_fields={f'{k[0]}.{k[1]}': v[0]
+                            unknown_fields={_field_name(k): v[0]
                                             for k, v in a.unknown_fields.items()})
     for dep in a.deployments:
         text, steps = deployment_paragraph(dep, t0)
