@@ -1383,8 +1383,8 @@ def _kind_start(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 def _kind_stop(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a._expire(t, reason='before the driver stopped')
     a.event(t, 'blackbox', 'info', 'driver stopped (black box closed)')
-    for name in ('port', 'online'):
-        a.band(name, t, None)
+    for name in BANDS:
+        a.band(name, t, None)  # nobody watches until the next start
 
 
 def _kind_frame(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1505,6 +1505,7 @@ RULES: Dict[str, Rule] = {rule.kind: rule for rule in (
     generic_rule('preflight', 'settings', 'preflight check',
                  fields=('check', 'ok', 'result', 'message', 'checks')),
     generic_rule('settings', 'settings', 'settings', fields=('written', 'verified', 'values')),
+    generic_rule('policy', 'settings', 'policy', 'warn', fields=('policy', 'reason', 'by')),
     generic_rule('note', 'other', 'note', fields=('text', 'message')),
 )}
 """Record kind -> rule. Add a kind here (``generic_rule`` when it only needs showing)."""

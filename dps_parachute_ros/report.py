@@ -609,6 +609,12 @@ def _facts(a: FlightAnalysis, files: List[FileInfo], start: Optional[float],
     facts['Duration'] = span((end or 0) - (start or 0)) if start is not None else 'unknown'
     facts['Files'] = f'{len(files)}: ' + ', '.join(f.name for f in files[:8]) + (
         ' …' if len(files) > 8 else '')
+    timed = [f for f in files if f.first_time is not None and f.last_time is not None]
+    gaps = [f'{span(nxt.first_time - prev.last_time)} between {prev.name} and {nxt.name}'
+            for prev, nxt in zip(timed, timed[1:]) if nxt.first_time - prev.last_time > 0.5]
+    if gaps:
+        facts['No black box (gaps between files)'] = '; '.join(gaps[:8]) + (
+            ' …' if len(gaps) > 8 else '')
     if a.runs:
         run = a.runs[0]
         facts['Driver'] = (f'port {run.get("port")}, {run.get("baud")} baud'

@@ -399,7 +399,10 @@ def test_several_files_of_one_flight_are_ordered_and_the_gap_is_shown(
     assert summary.end == summary.files[1].last_time
     assert len(summary.deployments) == 2
     assert summary.deployments[0].seconds > summary.files[1].first_time - summary.start
-    assert '2 files of one flight' in visible(text)
+    seen = visible(text)
+    assert '2 files of one flight' in seen
+    assert re.search(r'No black box \(gaps between files\) [\d.]+ (ms|s) between '
+                     + re.escape(summary.files[0].name), seen)
 
 
 def test_unknown_kinds_fields_and_older_lines_are_listed_not_fatal(normal_run, tmp_path):
