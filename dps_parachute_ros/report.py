@@ -953,8 +953,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                      help='always show the progress bar on stderr')
     bar.add_argument('--no-progress', dest='progress', action='store_false',
                      help='never show the progress bar')
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if '--ros-args' in argv:
+        # A launch file or `ros2 run ... --ros-args` adds ROS arguments; none are ours.
+        start = argv.index('--ros-args')
+        end = argv.index('--', start) + 1 if '--' in argv[start:] else len(argv)
+        argv = argv[:start] + argv[end:]
     args = parser.parse_args(argv)
-    # ROS passes --ros-args to executables started with `ros2 run ... --ros-args`: not ours.
     missing = [f for f in args.files if not os.path.isfile(f)]
     if missing:
         print(f'blackbox_report: no such file: {", ".join(missing)}', file=sys.stderr)

@@ -15,7 +15,6 @@ from pathlib import Path
 import re
 import struct
 import subprocess
-import sys
 import time
 import tracemalloc
 
@@ -27,7 +26,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.report import analyse, build_report, main as report_main
-from uav_serial_common.process import LaunchedProcesses
+from uav_serial_common.process import executable_path, LaunchedProcesses
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
 from uav_serial_drivers.srv import Deploy
@@ -494,13 +493,18 @@ def test_progress_is_reported_up_to_the_whole_size(normal_run, tmp_path):
 def test_the_console_script_writes_the_report_beside_the_file(normal_run, tmp_path):
     target = tmp_path / 'copy.jsonl'
     target.write_bytes(Path(normal_run).read_bytes())
-    result = subprocess.run([sys.executable, '-m', 'dps_parachute_ros.report', str(target)],
+    # The installed executable, as `ros2 run uav_serial_drivers blackbox_report` starts it.
+    result = subprocess.run([executable_path('blackbox_report'), str(target)],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     html_path = tmp_path / 'copy-report.html'
     assert f'blackbox_report: {html_path}' in result.stdout
     assert png_size(tmp_path / 'copy-report.png')[0] >= 1000
     assert report_main([str(tmp_path / 'missing.jsonl')]) == 2
+    # As `ros2 run` / a launch file starts it: the ROS arguments are left alone.
+    assert report_main([str(target), '-o', str(tmp_path / 'ros.html'), '--ros-args', '-r',
+                        '__node:=x']) == 0
+    assert (tmp_path / 'ros.png').is_file()
 
 
 def test_a_large_file_is_streamed_in_bounded_memory(tmp_path):
