@@ -15,6 +15,7 @@ from pathlib import Path
 import re
 import struct
 import subprocess
+import sys
 import time
 import tracemalloc
 
@@ -505,6 +506,20 @@ def test_the_console_script_writes_the_report_beside_the_file(normal_run, tmp_pa
     assert report_main([str(target), '-o', str(tmp_path / 'ros.html'), '--ros-args', '-r',
                         '__node:=x']) == 0
     assert (tmp_path / 'ros.png').is_file()
+
+
+def test_no_ros_is_needed_to_make_a_report(normal_run, tmp_path):
+    # Any import of rclpy or of the generated interfaces fails in this process.
+    code = ('import sys\n'
+            'for name in ("rclpy", "uav_serial_drivers", "std_msgs", "sensor_msgs"):\n'
+            '    sys.modules[name] = None\n'
+            'from dps_parachute_ros.report import main\n'
+            'sys.exit(main(sys.argv[1:]))\n')
+    result = subprocess.run([sys.executable, '-c', code, normal_run, '-o',
+                             str(tmp_path / 'plain.html')], capture_output=True, text=True,
+                            timeout=60, cwd=str(ROOT))
+    assert result.returncode == 0, result.stderr
+    assert 'No deployment' in visible((tmp_path / 'plain.html').read_text(encoding='utf-8'))
 
 
 def test_a_large_file_is_streamed_in_bounded_memory(tmp_path):
