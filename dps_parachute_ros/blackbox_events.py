@@ -1113,6 +1113,8 @@ def _decision_send(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 
 def _decision_unacked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    # The driver has given up on this frame: its request is lost, however soon it stops now.
+    a._expire(t, expect='DeployAck')
     dep = _call_deployment(a, t)
     a.counts['deploy frames unacknowledged'] += 1
     dep.step(t, 'noack', f'no acknowledgement of attempt {record.get("attempt", "?")}')
