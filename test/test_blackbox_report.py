@@ -23,6 +23,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros import protocol as p
@@ -59,10 +60,22 @@ class Bench:
         self.ros = RosHarness('blackbox_report_test')
         self.procs = LaunchedProcesses(tmp, 'blackbox_report')
         self.link = str(tmp / 'vparachute')
+        # Clients made before the servers appear: by the first call, discovery has matched
+        # both ways (a client made just before its first call can miss the response).
+        for name in ('power_cycle', 'free_fall'):
+            self.ros.client(Trigger, f'/virtual_parachute/{name}')
+        self.ros.client(SetBool, '/virtual_parachute/disconnect')
+        for node in ('/virtual_parachute', '/parachute'):
+            self.ros.client(SetParameters, f'{node}/set_parameters')
+        for name in ('arm', 'answer_trigger_request'):
+            self.ros.client(SetBool, f'/parachute/{name}')
+        self.ros.client(Deploy, '/parachute/deploy')
+        self.state = self.ros.subscribe(String, '/virtual_parachute/state')
         self.procs.start('virtual_parachute', ros=self.ros,
                          parameters={'link': self.link, 'stream_rate_hz': 20.0,
                                      'external_power': True, 'free_fall_duration_s': 0.8},
                          wait_service='/virtual_parachute/power_cycle')
+        self.state.wait(lambda m: True, 15, what='the virtual module state')
         self.status = self.ros.subscribe(ParachuteStatus, '/parachute/status')
         self.config = self.ros.subscribe(ParachuteConfig, '/parachute/config', latched=True)
         self.requests = self.ros.subscribe(TriggerRequest, '/parachute/trigger_request')
