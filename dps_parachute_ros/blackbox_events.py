@@ -354,6 +354,7 @@ class Deployment:
     source: str = ''
     record: str = ''
     latency_ms: Optional[float] = None
+    latency_what: str = ''
     attempts: int = 0
     tilt_deg: Optional[float] = None
     accel_g: Optional[float] = None
@@ -1127,6 +1128,7 @@ def _decision_unacked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> No
 def _decision_acked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     dep = _call_deployment(a, t)
     dep.latency_ms = _ms(record.get('latency_ms'))
+    dep.latency_what = 'from the ~/deploy call to the acknowledgement'
     if isinstance(record.get('attempts'), int):
         dep.attempts = record['attempts']
     dep.outcome, dep.outcome_text = 'deployed', 'acknowledged by the module'
@@ -1211,12 +1213,11 @@ def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: floa
                                 '0x39: its crash detection fired on external power)', who)
         dep.outcome = 'requested'
         dep.latency_ms = req.latency_ms
+        dep.latency_what = 'from the trigger request to the confirmation written'
         dep.step(req.t, 'request', 'trigger request received from the module')
         if req.deferred:
             dep.step(req.t, 'defer', 'deferred to ~/answer_trigger_request')
-        dep.step(t, 'decision', f'confirmed ({req.reason})' + (
-            f'; the driver measured {req.latency_ms:.2f} ms from request to confirmation'
-            if req.latency_ms is not None else ''))
+        dep.step(t, 'decision', f'confirmed ({req.reason})')
         if req.t_confirm is not None:
             dep.step(req.t_confirm, 'frame', 'confirmation frame on the wire')
         req.deployment = dep

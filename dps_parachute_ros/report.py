@@ -172,7 +172,8 @@ def deployment_paragraph(dep: Deployment, t0: float) -> Tuple[str, List[Tuple[fl
         text.append('Step by step: ' + '; '.join(chain)
                     + f' (in all {span(steps[-1].t - first.t)} from the first step).')
     if dep.latency_ms is not None:
-        text.append(f'The driver\'s own measure: {dep.latency_ms:.2f} ms.')
+        text.append(f'The driver measured {dep.latency_ms:.2f} ms {dep.latency_what}'.rstrip()
+                    + '.')
     if dep.tilt_deg is not None:
         age = f', {span(dep.status_age_s)} before' if dep.status_age_s is not None else ''
         text.append(f'Last status frame before it: tilt {dep.tilt_deg:.0f}°, acceleration '

@@ -451,7 +451,7 @@ def _variant(lines, name):
         return b''
     data = ('\n'.join(lines) + '\n').encode()
     if name == 'zero-filled tail':  # a crash with delayed allocation leaves zero blocks
-        return data[:len(data) * 2 // 3] + b'\0' * 4096
+        return data[:len(data) - len(lines[-1]) // 2] + b'\0' * 4096
     if name == 'garbage inside':
         return data.replace(b'\n', b'\n{"kind":"frame","dir":"rx","hex":\xff\xfe\n', 1)
     if name == 'no final newline':
@@ -483,7 +483,7 @@ def test_files_in_any_state_still_give_a_report(normal_run, tmp_path, name):
     if name == 'empty':
         assert info.records == 0 and 'Run start unknown' in seen
         return
-    assert summary.counts['status frames'] == status_lines > 0
+    assert summary.counts.get('status frames', 0) == status_lines > 0
     if name == 'zero-filled tail':
         assert info.truncated and 'zero bytes' in info.tail.reason
         assert 'TRUNCATED: the last complete record is line' in seen
