@@ -706,13 +706,13 @@ img{max-width:100%;height:auto;border:1px solid #eceff1}
 .lvl-ok{color:#2e7d32}.lvl-warn{color:#ef6c00}.lvl-bad{color:#c62828;font-weight:600}
 .lvl-unknown{color:#7b1fa2;font-weight:600}.lvl-info{color:#546e7a}
 .mono{font-family:ui-monospace,Menlo,Consolas,monospace;font-size:.9em}
-.cols{display:flex;gap:32px;flex-wrap:wrap}
+.cols{display:flex;gap:32px;flex-wrap:wrap}.times td:nth-child(-n+2){white-space:nowrap}
 """
 
 
 def _table(rows: Sequence[Sequence[Any]], header: Optional[Sequence[str]] = None,
-           raw: bool = False) -> str:
-    out = ['<table>']
+           raw: bool = False, cls: str = '') -> str:
+    out = [f'<table class="{cls}">' if cls else '<table>']
     if header:
         out.append('<tr>' + ''.join(f'<th>{_e(h)}</th>' for h in header) + '</tr>')
     for row in rows:
@@ -754,7 +754,7 @@ def _html(summary: ReportSummary, a: FlightAnalysis, timeline: bytes,
     for dep in summary.deployments:
         out.append(f'<div class="dep" id="deployment-{dep.number}"><p>{_e(dep.paragraph)}</p>')
         out.append(_table([(f'+{s:.4f} s', wall(t0 + s), text) for s, text in dep.steps],
-                          ('time', 'wall clock', 'step')))
+                          ('time', 'wall clock', 'step'), cls='times'))
         out.append('</div>')
     if a.counts['deployments'] > len(summary.deployments):
         out.append(f'<p>{a.counts["deployments"] - len(summary.deployments)} more deployments '
@@ -777,14 +777,16 @@ def _html(summary: ReportSummary, a: FlightAnalysis, timeline: bytes,
     for ev in events[:MAX_EVENT_ROWS]:
         rows.append((f'+{ev.t - t0:.3f}', _e(wall(ev.t)), _e(LANE_TITLES[ev.lane]),
                      f'<span class="lvl-{ev.level}">{_e(ev.text)}</span>',
-                     _e(f'{summary.files[ev.file].name}:{ev.line}'
-                        if ev.file < len(summary.files) else ev.line)))
+                     _e(ev.line if len(summary.files) == 1 else
+                        f'{summary.files[ev.file].name}:{ev.line}')))
     dropped = sum(a.lanes[lane].dropped for lane in LANES) + max(0, len(events)
                                                                  - MAX_EVENT_ROWS)
     if dropped:
         out.append(f'<p>{dropped} events are not listed (the first and last ones of each lane '
                    'are); every count above is complete.</p>')
-    out.append(_table(rows, ('+s', 'wall clock', 'lane', 'event', 'file:line'), raw=True))
+    out.append(_table(rows, ('+s', 'wall clock', 'lane', 'event',
+                             'line' if len(summary.files) == 1 else 'file:line'), raw=True,
+                      cls='times'))
     out.append('<h2>Files</h2>')
     file_rows = []
     for info in summary.files:
