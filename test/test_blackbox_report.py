@@ -544,7 +544,7 @@ def test_a_large_file_is_streamed_in_bounded_memory(tmp_path):
     from bench.report_memory import report_peak_rss, write_synthetic_blackbox
     small, large = tmp_path / 'small.jsonl', tmp_path / 'large.jsonl'
     write_synthetic_blackbox(str(small), 1 << 20)
-    made = write_synthetic_blackbox(str(large), 8 << 20)
+    made = write_synthetic_blackbox(str(large), 6 << 20)
     peaks = {}
     for path in (small, large):
         tracemalloc.start()
@@ -554,13 +554,13 @@ def test_a_large_file_is_streamed_in_bounded_memory(tmp_path):
         finally:
             tracemalloc.stop()
         assert flight.files[0].clean_end and analysis.counts['status frames'] > 1000
-    # Eight times the lines (about 70 000 more): anything kept per line would show here.
+    # Six times the lines (about 50 000 more): anything kept per line would show here.
     assert peaks['large.jsonl'] - peaks['small.jsonl'] < 2.0, peaks
     # The whole report (drawing included) in a process of its own: its peak RSS and counts.
     result = report_peak_rss(str(large), str(tmp_path / 'large.html'))
     assert result['peak_mb'] < 300, result['peak_mb']
     counts = result['counts']
-    assert made['deployments'] >= 8 and made['lost'] >= 50 and made['reboots'] >= 8
+    assert made['deployments'] >= 5 and made['lost'] >= 40 and made['reboots'] >= 5
     assert counts['deployments'] == made['deployments']
     assert counts['unanswered requests'] == made['lost']
     assert counts['reboots'] == made['reboots']
