@@ -21,7 +21,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import (bad_inputs, blackbox_kill9, cpu, decoders, fuzz, latency,  # noqa: E402
-                   reconnects, servo_rate, soak)
+                   reconnects, report_memory, servo_rate, soak)
 from bench.common import claim_domain_id  # noqa: E402
 
 Row = Tuple[str, str, str, str]  # name, value, goal, verdict
@@ -184,6 +184,19 @@ def bench_bad_inputs(res: Results, a: argparse.Namespace) -> None:
             res.note(f'bad_inputs {name}: {text}')
 
 
+def bench_report(res: Results, a: argparse.Namespace) -> None:
+    mb = 50 if a.quick else 500
+    r = report_memory.run(size_mb=mb)
+    peak, seconds = r[f'report_{mb}mb_peak_mb'], r[f'report_{mb}mb_s']
+    res.add(f'report_{mb}mb_peak_mb', peak, '<= 256', peak <= 256)
+    res.add(f'report_{mb}mb_s', seconds)
+    c = r['report_counts']
+    res.note(f'report: {r["report_file_mb"]:.0f} MB black box ({c.get("records")} records, '
+             f'{c.get("deployments")} deployments, {c.get("unanswered requests")} lost frames, '
+             f'{c.get("reboots")} reboots) reported at {r["report_mb_s"]:.1f} MB/s; HTML '
+             f'{r["report_html_kb"]:.0f} kB')
+
+
 FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'decoders': bench_decoders,
     'fuzz': bench_fuzz,
@@ -194,6 +207,7 @@ FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'soak': bench_soak,
     'kill9': bench_kill9,
     'bad_inputs': bench_bad_inputs,
+    'report': bench_report,
 }
 
 

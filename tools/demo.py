@@ -335,6 +335,19 @@ def run_mission(m: Mission, procs: Processes) -> str:
             f'deployment recorded, settings re-applied after reboot')
 
 
+def write_report(blackbox: Path, earlier_runs: set) -> str:
+    """Write the black-box report of this run (blackbox_report) beside its file."""
+    from dps_parachute_ros.report import build_report
+    runs = sorted(set(blackbox.glob('parachute-*.jsonl')) - earlier_runs)
+    if not runs:
+        raise DemoFailure(f'the driver wrote no black box in {blackbox}')
+    report = build_report([str(runs[-1])], progress=False)
+    print(f'demo: black-box report of this run: {report.html_path} (timeline '
+          f'{report.png_path}: {report.counts.get("deployments", 0)} deployment(s), '
+          f'{report.counts.get("reboots", 0)} reboot(s))', flush=True)
+    return report.html_path
+
+
 def main() -> int:
     """Run the demo; return the exit code."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -347,6 +360,7 @@ def main() -> int:
     start = time.monotonic()
     workdir = Path(tempfile.mkdtemp(prefix='uav-demo-'))
     blackbox = ROOT / 'log' / 'demo-blackbox'
+    earlier_runs = set(blackbox.glob('parachute-*.jsonl'))
     procs = Processes(workdir)
     mission = None
     try:
@@ -369,8 +383,10 @@ def main() -> int:
         summary = run_mission(mission, procs)
         mission.close()
         mission = None
+        procs.stop_all()  # the driver closes its black box: the report sees the whole run
+        report = write_report(blackbox, earlier_runs)
         print(f'demo: OK in {time.monotonic() - start:.1f} s — {summary}; '
-              f'black box in {blackbox}', flush=True)
+              f'black box in {blackbox}; report {report}', flush=True)
         return 0
     except DemoFailure as exc:
         print(f'\ndemo: FAILED — {exc}', file=sys.stderr, flush=True)
