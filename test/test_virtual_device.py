@@ -85,3 +85,30 @@ def test_unplug_for_a_while_replugs_at_the_same_path(device):
         assert read_n(again, 3) == bytes([0xAA, 5, 0xAF])
     finally:
         again.close()
+
+
+@pytest.mark.parametrize('faults_on_ticks', [False, True])
+def test_unsolicited_output_gets_the_wire_faults_only_when_asked(tmp_path, faults_on_ticks):
+    queue = []
+    runner = VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model,
+                                 on_tick=lambda now: [queue.pop(0)] if queue else None,
+                                 faults_on_ticks=faults_on_ticks)
+    with runner:
+        driver = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
+        try:
+            with runner.locked():
+                runner.faults.drop_next = 1
+                runner.faults.corrupt_next = 1
+                queue.extend([b'\xaa\x01\xab', b'\xaa\x02\xac', b'\xaa\x03\xad'])
+            if faults_on_ticks:
+                # The first frame is lost, the second's checksum is wrong, the third is intact.
+                got = read_n(driver, 6)
+                assert got[:2] == b'\xaa\x02' and got[2] != 0xAC
+                assert got[3:] == b'\xaa\x03\xad'
+                assert (runner.replies_dropped, runner.replies_corrupted) == (1, 1)
+            else:
+                # A device's own output (a status stream) goes out as the model made it.
+                assert read_n(driver, 9) == b'\xaa\x01\xab\xaa\x02\xac\xaa\x03\xad'
+                assert (runner.faults.drop_next, runner.faults.corrupt_next) == (1, 1)
+        finally:
+            driver.close()

@@ -48,8 +48,12 @@ class VirtualDeviceRunner:
         response_delay_s: float = 0.0,
         seed: Optional[int] = None,
         logger: Optional[logging.Logger] = None,
+        faults_on_ticks: bool = False,
     ) -> None:
         self.port = VirtualSerialPort(link_path)
+        # A device whose output is all unsolicited (the handset) has no replies to spoil: with
+        # this set, the wire faults apply to every chunk its ticks send as well.
+        self.faults_on_ticks = faults_on_ticks
         self.baud = baud
         self.faults = WireFaults()
         self.response_delay_s = response_delay_s
@@ -205,7 +209,7 @@ class VirtualDeviceRunner:
         if garbage:
             start = self._write(garbage, start)
         for frame in frames:
-            frame = self._apply_faults(frame) if reply else frame
+            frame = self._apply_faults(frame) if reply or self.faults_on_ticks else frame
             if frame:
                 start = self._write(frame, start)
 
