@@ -240,6 +240,19 @@ def test_low_battery_requests_return_to_home_and_clears_at_25_percent(ros, launc
     battery(0.25, lambda: not h.failsafes.last.battery_low, 'cleared at 25 %')
     assert h.failsafes.last.action == Failsafe.ACTION_NONE
     assert h.log_line('WARN', ['cleared', 'failsafe now NONE'])
+    # A threshold raised at runtime applies at once (H25); the topic is read at start only.
+    results = set_params(ros, '/handset_link', low_battery_fraction=0.3)
+    assert results[0].successful
+    h.failsafes.wait(lambda m: m.battery_low, 5, what='low at 25 % < 30 %', start=count)
+    results = set_params(ros, '/handset_link', battery_topic='other', port='/dev/null')
+    assert not any(r.successful for r in results)
+    assert 'read at start only' in results[0].reason and 'read-only' in results[1].reason
+
+
+def set_params(ros, node, **values):
+    request = SetParameters.Request(parameters=[
+        Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+    return ros.call(SetParameters, f'{node}/set_parameters', request).results
 
 
 def _diag_value(h, key):
