@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Any, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -70,9 +70,14 @@ SPECS = (
 
 
 def create_runner(sim: VirtualHandset, link_path: Optional[str], baud: int = 115200,
-                  seed: Optional[int] = None) -> VirtualDeviceRunner:
-    """Wire a handset model to a pty runner (not started); the model's clock is monotonic."""
-    return VirtualDeviceRunner(link_path, on_input=sim.receive, on_tick=sim.step_frames,
+                  seed: Optional[int] = None,
+                  on_tick: Optional[Callable[[float], List[bytes]]] = None) -> VirtualDeviceRunner:
+    """Wire a handset model to a pty runner (not started); the model's clock is monotonic.
+
+    ``on_tick`` replaces ``sim.step_frames`` (the benchmarks number their ticks through it).
+    """
+    return VirtualDeviceRunner(link_path, on_input=sim.receive,
+                               on_tick=on_tick or sim.step_frames,
                                next_event=sim.next_event_time, baud=baud, seed=seed,
                                faults_on_ticks=True)
 
