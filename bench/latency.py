@@ -18,7 +18,8 @@ import contextlib
 import time
 from typing import Dict, List
 
-from bench.common import node_process, ParachuteRig, percentile, ros_client, workdir
+from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
+                          workdir)
 from bench.device_proc import servo_bus_process
 
 
@@ -146,7 +147,8 @@ def handset_latencies(rig, client, duration_s: float) -> Dict:
     received: List[tuple] = []
     client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
                      lambda m: received.append((time.monotonic(), m)), depth=100)
-    time.sleep(1.0)  # the subscription matched, a few ticks through
+    wait_for(lambda: received, 20, what='the first setpoint')  # the subscription matched
+    time.sleep(0.5)
     t0 = time.monotonic()
     time.sleep(duration_s)
     t1 = time.monotonic()
