@@ -196,6 +196,9 @@ class HandsetLinkNode(Node):
             stat.add(key, value)
         port = '' if state.port_open else \
             f'; modem port not open ({port_error or "opening"}), retrying'
+        if state.port_open and not state.frames_accepted and state.frames_malformed:
+            port = '; bytes arrive but not one valid handset frame: wrong baud rate? check the ' \
+                '`baud` parameter against the modem'
         if failsafe.link_lost:
             stat.summary(ERROR, f'link lost: no valid handset frame for '
                                 f'{config.link_timeout_s:g} s; requesting return to home{port}')
