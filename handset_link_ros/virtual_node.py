@@ -3,8 +3,9 @@
 The model (``simulation.VirtualHandset``) runs in a ``VirtualDeviceRunner`` thread in real time:
 frames at ``rate_hz``, paced at ``baud``, one frame per write so that the wire faults (drop,
 corrupt, garbage) hit single frames; the handset sends only unsolicited output, so the runner
-applies them to it (``faults_on_ticks``). Parameters set the sticks, the auxiliary controls and
-the encoding at runtime; ``~/setpoint_in`` drives the sticks from a topic; services unplug the
+applies them to it (``fault_unsolicited``; a corrupted frame has its checksum flipped, the byte
+before the end byte). Parameters set the sticks, the auxiliary controls and the encoding at
+runtime; ``~/setpoint_in`` drives the sticks from a topic; services unplug the
 modem (``~/disconnect``), cut the radio link (``~/set_radio_link``), and send noise or any bytes.
 """
 
@@ -79,7 +80,7 @@ def create_runner(sim: VirtualHandset, link_path: Optional[str], baud: int = 115
     return VirtualDeviceRunner(link_path, on_input=sim.receive,
                                on_tick=on_tick or sim.step_frames,
                                next_event=sim.next_event_time, baud=baud, seed=seed,
-                               faults_on_ticks=True)
+                               fault_unsolicited=True, checksum_from_end=2)
 
 
 class VirtualHandsetNode(Node):

@@ -11,7 +11,8 @@ from catkin_pkg.package import parse_package
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros', 'handset_link_ros']
+MODULES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros', 'originman_board_ros',
+           'handset_link_ros']
 CONTRACT_MESSAGES = {
     'ParachuteStatus': ['header', 'online', 'armed', 'triggered', 'tilt_deg', 'accel_g',
                         'streaming', 'light_level_v', 'bay_open', 'charging', 'cell_voltage_v',
@@ -31,6 +32,20 @@ CONTRACT_MESSAGES = {
                     'frames_malformed', 'frames_out_of_range', 'frames_unknown_type',
                     'last_frame_age_s'],
     'Failsafe': ['header', 'link_lost', 'battery_low', 'action', 'reason'],
+    'ButtonEvent': ['header', 'key_id', 'event', 'event_name'],
+    'SbusFrame': ['header', 'channels', 'normalized', 'ch17', 'ch18', 'signal_loss',
+                  'failsafe'],
+    'LedPattern': ['led_id', 'on_s', 'off_s', 'repeat'],
+    'BuzzerPattern': ['frequency_hz', 'on_s', 'off_s', 'repeat'],
+    'RgbPixels': ['indices', 'red', 'green', 'blue'],
+    'OledText': ['line', 'text'],
+    'MotorSpeeds': ['motor_ids', 'rps'],
+    'PwmServoCommand': ['ids', 'pulses_us', 'duration_s'],
+    'BusServoCommand': ['ids', 'positions', 'duration_s'],
+    'BusServoState': ['id', 'online', 'position', 'position_rad', 'voltage_v', 'temperature_c',
+                      'torque_enabled', 'offset', 'min_position', 'max_position',
+                      'min_voltage_v', 'max_voltage_v', 'max_temperature_c'],
+    'BusServoStateArray': ['header', 'servos'],
 }
 CONTRACT_SERVICES = {
     'Deploy': (['confirm', 'arm_if_locked'], ['success', 'message', 'latency_ms']),
@@ -51,6 +66,15 @@ CONTRACT_SERVICES = {
     'SetId': (['id', 'new_id'], ['success', 'message']),
     'FactoryReset': (['id', 'confirm'], ['success', 'message']),
     'SendRaw': (['data'], ['success', 'message']),
+    'GetBusServoState': (['ids'], ['success', 'message', 'servos']),
+    'SetBusServoTorque': (['ids', 'enable'], ['success', 'message']),
+    'BusServoIds': (['ids'], ['success', 'message']),
+    'SetBusServoId': (['id', 'new_id'], ['success', 'message']),
+    'SetBusServoOffset': (['id', 'offset', 'save'], ['success', 'message']),
+    'SetBusServoLimits': (['id', 'min_position', 'max_position', 'min_voltage_mv',
+                           'max_voltage_mv', 'max_temperature_c'], ['success', 'message']),
+    'GetPwmServoState': (['ids'], ['success', 'message', 'pulses_us', 'offsets_us']),
+    'SetPwmServoOffset': (['id', 'offset_us'], ['success', 'message']),
 }
 # Imports that are not ROS packages of the same name, mapped to their rosdep keys.
 ROSDEP_KEYS = {'serial': 'python3-serial', 'yaml': 'python3-yaml'}

@@ -55,7 +55,7 @@ def test_parachute_on_a_wrong_baud_says_to_check_the_baud_parameter(
     launch.start('parachute_node', {'port': noisy.port.path,
                                     'blackbox_dir': str(tmp_path / 'bb')},
                  ros=ros, wait_service='/parachute/deploy')
-    status = wait_diag(diags, 'parachute: link', ['wrong baud rate', '`baud` parameter'])
+    status = wait_diag(diags, '/parachute: link', ['wrong baud rate', '`baud` parameter'])
     assert 'valid DPS-S frame' in status.message
 
 
@@ -64,7 +64,7 @@ def test_parachute_with_a_missing_port_says_so(ros, launch, tmp_path):
     missing = str(tmp_path / 'ttyUSB9')
     launch.start('parachute_node', {'port': missing, 'blackbox_dir': str(tmp_path / 'bb')},
                  ros=ros, wait_service='/parachute/deploy')
-    wait_diag(diags, 'parachute: link', ['no such device', missing])
+    wait_diag(diags, '/parachute: link', ['no such device', missing])
 
 
 def test_servo_bus_on_a_wrong_baud_says_to_check_the_baud_parameter(ros, launch, noisy):

@@ -1,5 +1,6 @@
 """The virtual-device runner: a model behind a pty, with wire timing and wire faults."""
 
+import threading
 import time
 
 import pytest
@@ -87,28 +88,29 @@ def test_unplug_for_a_while_replugs_at_the_same_path(device):
         again.close()
 
 
-@pytest.mark.parametrize('faults_on_ticks', [False, True])
-def test_unsolicited_output_gets_the_wire_faults_only_when_asked(tmp_path, faults_on_ticks):
-    queue = []
-    runner = VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model,
-                                 on_tick=lambda now: [queue.pop(0)] if queue else None,
-                                 faults_on_ticks=faults_on_ticks)
+def test_unsolicited_output_is_faulted_when_asked_and_the_checksum_position_is_honoured(
+        tmp_path):
+    # A device that only talks on its own (a handset): frames AA n CHK 55, checksum before the
+    # end byte.
+    frames = iter([bytes([0xAA, n, 0xAA ^ n, 0x55]) for n in range(3)])
+    listening = threading.Event()
+
+    def tick(now):
+        return next(frames, None) if listening.is_set() else None
+
+    runner = VirtualDeviceRunner(str(tmp_path / 'dev'), lambda data, now: None, on_tick=tick,
+                                 tick_period_s=0.05, fault_unsolicited=True,
+                                 checksum_from_end=2)
+    runner.faults.drop_next = 1
+    runner.faults.corrupt_next = 1
     with runner:
         driver = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
+        listening.set()
         try:
-            with runner.locked():
-                runner.faults.drop_next = 1
-                runner.faults.corrupt_next = 1
-                queue.extend([b'\xaa\x01\xab', b'\xaa\x02\xac', b'\xaa\x03\xad'])
-            if faults_on_ticks:
-                # The first frame is lost, the second's checksum is wrong, the third is intact.
-                got = read_n(driver, 6)
-                assert got[:2] == b'\xaa\x02' and got[2] != 0xAC
-                assert got[3:] == b'\xaa\x03\xad'
-                assert (runner.replies_dropped, runner.replies_corrupted) == (1, 1)
-            else:
-                # A device's own output (a status stream) goes out as the model made it.
-                assert read_n(driver, 9) == b'\xaa\x01\xab\xaa\x02\xac\xaa\x03\xad'
-                assert (runner.faults.drop_next, runner.faults.corrupt_next) == (1, 1)
+            got = read_n(driver, 8)
         finally:
             driver.close()
+    # Frame 0 dropped; frame 1's checksum flipped, its end byte intact; frame 2 as sent.
+    assert got[:2] == b'\xaa\x01' and got[2] != 0xAA ^ 1 and got[3] == 0x55
+    assert got[4:] == bytes([0xAA, 2, 0xAA ^ 2, 0x55])
+    assert (runner.replies_dropped, runner.replies_corrupted) == (1, 1)

@@ -98,6 +98,11 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
             except Exception as exc:  # noqa: BLE001 - shutting down regardless
                 print(f'destroying the node failed: {exc!r}', file=sys.stderr)
         rclpy.try_shutdown()
+        # The shutdown is complete. While the interpreter exits Python restores the default
+        # action of the signals it handled, so a late Ctrl-C would still end the process as
+        # killed by SIGINT; ignored signals stay ignored.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return code
 
 
