@@ -3,6 +3,8 @@
 - ``cpu_servo_pct``: ``servo_bus_node`` with 12 servos at ``publish_rate_hz`` 50 (default
   telemetry period 1 s) on a virtual bus at 115200 baud.
 - ``cpu_parachute_pct``: ``parachute_node`` with the module's status stream at 20 Hz.
+- ``cpu_handset_pct``: ``handset_link_node`` with the handset at 50 Hz (four stick frames per
+  tick, JSON, auxiliary once a second), 200 ``~/setpoint`` messages/s with one subscriber.
 
 CPU = (utime + stime of every thread, from ``/proc/<pid>/stat``) / wall time of the window,
 after a warm-up. The virtual devices run in this process, so they are not counted.
@@ -46,12 +48,33 @@ def parachute_cpu(duration_s: float = 10.0, warmup_s: float = 2.0,
     return {'cpu_pct': pct}
 
 
+def handset_cpu(duration_s: float = 10.0, warmup_s: float = 2.0) -> Dict[str, float]:
+    """Return the handset driver's CPU percent at 50 Hz, and the setpoints/s it published."""
+    from bench.common import HandsetRig, ros_client
+    from uav_serial_drivers.msg import HandsetSetpoint
+    count = [0]
+    with workdir() as directory, HandsetRig(directory) as rig, \
+            ros_client('bench_cpu_handset') as client:
+        client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
+                         lambda m: count.__setitem__(0, count[0] + 1))
+        rig.wait_ready()
+        time.sleep(warmup_s)
+        meter = CpuMeter(rig.node.pid)
+        start, t0 = count[0], time.monotonic()
+        time.sleep(duration_s)
+        pct = meter.percent()
+        rate = (count[0] - start) / (time.monotonic() - t0)
+    return {'cpu_pct': pct, 'setpoints_s': rate}
+
+
 def run(duration_s: float = 10.0) -> Dict[str, float]:
-    """Measure both drivers one after the other; return the ``cpu_*`` figures."""
+    """Measure the drivers one after the other; return the ``cpu_*`` figures."""
     servo = servo_cpu(duration_s)
     parachute = parachute_cpu(duration_s)
+    handset = handset_cpu(duration_s)
     return {'cpu_servo_pct': servo['cpu_pct'], 'cpu_servo_cycles_s': servo['cycles_s'],
-            'cpu_parachute_pct': parachute['cpu_pct']}
+            'cpu_parachute_pct': parachute['cpu_pct'], 'cpu_handset_pct': handset['cpu_pct'],
+            'cpu_handset_setpoints_s': handset['setpoints_s']}
 
 
 if __name__ == '__main__':

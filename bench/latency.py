@@ -18,7 +18,8 @@ import contextlib
 import time
 from typing import Dict, List
 
-from bench.common import node_process, ParachuteRig, percentile, ros_client, workdir
+from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
+                          workdir)
 from bench.device_proc import servo_bus_process
 
 
@@ -125,5 +126,83 @@ def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = Tr
         'deploy_p50_ms': percentile(d, 50), 'deploy_p99_ms': percentile(d, 99),
         'deploy_max_ms': max(d) if d else float('nan'),
         'deploy_service_p99_ms': percentile(deploy['service_ms'], 99),
+        'alive': alive,
+    }
+
+
+# -- the handset link -----------------------------------------------------------------------------
+
+def _handset_key(field: str, value: float) -> tuple:
+    return field, round(value, 4)
+
+
+def handset_latencies(rig, client, duration_s: float) -> Dict:
+    """Record `duration_s` of numbered ticks; return frame-to-``~/setpoint`` latencies (ms).
+
+    A frame's time is when its last byte arrived at the driver's port (the runner's pacing); a
+    message's time is when this process received it. Each stick frame carries a value unique to
+    its tick, so each is matched to the message that carries it.
+    """
+    from uav_serial_drivers.msg import HandsetSetpoint
+    received: List[tuple] = []
+    client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
+                     lambda m: received.append((time.monotonic(), m)), depth=100)
+    wait_for(lambda: received, 20, what='the first setpoint')  # the subscription matched
+    time.sleep(0.5)
+    t0 = time.monotonic()
+    time.sleep(duration_s)
+    t1 = time.monotonic()
+    time.sleep(0.5)  # the last frames' messages
+    arrivals: Dict[tuple, float] = {}
+    for t_rx, msg in list(received):
+        for field in msg.updated:
+            arrivals.setdefault(_handset_key(field, getattr(msg, field)), t_rx)
+    latencies: List[float] = []
+    missed = 0
+    for t_wire, cmd in rig.tap.snapshot():
+        if not t0 <= t_wire <= t1 or cmd.field not in ('yaw', 'pitch', 'roll', 'altitude'):
+            continue
+        field = {'yaw': 'yaw_deg', 'pitch': 'pitch_deg', 'roll': 'roll_deg',
+                 'altitude': 'altitude_m'}[cmd.field]
+        t_rx = arrivals.get(_handset_key(field, float(cmd.value)))
+        if t_rx is None:
+            missed += 1
+        else:
+            latencies.append((t_rx - t_wire) * 1000.0)
+    return {'latencies_ms': latencies, 'missed': missed}
+
+
+def run_handset(duration_s: float = 20.0, background: bool = True) -> Dict:
+    """Measure the handset's frame-to-setpoint latency with the other drivers running."""
+    from bench.common import HandsetRig
+    with workdir() as directory, contextlib.ExitStack() as stack:
+        bg = []
+        if background:
+            servo_link = str(directory / 'bg-servo.pty')
+            ids = list(range(1, 13))
+            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
+            bg.append(stack.enter_context(node_process(
+                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
+                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
+                tag='bg_servo_bus_node')))
+            chute_link = str(directory / 'bg-parachute.pty')
+            bg.append(stack.enter_context(node_process(
+                'virtual_parachute', directory, {'link': chute_link, 'stream_rate_hz': 20.0},
+                tag='bg_virtual_parachute')))
+            bg.append(stack.enter_context(node_process(
+                'parachute_node', directory, {'port': chute_link,
+                                              'blackbox_dir': str(directory / 'bg-blackbox')},
+                tag='bg_parachute_node')))
+        rig = stack.enter_context(HandsetRig(directory, numbered=True))
+        client = stack.enter_context(ros_client('bench_handset_latency'))
+        rig.wait_ready()
+        r = handset_latencies(rig, client, duration_s)
+        alive = rig.node.alive() and all(p.alive() for p in bg)
+    lat = r['latencies_ms']
+    return {
+        'handset_latency_n': len(lat), 'handset_latency_missed': r['missed'],
+        'handset_latency_p50_ms': percentile(lat, 50),
+        'handset_latency_p99_ms': percentile(lat, 99),
+        'handset_latency_max_ms': max(lat) if lat else float('nan'),
         'alive': alive,
     }

@@ -1,9 +1,11 @@
-"""Both drivers for a while on lossy wires: no crash, bounded memory, no stalled topic.
+"""The drivers for a while on lossy wires: no crash, bounded memory, no stalled topic.
 
-``servo_bus_node`` (12 servos, 50 Hz, 115200 baud) and ``parachute_node`` (status stream at
-20 Hz) run side by side against their virtual devices in this process; each device drops 1 %
-and corrupts (checksum) 1 % of its replies at random (``WireFaults``). A subscriber in a private
-rclpy context records every ``/joint_states`` and ``/parachute/status`` message. Figures:
+``servo_bus_node`` (12 servos, 50 Hz, 115200 baud), ``parachute_node`` (status stream at
+20 Hz) and ``handset_link_node`` (the handset at 50 Hz) run side by side against their virtual
+devices in this process; each device drops 1 % and corrupts (checksum) 1 % of its replies at
+random (``WireFaults``; the handset, which only talks, of its frames). A subscriber in a private
+rclpy context records every ``/joint_states``, ``/parachute/status`` and
+``/handset_link/setpoint`` message. Figures:
 crashes, RSS growth of each driver from the end of the warm-up (``min(30 s, 10 %)``) to the
 end, and the longest gap between two consecutive messages of each topic by their header stamps
 (the driver's publish times; the gap as received here is reported too).
@@ -67,7 +69,7 @@ class _Watchdog:
 
 
 _LOG_MARKERS = ('offline', 'stopped answering', 're-initializ', 'back online', 'online',
-                'failed', 'timed out', 'timeout')
+                'failed', 'timed out', 'timeout', 'link lost', 'regained')
 
 
 def _log_events(text: str) -> List[str]:
@@ -118,43 +120,47 @@ class _Gaps:
 def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         sample_s: float = 2.0) -> Dict:
     """Soak both drivers for `duration_s`; return the figures."""
+    from bench.common import HandsetRig
     from sensor_msgs.msg import JointState
-    from uav_serial_drivers.msg import ParachuteStatus
+    from uav_serial_drivers.msg import HandsetSetpoint, ParachuteStatus
     warmup = min(30.0, 0.1 * duration_s)
     with workdir() as directory, contextlib.ExitStack() as stack:
         servo = stack.enter_context(ServoRig(directory, list(range(1, 13)), 115200,
                                              {'publish_rate_hz': 50.0}, seed=11))
         chute = stack.enter_context(ParachuteRig(directory, stream_period_s=0.05, seed=12))
-        probes = {'servo': _DeviceProbe(), 'parachute': _DeviceProbe()}
-        servo.runner.add_tap(probes['servo'])
-        chute.runner.add_tap(probes['parachute'])
+        handset = stack.enter_context(HandsetRig(directory, seed=13))
+        rigs = {'servo': servo, 'parachute': chute, 'handset': handset}
+        probes = {name: _DeviceProbe() for name in rigs}
+        for name, rig in rigs.items():
+            rig.runner.add_tap(probes[name])
         watchdog = _Watchdog()
         stack.callback(watchdog.stop)
         client = stack.enter_context(ros_client('bench_soak'))
-        joints, status = _Gaps(), _Gaps()
+        joints, status, setpoints = _Gaps(), _Gaps(), _Gaps()
         client.subscribe(JointState, '/joint_states', joints)
         client.subscribe(ParachuteStatus, '/parachute/status', status)
-        servo.wait_ready()
-        chute.wait_ready()
-        for rig in (servo, chute):
+        client.subscribe(HandsetSetpoint, '/handset_link/setpoint', setpoints, depth=100)
+        for rig in rigs.values():
+            rig.wait_ready()
             rig.runner.faults.drop_probability = drop
             rig.runner.faults.corrupt_probability = corrupt
-        pids = {'servo': servo.node.pid, 'parachute': chute.node.pid}
+        pids = {name: rig.node.pid for name, rig in rigs.items()}
         time.sleep(min(warmup, 5.0))
         start = time.monotonic()
         joints.reset()
         status.reset()
+        setpoints.reset()
         for probe in probes.values():
             probe.reset()
         watchdog.max_late = 0.0
-        logs_at_start = {'servo': len(servo.node.output()), 'parachute': len(chute.node.output())}
+        logs_at_start = {name: len(rig.node.output()) for name, rig in rigs.items()}
         rss: Dict[str, List[float]] = {k: [] for k in pids}
         baseline: Dict[str, int] = {}
         end = start + duration_s
         alive = True
         while time.monotonic() < end:
             time.sleep(min(sample_s, max(0.0, end - time.monotonic())))
-            alive = servo.node.alive() and chute.node.alive()
+            alive = all(rig.node.alive() for rig in rigs.values())
             if not alive:
                 break
             for name, pid in pids.items():
@@ -165,18 +171,22 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         growth = {name: (rss[name][-1] - baseline.get(name, rss[name][0])) / 1e6
                   if rss[name] else float('nan') for name in pids}
         faults = {name: (rig.runner.replies_dropped, rig.runner.replies_corrupted)
-                  for name, rig in (('servo', servo), ('parachute', chute))}
+                  for name, rig in rigs.items()}
         result = {
             'soak_s': round(t_end - start, 1),
-            'soak_crashes': sum(1 for rig in (servo, chute) if not rig.node.alive()),
+            'soak_crashes': sum(1 for rig in rigs.values() if not rig.node.alive()),
             'soak_rss_growth_mb_servo': growth['servo'],
             'soak_rss_growth_mb_parachute': growth['parachute'],
+            'soak_rss_growth_mb_handset': growth['handset'],
             'soak_max_gap_s_joint_states': joints.final(t_end),
             'soak_max_gap_s_status': status.final(t_end),
+            'soak_max_gap_s_setpoint': setpoints.final(t_end),
             'soak_rx_gap_s_joint_states': joints.max_rx_gap,
             'soak_rx_gap_s_status': status.max_rx_gap,
+            'soak_rx_gap_s_setpoint': setpoints.max_rx_gap,
             'soak_joint_states_msgs': joints.count,
             'soak_status_msgs': status.count,
+            'soak_setpoint_msgs': setpoints.count,
             'soak_faults': faults,
             'soak_stalls': {
                 # Times are seconds after the start of the measured window.
@@ -189,10 +199,11 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
                                               round(watchdog.max_late_at - start, 1)),
                 'joint_states_gap_ended_at': round(joints.max_gap_at - start, 1),
                 'status_gap_ended_at': round(status.max_gap_at - start, 1),
+                'setpoint_gap_ended_at': round(setpoints.max_gap_at - start, 1),
             },
             'soak_driver_log': {
                 name: _log_events(rig.node.output()[logs_at_start[name]:])
-                for name, rig in (('servo', servo), ('parachute', chute))},
+                for name, rig in rigs.items()},
             'alive': alive,
         }
     return result

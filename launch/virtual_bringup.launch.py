@@ -1,4 +1,4 @@
-"""Both virtual devices and both drivers wired to them: the whole stack without hardware.
+"""Every virtual device and every driver wired to it: the whole stack without hardware.
 
 ros2 launch uav_serial_drivers virtual_bringup.launch.py
 """
@@ -11,10 +11,11 @@ from launch_ros.substitutions import FindPackageShare
 
 
 def generate_launch_description():
-    """Run virtual_parachute + parachute_node and virtual_servo_bus + servo_bus_node."""
+    """Run each virtual device with its driver (parachute, servo bus, handset link)."""
     share = FindPackageShare('uav_serial_drivers')
     parachute_link = LaunchConfiguration('parachute_link')
     servo_link = LaunchConfiguration('servo_link')
+    handset_link = LaunchConfiguration('handset_link')
     namespace = LaunchConfiguration('namespace')
     return LaunchDescription([
         DeclareLaunchArgument('namespace', default_value='',
@@ -23,6 +24,8 @@ def generate_launch_description():
                               description='path of the virtual parachute port'),
         DeclareLaunchArgument('servo_link', default_value='/tmp/vservobus',
                               description='path of the virtual servo bus port'),
+        DeclareLaunchArgument('handset_link', default_value='/tmp/vhandset',
+                              description='path of the virtual handset modem port'),
         Node(package='uav_serial_drivers', executable='virtual_parachute',
              name='virtual_parachute', namespace=namespace,
              parameters=[{'link': parachute_link}], output='screen'),
@@ -38,5 +41,13 @@ def generate_launch_description():
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'servo_bus.yaml']),
                          {'port': servo_link, 'servo_ids': [1, 2, 3]}],
+             output='screen'),
+        Node(package='uav_serial_drivers', executable='virtual_handset',
+             name='virtual_handset', namespace=namespace,
+             parameters=[{'link': handset_link}], output='screen'),
+        Node(package='uav_serial_drivers', executable='handset_link_node', name='handset_link',
+             namespace=namespace,
+             parameters=[PathJoinSubstitution([share, 'config', 'handset_link.yaml']),
+                         {'port': handset_link}],
              output='screen'),
     ])

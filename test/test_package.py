@@ -11,7 +11,8 @@ from catkin_pkg.package import parse_package
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros']
+MODULES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros', 'originman_board_ros',
+           'handset_link_ros']
 CONTRACT_MESSAGES = {
     'ParachuteStatus': ['header', 'online', 'armed', 'triggered', 'tilt_deg', 'accel_g',
                         'streaming', 'light_level_v', 'bay_open', 'charging', 'cell_voltage_v',
@@ -25,6 +26,26 @@ CONTRACT_MESSAGES = {
                    'voltage_fault', 'torque_enabled', 'error_count'],
     'ServoStateArray': [],
     'ServoCommand': ['names', 'ids', 'positions', 'move_time_ms'],
+    'HandsetSetpoint': ['header', 'yaw_deg', 'pitch_deg', 'roll_deg', 'altitude_m', 'updated'],
+    'HandsetAuxiliary': ['header', 'lights_percent', 'camera_angle_deg', 'camera_recording'],
+    'HandsetLink': ['header', 'connected', 'frame_rate_hz', 'command_rate_hz', 'frames_accepted',
+                    'frames_malformed', 'frames_out_of_range', 'frames_unknown_type',
+                    'last_frame_age_s'],
+    'Failsafe': ['header', 'link_lost', 'battery_low', 'action', 'reason'],
+    'ButtonEvent': ['header', 'key_id', 'event', 'event_name'],
+    'SbusFrame': ['header', 'channels', 'normalized', 'ch17', 'ch18', 'signal_loss',
+                  'failsafe'],
+    'LedPattern': ['led_id', 'on_s', 'off_s', 'repeat'],
+    'BuzzerPattern': ['frequency_hz', 'on_s', 'off_s', 'repeat'],
+    'RgbPixels': ['indices', 'red', 'green', 'blue'],
+    'OledText': ['line', 'text'],
+    'MotorSpeeds': ['motor_ids', 'rps'],
+    'PwmServoCommand': ['ids', 'pulses_us', 'duration_s'],
+    'BusServoCommand': ['ids', 'positions', 'duration_s'],
+    'BusServoState': ['id', 'online', 'position', 'position_rad', 'voltage_v', 'temperature_c',
+                      'torque_enabled', 'offset', 'min_position', 'max_position',
+                      'min_voltage_v', 'max_voltage_v', 'max_temperature_c'],
+    'BusServoStateArray': ['header', 'servos'],
 }
 CONTRACT_SERVICES = {
     'Deploy': (['confirm', 'arm_if_locked'], ['success', 'message', 'latency_ms']),
@@ -44,9 +65,20 @@ CONTRACT_SERVICES = {
     'GoToPreset': (['ids', 'preset'], ['success', 'message']),
     'SetId': (['id', 'new_id'], ['success', 'message']),
     'FactoryReset': (['id', 'confirm'], ['success', 'message']),
+    'SendRaw': (['data'], ['success', 'message']),
+    'GetBusServoState': (['ids'], ['success', 'message', 'servos']),
+    'SetBusServoTorque': (['ids', 'enable'], ['success', 'message']),
+    'BusServoIds': (['ids'], ['success', 'message']),
+    'SetBusServoId': (['id', 'new_id'], ['success', 'message']),
+    'SetBusServoOffset': (['id', 'offset', 'save'], ['success', 'message']),
+    'SetBusServoLimits': (['id', 'min_position', 'max_position', 'min_voltage_mv',
+                           'max_voltage_mv', 'max_temperature_c'], ['success', 'message']),
+    'GetPwmServoState': (['ids'], ['success', 'message', 'pulses_us', 'offsets_us']),
+    'SetPwmServoOffset': (['id', 'offset_us'], ['success', 'message']),
 }
 # Imports that are not ROS packages of the same name, mapped to their rosdep keys.
-ROSDEP_KEYS = {'serial': 'python3-serial', 'yaml': 'python3-yaml'}
+ROSDEP_KEYS = {'serial': 'python3-serial', 'yaml': 'python3-yaml',
+               'matplotlib': 'python3-matplotlib'}
 
 
 def setup_cfg() -> configparser.ConfigParser:
@@ -113,8 +145,8 @@ def test_installed_executables_are_the_console_scripts_of_setup_cfg():
     from ament_index_python.packages import get_package_prefix
     scripts = setup_cfg()['options.entry_points']['console_scripts'].split('\n')
     names = sorted(line.split('=')[0].strip() for line in scripts if line.strip())
-    assert names == ['parachute_node', 'servo_bus_node', 'virtual_parachute',
-                     'virtual_servo_bus']
+    assert names == ['blackbox_report', 'handset_link_node', 'parachute_node', 'servo_bus_node',
+                     'virtual_handset', 'virtual_parachute', 'virtual_servo_bus']
     lib = Path(get_package_prefix('uav_serial_drivers'), 'lib', 'uav_serial_drivers')
     assert sorted(p.name for p in lib.iterdir()) == names
     for line in scripts:
@@ -160,3 +192,33 @@ def test_every_interface_field_documents_itself():
                                      r'bool enable|bool attitude_enabled|'
                                      r'bool freefall_enabled)$', u)]
     assert not undocumented, undocumented
+
+
+HANDSET_FIELD_TYPES = {
+    'HandsetSetpoint': {'header': 'std_msgs/Header', 'yaw_deg': 'double', 'pitch_deg': 'double',
+                        'roll_deg': 'double', 'altitude_m': 'double',
+                        'updated': 'sequence<string>'},
+    'HandsetAuxiliary': {'header': 'std_msgs/Header', 'lights_percent': 'int16',
+                         'camera_angle_deg': 'double', 'camera_recording': 'boolean'},
+    'HandsetLink': {'header': 'std_msgs/Header', 'connected': 'boolean',
+                    'frame_rate_hz': 'double', 'command_rate_hz': 'double',
+                    'frames_accepted': 'uint64', 'frames_malformed': 'uint64',
+                    'frames_out_of_range': 'uint64', 'frames_unknown_type': 'uint64',
+                    'last_frame_age_s': 'double'},
+    'Failsafe': {'header': 'std_msgs/Header', 'link_lost': 'boolean', 'battery_low': 'boolean',
+                 'action': 'string', 'reason': 'string'},
+}
+
+
+@pytest.mark.parametrize('name,types', sorted(HANDSET_FIELD_TYPES.items()))
+def test_handset_messages_have_the_contract_field_types(name, types):
+    msg_type = getattr(importlib.import_module('uav_serial_drivers.msg'), name)
+    slots = msg_type.get_fields_and_field_types()
+    assert {f: slots.get(f) for f in types} == types
+
+
+def test_failsafe_actions_are_constants_of_the_message():
+    from handset_link_ros import core
+    from uav_serial_drivers.msg import Failsafe
+    assert (Failsafe.ACTION_NONE, Failsafe.ACTION_RETURN_TO_HOME) == \
+        (core.ACTION_NONE, core.ACTION_RETURN_TO_HOME)

@@ -1,5 +1,6 @@
 """The virtual-device runner: a model behind a pty, with wire timing and wire faults."""
 
+import threading
 import time
 
 import pytest
@@ -125,3 +126,31 @@ def test_a_device_without_wire_timing_ignores_the_drivers_baud(tmp_path):
             assert read_n(driver, 3) == bytes([0xAA, 7, 0xB1])
         finally:
             driver.close()
+
+
+def test_unsolicited_output_is_faulted_when_asked_and_the_checksum_position_is_honoured(
+        tmp_path):
+    # A device that only talks on its own (a handset): frames AA n CHK 55, checksum before the
+    # end byte.
+    frames = iter([bytes([0xAA, n, 0xAA ^ n, 0x55]) for n in range(3)])
+    listening = threading.Event()
+
+    def tick(now):
+        return next(frames, None) if listening.is_set() else None
+
+    runner = VirtualDeviceRunner(str(tmp_path / 'dev'), lambda data, now: None, on_tick=tick,
+                                 tick_period_s=0.05, fault_unsolicited=True,
+                                 checksum_from_end=2)
+    runner.faults.drop_next = 1
+    runner.faults.corrupt_next = 1
+    with runner:
+        driver = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
+        listening.set()
+        try:
+            got = read_n(driver, 8)
+        finally:
+            driver.close()
+    # Frame 0 dropped; frame 1's checksum flipped, its end byte intact; frame 2 as sent.
+    assert got[:2] == b'\xaa\x01' and got[2] != 0xAA ^ 1 and got[3] == 0x55
+    assert got[4:] == bytes([0xAA, 2, 0xAA ^ 2, 0x55])
+    assert (runner.replies_dropped, runner.replies_corrupted) == (1, 1)

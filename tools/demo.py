@@ -1,7 +1,7 @@
-"""`make demo`: both drivers against both virtual devices, and a short scripted mission.
+"""`make demo`: every driver against its virtual device, and a short scripted mission.
 
 Everything goes through the drivers' public ROS interfaces, as a user's mission logic would.
-The four executables run as processes; this script is one more ROS node that watches them and
+The executables run as processes; this script is one more ROS node that watches them and
 calls their services, with a compact live view. Exit code 0 on success, 1 with the reason else.
 """
 
@@ -11,6 +11,7 @@ import argparse
 import math
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -115,6 +116,7 @@ class Mission:
             callback_group=self.group)
         sub(TriggerRequest, '/parachute/trigger_request', self._append('requests'), 10,
             callback_group=self.group)
+        subscribe_handset(self)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -202,14 +204,15 @@ class Mission:
         if joints is not None:
             servos = ' | ' + ' '.join(f'{n} {p:+.2f}' for n, p in
                                       zip(joints.name, joints.position)) + ' rad'
-        return chute + power + servos
+        return chute + power + servos + handset_view(self)
 
     def _live_view(self) -> None:
         period = 0.2 if self.tty else 2.0
         while not self.view_stop.wait(period):
             line = self.view_line()
             if self.tty:
-                sys.stdout.write('\r\033[K' + line[:200])
+                width = shutil.get_terminal_size((200, 24)).columns - 1  # no wrapping
+                sys.stdout.write('\r\033[K' + line[:width])
                 sys.stdout.flush()
             else:
                 print(f'[{time.monotonic() - self.t0:5.1f}s]   · {line}', flush=True)
@@ -335,6 +338,100 @@ def run_mission(m: Mission, procs: Processes) -> str:
             f'deployment recorded, settings re-applied after reboot')
 
 
+def write_report(blackbox: Path, earlier_runs: set) -> str:
+    """Write the black-box report of this run (blackbox_report) beside its file."""
+    from dps_parachute_ros.report import build_report
+    runs = sorted(set(blackbox.glob('parachute-*.jsonl')) - earlier_runs)
+    if not runs:
+        raise DemoFailure(f'the driver wrote no black box in {blackbox}')
+    report = build_report([str(runs[-1])], progress=False)
+    print(f'demo: black-box report of this run: {report.html_path} (timeline '
+          f'{report.png_path}: {report.counts.get("deployments", 0)} deployment(s), '
+          f'{report.counts.get("reboots", 0)} reboot(s))', flush=True)
+    return report.html_path
+
+
+# -- the handset link ----------------------------------------------------------------------
+
+HANDSET_LINK_TIMEOUT_S = 1.0
+"""Short for the demo (the product's is 5 s, H8): the failsafe shows up at once."""
+
+
+def start_handset(procs: Processes, workdir: Path) -> None:
+    """Start the virtual handset and the handset link driver on it."""
+    link = str(workdir / 'vhandset')
+    procs.start('virtual_handset', {'link': link})
+    deadline = time.monotonic() + 15
+    while not os.path.exists(link):
+        procs.check_alive()
+        if time.monotonic() > deadline:
+            raise DemoFailure('the virtual handset did not create its port')
+        time.sleep(0.05)
+    procs.start('handset_link_node', {'port': link, 'link_timeout_s': HANDSET_LINK_TIMEOUT_S})
+
+
+def subscribe_handset(m: Mission) -> None:
+    """Record the handset driver's setpoints and failsafe changes for the view and the steps."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from uav_serial_drivers.msg import Failsafe, HandsetSetpoint
+    m.handset_setpoint = None
+    m.handset_failsafes = []
+    latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    m.node.create_subscription(HandsetSetpoint, '/handset_link/setpoint',
+                               m._set('handset_setpoint'), 10, callback_group=m.group)
+    m.node.create_subscription(Failsafe, '/handset_link/failsafe',
+                               m._append('handset_failsafes'), latched, callback_group=m.group)
+
+
+def handset_view(m: Mission) -> str:
+    """Return the handset's part of the live view: sticks and the failsafe's action."""
+    with m.lock:
+        sp = m.handset_setpoint
+        failsafe = m.handset_failsafes[-1] if m.handset_failsafes else None
+    if sp is None:
+        return ' | handset: (no setpoint yet)'
+    action = '' if failsafe is None or failsafe.action == 'NONE' else f' {failsafe.action}!'
+    return (f' | handset yaw {sp.yaw_deg:+4.0f}° pitch {sp.pitch_deg:+3.0f}° roll '
+            f'{sp.roll_deg:+3.0f}° alt {sp.altitude_m:3.0f} m{action}')
+
+
+def run_handset(m: Mission, procs: Processes) -> str:
+    """Move the sticks, lose the radio link, get it back; return the summary."""
+    from std_srvs.srv import SetBool
+    from uav_serial_drivers.msg import HandsetSetpoint
+    procs.check_alive()
+    m.say('▶ handset: moving the sticks (a ground station on /virtual_handset/setpoint_in)')
+    m.wait(lambda: m.handset_setpoint is not None, 15, 'handset setpoints')
+    pub = m.node.create_publisher(HandsetSetpoint, '/virtual_handset/setpoint_in', 10)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 4.0:
+        t = time.monotonic() - t0
+        pub.publish(HandsetSetpoint(yaw_deg=150.0 * math.sin(t * 1.5),
+                                    pitch_deg=20.0 * math.sin(t * 2.5),
+                                    roll_deg=-20.0 * math.sin(t * 2.0), altitude_m=10.0 * t))
+        time.sleep(0.05)
+    m.wait(lambda: m.handset_setpoint.altitude_m > 30.0, 5, 'the sticks to reach the driver')
+    m.say(f'  sticks followed: {handset_view(m)[3:]}')
+
+    procs.check_alive()
+    m.say('▶ handset: the radio link is lost (/virtual_handset/set_radio_link false)')
+    n = len(m.handset_failsafes)
+    m.call(SetBool, '/virtual_handset/set_radio_link', SetBool.Request(data=False))
+    lost = m.wait(lambda: next((f for f in m.handset_failsafes[n:] if f.link_lost), None),
+                  10, 'the failsafe after the link loss')
+    m.say(f'  failsafe → {lost.action} ({lost.reason})')
+
+    procs.check_alive()
+    m.say('▶ handset: the radio link is back')
+    n = len(m.handset_failsafes)
+    m.call(SetBool, '/virtual_handset/set_radio_link', SetBool.Request(data=True))
+    back = m.wait(lambda: next((f for f in m.handset_failsafes[n:] if not f.link_lost), None),
+                  10, 'the link regained')
+    m.say(f'  link regained → failsafe {back.action}')
+    return (f'handset sticks followed, radio link lost → {lost.action} → regained '
+            f'({back.action})')
+
+
 def main() -> int:
     """Run the demo; return the exit code."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -347,6 +444,7 @@ def main() -> int:
     start = time.monotonic()
     workdir = Path(tempfile.mkdtemp(prefix='uav-demo-'))
     blackbox = ROOT / 'log' / 'demo-blackbox'
+    earlier_runs = set(blackbox.glob('parachute-*.jsonl'))
     procs = Processes(workdir)
     mission = None
     try:
@@ -365,12 +463,16 @@ def main() -> int:
                                        'trigger_request_policy': 'confirm'})
         procs.start('servo_bus_node', {'port': bus, 'servo_ids': [1, 2, 3],
                                        'torque_on_start': True})
+        start_handset(procs, workdir)
         mission = Mission(tty)
         summary = run_mission(mission, procs)
+        summary += '; ' + run_handset(mission, procs)
         mission.close()
         mission = None
+        procs.stop_all()  # the driver closes its black box: the report sees the whole run
+        report = write_report(blackbox, earlier_runs)
         print(f'demo: OK in {time.monotonic() - start:.1f} s — {summary}; '
-              f'black box in {blackbox}', flush=True)
+              f'black box in {blackbox}; report {report}', flush=True)
         return 0
     except DemoFailure as exc:
         print(f'\ndemo: FAILED — {exc}', file=sys.stderr, flush=True)

@@ -54,6 +54,8 @@ class VirtualDeviceRunner:
         response_delay_s: float = 0.0,
         seed: Optional[int] = None,
         logger: Optional[logging.Logger] = None,
+        fault_unsolicited: bool = False,
+        checksum_from_end: int = 1,
     ) -> None:
         self.port = VirtualSerialPort(link_path)
         self.baud = baud
@@ -80,6 +82,11 @@ class VirtualDeviceRunner:
         self._taps: list = []
         self._last_tick = 0.0
         self._tick_due = 0.0
+        # Devices whose output is mostly unsolicited (a board's reports, a handset's frames, a
+        # bus servo reply that the model emits on a tick) are faulted on every frame they send.
+        self._fault_unsolicited = fault_unsolicited
+        # Where the checksum sits, counted from the end (1: last byte; 2: before an end byte).
+        self._checksum_from_end = checksum_from_end
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -237,7 +244,7 @@ class VirtualDeviceRunner:
         if garbage:
             start = self._write(garbage, start)
         for frame in frames:
-            frame = self._apply_faults(frame) if reply else frame
+            frame = self._apply_faults(frame) if reply or self._fault_unsolicited else frame
             if frame:
                 start = self._write(frame, start)
 
@@ -257,8 +264,9 @@ class VirtualDeviceRunner:
         elif faults.corrupt_probability and self._rng.random() < faults.corrupt_probability:
             corrupt = True
         if corrupt:
-            # Both protocols end a frame with its checksum: flipping it is a detectable error.
-            frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
+            # Flipping the checksum is an error the driver can detect.
+            at = len(frame) - min(self._checksum_from_end, len(frame))
+            frame = frame[:at] + bytes([frame[at] ^ 0x5A]) + frame[at + 1:]
             self.replies_corrupted += 1
         if faults.garbage_probability and self._rng.random() < faults.garbage_probability:
             noise = bytes(self._rng.randrange(256) for _ in range(self._rng.randrange(1, 9)))

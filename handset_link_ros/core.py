@@ -1,0 +1,594 @@
+"""The handset link device: setpoints, auxiliary state, link health and the failsafe (H3-H11).
+
+No ROS here: a node turns the callbacks into messages and the battery topic into
+``on_battery()``. The core reads the radio modem through ``link.ModemLink`` and never writes to it
+(H11). Decision numbers refer to ``docs/protocols.md``.
+
+Threads, and what each one owns:
+
+- The link's reader thread (SerialLink) reads the port, decodes, and calls ``_on_received``.
+  Accepted frames update the state and reach ``on_setpoint`` / ``on_auxiliary`` from that thread
+  before the next read, never batched on a timer: a stick frame is delivered within the read that
+  completed it (H7). Frames of one read may share one setpoint update (``updated`` names them).
+- The core's timer thread (``start()``) sleeps until the next deadline (link loss after
+  ``link_timeout_s`` without a valid frame, H8; a partial frame's 0.1 s, H3) and calls ``poll()``.
+- The owner's threads (a node's executor) call ``on_battery()`` and the snapshot getters.
+
+State lives under ``_lock``, held briefly and never during a callback. Every change runs, with
+its callbacks, under ``_emit_lock``, so two threads never deliver failsafe changes out of order.
+Callbacks must not block; they may call the getters. A callback that raises is logged, never
+propagated. With ``start(run_threads=False)`` nothing runs on its own: the caller drives
+``feed()`` and ``poll()`` with its own (fake) clock.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field, replace
+import logging
+import math
+import threading
+import time
+import traceback
+from typing import Any, Callable, Deque, Optional
+
+from handset_link_ros import protocol as p
+from handset_link_ros.link import ModemLink, Received
+
+ACTION_NONE = 'NONE'
+ACTION_RETURN_TO_HOME = 'RETURN_TO_HOME'
+BATTERY_CLEAR_MARGIN = 0.05
+"""A low battery clears this far above ``low_battery_fraction`` (H9: 20 % → 25 %)."""
+REJECTION_LOG_PERIOD_S = 1.0
+"""Rejected frames are logged at most once per type per second (H6)."""
+BITS_PER_BYTE = 10
+MAX_TIMER_SLEEP_S = 0.1
+
+STICK_FIELDS: dict[int, str] = {
+    p.CommandType.SET_YAW: 'yaw_deg',
+    p.CommandType.SET_PITCH: 'pitch_deg',
+    p.CommandType.SET_ROLL: 'roll_deg',
+    p.CommandType.SET_ALTITUDE: 'altitude_m',
+}
+"""Stick command type to its ``Setpoint`` field."""
+AUX_FIELDS: dict[int, str] = {
+    p.CommandType.SET_LIGHTS: 'lights_percent',
+    p.CommandType.SET_CAMERA_ANGLE: 'camera_angle_deg',
+    p.CommandType.SET_CAMERA_RECORD: 'camera_recording',
+}
+"""Auxiliary command type to its ``Auxiliary`` field."""
+
+NAN = math.nan
+RUNTIME_FIELDS = frozenset({'link_timeout_s', 'expected_rate_hz', 'low_battery_fraction'})
+"""``HandsetConfig`` fields ``reconfigure()`` may change while the link runs."""
+
+
+@dataclass(frozen=True)
+class HandsetConfig:
+    """Settings of one handset link; raises ValueError naming a bad value."""
+
+    port: str = '/dev/ttyUSB2'
+    baud: int = 115200
+    link_timeout_s: float = 5.0
+    expected_rate_hz: float = 50.0
+    low_battery_fraction: float = 0.20
+    rate_window_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.port, str) or not self.port:
+            raise ValueError(f'port must be a device path or pyserial URL, got {self.port!r}')
+        if isinstance(self.baud, bool) or not isinstance(self.baud, int) or self.baud <= 0:
+            raise ValueError(f'baud must be a positive integer, got {self.baud!r}')
+        for name in ('link_timeout_s', 'expected_rate_hz', 'rate_window_s'):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f'{name} must be a positive number, got {value!r}')
+        low = self.low_battery_fraction
+        if not isinstance(low, (int, float)) or not 0.0 <= low <= 1.0 - BATTERY_CLEAR_MARGIN:
+            raise ValueError(f'low_battery_fraction must be in 0..{1 - BATTERY_CLEAR_MARGIN:.2f} '
+                             f'(it clears {BATTERY_CLEAR_MARGIN:.2f} above), got {low!r}')
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """The stick setpoints; NaN until received. ``updated``: the fields this update set."""
+
+    yaw_deg: float = NAN
+    pitch_deg: float = NAN
+    roll_deg: float = NAN
+    altitude_m: float = NAN
+    updated: tuple[str, ...] = ()
+    stamp: float = NAN
+    """Clock time of the last byte of the newest frame in this update (H7)."""
+
+
+@dataclass(frozen=True)
+class Auxiliary:
+    """Lights (−1 until received), camera angle (NaN until received) and recording."""
+
+    lights_percent: int = -1
+    camera_angle_deg: float = NAN
+    camera_recording: bool = False
+    camera_recording_known: bool = False
+    updated: tuple[str, ...] = ()
+    stamp: float = NAN
+
+
+@dataclass(frozen=True)
+class LinkState:
+    """Health of the handset link at ``stamp``.
+
+    ``connected``: a valid frame came within ``link_timeout_s`` (false before the first one).
+    ``frame_rate_hz``: valid frames per second; ``command_rate_hz``: those of the most frequent
+    type (the handset's tick rate), both over the last ``rate_window_s``.
+    ``last_frame_age_s``: NaN before the first valid frame.
+    """
+
+    connected: bool
+    port_open: bool
+    frame_rate_hz: float
+    command_rate_hz: float
+    frames_accepted: int
+    frames_malformed: int
+    frames_out_of_range: int
+    frames_unknown_type: int
+    frames_rejected_recently: int
+    last_frame_age_s: float
+    stamp: float
+
+
+@dataclass(frozen=True)
+class Failsafe:
+    """The failsafe conditions (H8, H9) and the action requested while either holds (H10)."""
+
+    link_lost: bool
+    battery_low: bool
+    action: str
+    reason: str
+    battery_fraction: float
+    stamp: float
+
+
+@dataclass
+class _Throttle:
+    last: float = -math.inf
+    suppressed: int = 0
+
+
+@dataclass
+class _Pending:
+    """A setpoint or auxiliary update being gathered from one read."""
+
+    names: list = field(default_factory=list)
+    stamp: float = NAN
+
+
+class HandsetCore:
+    """One handset link: the modem's port, the decoded state and the failsafe rules."""
+
+    def __init__(
+        self,
+        config: HandsetConfig,
+        clock: Callable[[], float] = time.monotonic,
+        on_setpoint: Optional[Callable[[Setpoint], None]] = None,
+        on_auxiliary: Optional[Callable[[Auxiliary], None]] = None,
+        on_link: Optional[Callable[[LinkState], None]] = None,
+        on_failsafe: Optional[Callable[[Failsafe], None]] = None,
+        on_log: Optional[Callable[[str, str], None]] = None,
+    ) -> None:
+        self.config = config
+        self._clock = clock
+        self._on_setpoint = on_setpoint
+        self._on_auxiliary = on_auxiliary
+        self._on_link = on_link
+        self._on_failsafe = on_failsafe
+        self._on_log = on_log or _python_log
+        self._lock = threading.Lock()
+        self._emit_lock = threading.RLock()
+        self._stop = threading.Event()
+        self._timer: Optional[threading.Thread] = None
+
+        self._setpoint = Setpoint()
+        self._aux = Auxiliary()
+        self._sp_pending = _Pending()
+        self._aux_pending = _Pending()
+        self._started_at = clock()
+        self._last_valid: Optional[float] = None
+        self._connected = False
+        self._link_lost = False
+        self._port_open = False
+        self._battery = NAN
+        self._battery_low = False
+        self._battery_range_logged = False
+        self.battery_out_of_range = 0
+        """Battery percentages outside 0..1 received (ignored, H9)."""
+        self.frames_accepted = 0
+        self.frames_malformed = 0
+        self.frames_out_of_range = 0
+        self.frames_unknown_type = 0
+        self._window: Deque[float] = deque()
+        self._window_by_type: dict[int, Deque[float]] = {t: deque() for t in p.SPECS}
+        self._rejections: Deque[float] = deque()
+        self._throttles: dict[Any, _Throttle] = {}
+        self._unknown_logged: set[int] = set()
+
+        self.link = ModemLink(config.port, config.baud, self._on_received,
+                              on_connection=self._on_connection, clock=clock,
+                              logger=_LogAdapter(self._log))
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self, run_threads: bool = True) -> None:
+        """Start counting the link timeout (H8), report the initial state, open the port.
+
+        ``run_threads=False`` opens nothing and starts no thread: the caller feeds bytes with
+        ``feed()`` and lets time pass with ``poll()``.
+        """
+        with self._emit_lock:
+            with self._lock:
+                self._started_at = self._clock()
+                # H15: not connected before the first valid frame, not lost before the timeout.
+                emits = [(self._on_link, self._link_state(self._started_at)),
+                         (self._on_failsafe, self._failsafe(self._started_at))]
+            self._emit(emits)
+        if run_threads and self._timer is None:
+            self._stop.clear()
+            self.link.start()
+            self._timer = threading.Thread(target=self._run_timer, name='handset-link-timer',
+                                           daemon=True)
+            self._timer.start()
+
+    def stop(self) -> None:
+        """Stop the timer thread and close the port."""
+        self._stop.set()
+        if self._timer is not None:
+            self._timer.join(2.0)
+            self._timer = None
+        self.link.stop()
+
+    # -- inputs ---------------------------------------------------------------------------------
+
+    def feed(self, data: bytes) -> None:
+        """Take bytes as read from the modem (what the reader thread does; tests call it)."""
+        self.link.feed(data)
+
+    def poll(self) -> None:
+        """Let time pass: settle a quiet partial frame (H3), declare a lost link (H8)."""
+        self.link.poll()
+        with self._emit_lock:
+            with self._lock:
+                emits: list = []
+                self._check_link(self._clock(), emits)
+            self._emit(emits)
+
+    def on_battery(self, percentage: float) -> None:
+        """Take the aircraft's battery charge, 0..1 (``sensor_msgs/BatteryState.percentage``).
+
+        Below ``low_battery_fraction`` is low, cleared at 5 points above (H9). NaN says nothing;
+        a value outside 0..1 says nothing either and is logged once.
+        """
+        with self._emit_lock:
+            emits: list = []
+            with self._lock:
+                now = self._clock()
+                if isinstance(percentage, bool) or not isinstance(percentage, (int, float)) \
+                        or math.isnan(percentage):
+                    return
+                if not 0.0 <= percentage <= 1.0:
+                    self.battery_out_of_range += 1
+                    if not self._battery_range_logged:
+                        self._battery_range_logged = True
+                        emits.append(('WARN', f'battery percentage {percentage!r} is outside '
+                                              f'0..1 and says nothing about the battery; '
+                                              f'ignored (logged once)'))
+                else:
+                    self._battery = float(percentage)
+                    self._update_battery(now, emits)
+            self._emit(emits)
+
+    def reconfigure(self, **changes: Any) -> None:
+        """Change ``link_timeout_s``, ``expected_rate_hz`` or ``low_battery_fraction`` at runtime.
+
+        Raises ValueError naming a bad value (nothing changes then). The rules are applied to the
+        new values at once: a shorter timeout can declare the link lost, a higher threshold the
+        battery low (H25).
+        """
+        fixed = set(changes) - RUNTIME_FIELDS
+        if fixed:
+            raise ValueError(f'{", ".join(sorted(fixed))} cannot change while the link runs')
+        with self._emit_lock:
+            emits: list = []
+            with self._lock:
+                self.config = replace(self.config, **changes)
+                now = self._clock()
+                self._check_link(now, emits)
+                if not math.isnan(self._battery):
+                    self._update_battery(now, emits)
+            self._emit(emits)
+
+    # -- snapshots ------------------------------------------------------------------------------
+
+    def setpoint(self) -> Setpoint:
+        """Return the latest stick setpoints (``updated`` empty)."""
+        with self._lock:
+            return replace(self._setpoint, updated=())
+
+    def auxiliary(self) -> Auxiliary:
+        """Return the latest auxiliary state (``updated`` empty)."""
+        with self._lock:
+            return replace(self._aux, updated=())
+
+    def link_state(self) -> LinkState:
+        """Return the link's health now (rates over the last ``rate_window_s``)."""
+        with self._lock:
+            return self._link_state(self._clock())
+
+    def failsafe(self) -> Failsafe:
+        """Return the failsafe conditions and the requested action now."""
+        with self._lock:
+            return self._failsafe(self._clock())
+
+    # -- reader thread --------------------------------------------------------------------------
+
+    def _on_received(self, batch: Received) -> None:
+        with self._emit_lock:
+            emits: list = []
+            with self._lock:
+                for result in batch.results:
+                    self._apply(result, batch.time, emits)
+                self._flush_setpoint(emits)
+                self._flush_aux(emits)
+                self._prune(batch.time)
+            self._emit(emits)
+
+    def _on_connection(self, up: bool, reason: str) -> None:
+        # Reported, but no failsafe of its own: the H8 timer decides (H21), so a modem that
+        # comes back within link_timeout_s requests nothing.
+        with self._emit_lock:
+            with self._lock:
+                self._port_open = up
+                emits = [(self._on_link, self._link_state(self._clock()))]
+            self._emit(emits)
+
+    def _apply(self, result: p.Result, now: float, emits: list) -> None:
+        if isinstance(result, p.Command):
+            self._accept(result, now, emits)
+            return
+        self._rejections.append(now)
+        if isinstance(result, p.OutOfRange):
+            self.frames_out_of_range += 1
+            self._throttled(('out_of_range', result.type), now, emits,
+                            f'refused {result.type.name} frame ({result.encoding}): '
+                            f'{result.reason.split(": ", 1)[-1]}; not applied (H6)')
+        elif isinstance(result, p.UnknownType):
+            self.frames_unknown_type += 1
+            if result.type not in self._unknown_logged:
+                self._unknown_logged.add(result.type)
+                emits.append(('WARN', f'ignoring frames of unknown type 0x{result.type:02X} '
+                                      f'(H4; counted, logged once per type)'))
+        else:
+            self.frames_malformed += 1
+            what = result.type.name if result.type is not None else 'frame'
+            self._throttled(('malformed', result.type), now, emits,
+                            f'malformed {what}: {result.reason}; dropped (H3, H5)')
+
+    def _accept(self, cmd: p.Command, now: float, emits: list) -> None:
+        # Only an accepted frame is a valid frame (H14): a handset that sends nothing usable
+        # controls nothing, however busy the line.
+        self.frames_accepted += 1
+        self._window.append(now)
+        self._window_by_type[cmd.type].append(now)
+        self._last_valid = now
+        if not self._connected:
+            self._connected = True
+            if self._link_lost:
+                self._link_lost = False
+                failsafe = self._failsafe(now)
+                # H24: a failsafe change is a WARN at least, the clearing included.
+                emits.append(('WARN', f'handset link regained (H8); failsafe now '
+                                      f'{failsafe.action}: {failsafe.reason}'))
+                emits.append((self._on_failsafe, failsafe))
+            else:
+                emits.append(('INFO', 'handset heard: link up'))
+            emits.append((self._on_link, self._link_state(now)))
+        # The last byte of this frame arrived before the bytes read after it (H16).
+        stamp = now - cmd.bytes_after * BITS_PER_BYTE / self.config.baud
+        name = STICK_FIELDS.get(cmd.type)
+        if name is not None:
+            if name in self._sp_pending.names:
+                self._flush_setpoint(emits)  # the same field twice: one update per frame
+            self._setpoint = replace(self._setpoint, **{name: float(cmd.value)})
+            self._sp_pending.names.append(name)
+            self._sp_pending.stamp = stamp
+            return
+        name = AUX_FIELDS[cmd.type]
+        changes = {name: cmd.value}
+        if cmd.type == p.CommandType.SET_CAMERA_RECORD:
+            if self._aux.camera_recording_known and self._aux.camera_recording == cmd.value:
+                return
+            changes['camera_recording_known'] = True
+        elif getattr(self._aux, name) == cmd.value:
+            return  # H17: on change; NaN and -1 (never received) equal no value
+        if name in self._aux_pending.names:
+            self._flush_aux(emits)
+        self._aux = replace(self._aux, **changes)
+        self._aux_pending.names.append(name)
+        self._aux_pending.stamp = stamp
+
+    def _flush_setpoint(self, emits: list) -> None:
+        pending = self._sp_pending
+        if pending.names:
+            self._setpoint = replace(self._setpoint, updated=tuple(pending.names),
+                                     stamp=pending.stamp)
+            emits.append((self._on_setpoint, self._setpoint))
+            self._sp_pending = _Pending()
+
+    def _flush_aux(self, emits: list) -> None:
+        pending = self._aux_pending
+        if pending.names:
+            self._aux = replace(self._aux, updated=tuple(pending.names), stamp=pending.stamp)
+            emits.append((self._on_auxiliary, self._aux))
+            self._aux_pending = _Pending()
+
+    def _throttled(self, key: Any, now: float, emits: list, text: str) -> None:
+        """Log at most once per key per second, saying how many were held back (H6, H19)."""
+        throttle = self._throttles.setdefault(key, _Throttle())
+        if now - throttle.last < REJECTION_LOG_PERIOD_S:
+            throttle.suppressed += 1
+            return
+        if throttle.suppressed:
+            text += f' ({throttle.suppressed} more like it since the last report)'
+        throttle.last = now
+        throttle.suppressed = 0
+        emits.append(('WARN', text))
+
+    # -- rules ----------------------------------------------------------------------------------
+
+    def _check_link(self, now: float, emits: list) -> None:
+        if self._link_lost:
+            return
+        since = self._last_valid if self._last_valid is not None else self._started_at
+        if now - since < self.config.link_timeout_s:
+            return
+        self._link_lost = True
+        self._connected = False
+        heard = 'since start-up' if self._last_valid is None else 'since the last one'
+        emits.append(('ERROR', f'handset link lost: no valid frame for '
+                               f'{self.config.link_timeout_s:g} s {heard}; requesting return to '
+                               f'home (H8)'))
+        emits.append((self._on_failsafe, self._failsafe(now)))
+        emits.append((self._on_link, self._link_state(now)))
+
+    def _update_battery(self, now: float, emits: list) -> None:
+        low = self.config.low_battery_fraction
+        clear = low + BATTERY_CLEAR_MARGIN
+        level = self._battery
+        if not self._battery_low and level < low:
+            self._battery_low = True
+            emits.append(('WARN', f'battery low: {level * 100:.1f} % < {low * 100:.0f} %; '
+                                  f'requesting return to home (H9)'))
+            emits.append((self._on_failsafe, self._failsafe(now)))
+        elif self._battery_low and level >= clear - 1e-9:
+            # H20: 0.20 + 0.05 is 0.25000000000000006 in binary, and 25 % must clear.
+            self._battery_low = False
+            failsafe = self._failsafe(now)
+            emits.append(('WARN', f'battery back at {level * 100:.1f} % (>= {clear * 100:.0f} '
+                                  f'%): low-battery condition cleared (H9); failsafe now '
+                                  f'{failsafe.action}: {failsafe.reason}'))
+            emits.append((self._on_failsafe, failsafe))
+
+    def _failsafe(self, now: float) -> Failsafe:
+        reasons = []
+        if self._link_lost:
+            heard = ' since start-up' if self._last_valid is None else ''
+            reasons.append(f'link lost: no valid handset frame for '
+                           f'{self.config.link_timeout_s:g} s{heard}')
+        if self._battery_low:
+            reasons.append(f'battery low: {self._battery * 100:.1f} % < '
+                           f'{self.config.low_battery_fraction * 100:.0f} %')
+        action = ACTION_RETURN_TO_HOME if reasons else ACTION_NONE
+        if not reasons:
+            link = 'handset link up' if self._connected else \
+                f'waiting for the handset (lost after {self.config.link_timeout_s:g} s ' \
+                f'without a valid frame)'
+            battery = 'battery not reported' if math.isnan(self._battery) else \
+                f'battery {self._battery * 100:.1f} %'
+            reasons = [link, battery]
+        return Failsafe(self._link_lost, self._battery_low, action, '; '.join(reasons),
+                        self._battery, now)
+
+    def _prune(self, now: float) -> None:
+        """Forget frame times older than the rate window (bounded memory under any input)."""
+        horizon = now - self.config.rate_window_s
+        for times in (self._window, self._rejections, *self._window_by_type.values()):
+            while times and times[0] <= horizon:
+                times.popleft()
+
+    def _link_state(self, now: float) -> LinkState:
+        # H18: frames counted over the last rate_window_s, divided by it.
+        self._prune(now)
+        window = self.config.rate_window_s
+        busiest = max(len(t) for t in self._window_by_type.values())
+        age = NAN if self._last_valid is None else max(0.0, now - self._last_valid)
+        return LinkState(
+            connected=self._connected, port_open=self._port_open,
+            frame_rate_hz=len(self._window) / window, command_rate_hz=busiest / window,
+            frames_accepted=self.frames_accepted, frames_malformed=self.frames_malformed,
+            frames_out_of_range=self.frames_out_of_range,
+            frames_unknown_type=self.frames_unknown_type,
+            frames_rejected_recently=len(self._rejections), last_frame_age_s=age, stamp=now)
+
+    # -- timer thread ---------------------------------------------------------------------------
+
+    def _run_timer(self) -> None:
+        wait = 0.0
+        while not self._stop.wait(wait):
+            try:
+                self.poll()
+            except Exception:  # noqa: BLE001 - the failsafe timer must outlive any bug
+                self._log('ERROR', f'handset timer failed:\n{traceback.format_exc()}')
+            wait = self._next_wait()
+
+    def _next_wait(self) -> float:
+        now = self._clock()
+        deadlines = []
+        idle = self.link.idle_deadline()
+        if idle is not None:
+            deadlines.append(idle)
+        with self._lock:
+            if not self._link_lost:
+                since = self._last_valid if self._last_valid is not None else self._started_at
+                deadlines.append(since + self.config.link_timeout_s)
+        wait = min(deadlines, default=now + MAX_TIMER_SLEEP_S) - now
+        return min(MAX_TIMER_SLEEP_S, max(0.001, wait))
+
+    # -- callbacks ------------------------------------------------------------------------------
+
+    def _emit(self, emits: list) -> None:
+        """Run gathered callbacks in order; a log entry is ``(level, text)``."""
+        for target, arg in emits:
+            if isinstance(target, str):
+                self._log(target, arg)
+                continue
+            if target is None:
+                continue
+            try:
+                target(arg)
+            except Exception:  # noqa: BLE001 - a consumer's bug must not stop the link
+                self._log('ERROR', f'{getattr(target, "__name__", target)} failed:\n'
+                                   f'{traceback.format_exc()}')
+
+    def _log(self, level: str, text: str) -> None:
+        try:
+            self._on_log(level, text)
+        except Exception:  # noqa: BLE001 - logging must never break the reader
+            pass
+
+
+class _LogAdapter:
+    """The logger interface SerialLink uses, onto ``on_log``."""
+
+    def __init__(self, log: Callable[[str, str], None]) -> None:
+        self._log = log
+
+    def debug(self, text: str) -> None:
+        self._log('DEBUG', text)
+
+    def info(self, text: str) -> None:
+        self._log('INFO', text)
+
+    def warning(self, text: str) -> None:
+        self._log('WARN', text)
+
+    warn = warning
+
+    def error(self, text: str) -> None:
+        self._log('ERROR', text)
+
+
+_LEVELS = {'DEBUG': logging.DEBUG, 'INFO': logging.INFO, 'WARN': logging.WARNING,
+           'ERROR': logging.ERROR}
+
+
+def _python_log(level: str, text: str) -> None:
+    logging.getLogger('handset_link').log(_LEVELS.get(level, logging.INFO), text)

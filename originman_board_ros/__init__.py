@@ -1,0 +1,1 @@
+"""Driver of the OriginMan expansion board (Hiwonder RRC Lite firmware family)."""
