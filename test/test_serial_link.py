@@ -10,7 +10,7 @@ import time
 import pytest
 
 from uav_serial_common.process import wait_for
-from uav_serial_common.pty_port import VirtualSerialPort
+from uav_serial_common.pty_port import PortUnplugged, VirtualSerialPort
 from uav_serial_common.serial_link import LinkDown, LinkTimeout, SerialLink
 
 
@@ -51,7 +51,10 @@ class Echo:
                 self.received.append(line)
                 self.arrivals.append(time.monotonic())
                 if line.startswith(b'ask ') and not self.silent and line[4:] not in self.mute:
-                    self.port.write(b're ' + line[4:] + b'\n')
+                    try:
+                        self.port.write(b're ' + line[4:] + b'\n')
+                    except PortUnplugged:
+                        pass  # the cable was pulled as it answered: the reply is lost
 
     def stop(self):
         self.running = False
