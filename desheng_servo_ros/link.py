@@ -42,6 +42,10 @@ DERIVED_MARGIN_S = 0.034
 # servo still parsing it never sees the next header glued to it.
 IDLE_GUARD_S = 0.0001
 BUS_LOCK_TIMEOUT_S = 2.0
+# Weight of the newest outcome in an id's garbled-reply level (GARBLE_WEIGHT of a garbled reply
+# raises it, a clean one lowers it): four garbled replies in a row take it past one half, which
+# random line noise on one id practically never does, two servos answering at once (S24) soon.
+GARBLE_WEIGHT = 0.2
 
 
 class BusBusy(LinkError):
@@ -102,6 +106,7 @@ class _ReadChain:
     """A :class:`ReadPlan` as a request chain of the serial link, with retries per READ."""
 
     __slots__ = ('bus', 'plan', 'priority', 'sent', 'retry')
+    # An entry of `sent` is [item, attempts, (bytes_in, frames_in) when it was sent].
 
     def __init__(self, bus: 'ServoBusLink', plan: ReadPlan, priority: int) -> None:
         self.bus = bus
@@ -122,7 +127,9 @@ class _ReadChain:
             item = self.plan.next_read()
             if item is None:
                 return None
-            entry = [item, 0]
+            entry = [item, 0, None]
+        stats = bus.link.stats
+        entry[2] = (stats.bytes_in, stats.frames_in)
         self.sent.append(entry)
         frame, servo_id, nparams = entry[0][:3]
         return frame, bus._matcher(servo_id, nparams), bus.timeout_for(len(frame), nparams)
@@ -130,6 +137,8 @@ class _ReadChain:
     def on_result(self, reply: Optional[Reply]) -> None:
         entry = self.sent.popleft()
         item = entry[0]
+        if reply is None:
+            self.bus._note_silence(item[1], entry[2])
         if reply is None and entry[1] < item[3]:
             entry[1] += 1
             self.bus.link.stats.retries += 1
@@ -167,6 +176,11 @@ class ServoBusLink:
         self.unexpected_frames = 0
         self.requests_by_id = [0] * 256
         self.replies_by_id = [0] * 256
+        # Requests of an id answered by bytes that made no frame: a garbled reply, the sign of
+        # two servos answering at once (S24) when it keeps happening to one id. garble_level is
+        # a moving average of garbled (1) and clean (0) replies per id.
+        self.garbled_by_id = [0] * 256
+        self.garble_level = [0.0] * 256
         self.link = SerialLink(port, baud, self.decoder, on_frame=self._on_unsolicited,
                                on_connection=on_connection, on_tx=self._on_tx, logger=logger,
                                backoff_max_s=backoff_max_s)
@@ -216,10 +230,13 @@ class ServoBusLink:
         match = self._matchers.get(key)
         if match is None:
             replies = self.replies_by_id
+            garble = self.garble_level
+            keep = 1.0 - GARBLE_WEIGHT
 
             def match(reply: Reply, servo_id=servo_id, nparams=nparams) -> bool:
                 if reply.servo_id == servo_id and len(reply.params) == nparams:
                     replies[servo_id] += 1
+                    garble[servo_id] *= keep
                     return True
                 return False
             self._matchers[key] = match
@@ -258,7 +275,34 @@ class ServoBusLink:
         match = self._matcher(servo_id, reply_params)
         with self._holding(priority):
             self.transactions += 1
-            return self.link.request(frame, match, timeout, retries, flush=True)
+            stats = self.link.stats
+            mark = (stats.bytes_in, stats.frames_in)
+            try:
+                return self.link.request(frame, match, timeout, retries, flush=True)
+            except LinkTimeout:
+                self._note_silence(servo_id, mark)
+                raise
+
+    def probe(self, frame: bytes, servo_id: int, reply_params: int,
+              priority: int = PRIORITY_SERVICE) -> Tuple[Optional[Reply], bool]:
+        """Send one request once; return (its reply or None, whether a garbled reply came).
+
+        Garbled = bytes arrived but no frame at all: on a half-duplex bus, the sign of two
+        servos answering at once (S24); a plain silence is (None, False).
+        """
+        garbled = self.garbled_by_id[servo_id]
+        try:
+            return self.transact(frame, servo_id, reply_params, priority, retries=0), False
+        except LinkTimeout:
+            return None, self.garbled_by_id[servo_id] > garbled
+
+    def _note_silence(self, servo_id: int, mark: Optional[Tuple[int, int]]) -> None:
+        """Count an unanswered request of `servo_id` as garbled if bytes but no frame came."""
+        stats = self.link.stats
+        if mark is not None and stats.bytes_in > mark[0] and stats.frames_in == mark[1]:
+            self.garbled_by_id[servo_id] += 1
+            level = self.garble_level[servo_id]
+            self.garble_level[servo_id] = level + GARBLE_WEIGHT * (1.0 - level)
 
     def read_chain(self, plan: 'ReadPlan', priority: int = PRIORITY_LOOP) -> int:
         """READ servos back to back, as ``plan.next_read()`` gives them, until it returns None.
@@ -345,13 +389,15 @@ class ServoBusLink:
 
     def scan(self, ids: Iterable[int], timeout: Optional[float] = None,
              priority: int = PRIORITY_SERVICE) -> list:
-        """PING each id once (no retries); returns the ids that answered."""
+        """PING each id once (no retries); returns the ids that answered, garbled or not."""
         found = []
         for servo_id in ids:
+            garbled = self.garbled_by_id[servo_id]
             try:
                 self.ping(servo_id, priority, retries=0, timeout=timeout)
             except LinkTimeout:
-                continue
+                if self.garbled_by_id[servo_id] == garbled:
+                    continue
             found.append(servo_id)
         return found
 

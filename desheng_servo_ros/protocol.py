@@ -1,7 +1,7 @@
 """Wire format of the Desheng (德晟) serial bus servos: frame encoders, parsers and a stream decoder.
 
-Pure functions and dataclasses only: no I/O, no threads, no ROS. Decisions S1..S7 of
-``protocol-decisions.md`` and S8+ of ``docs/protocols.md`` are implemented here.
+Pure functions and dataclasses only: no I/O, no threads, no ROS. Decisions S1..S7 and S8+ of
+``docs/protocols.md`` are implemented here.
 
 Request: ``FF FF ID LEN INSTR PARAMS.. CHK``; reply: ``FF F5 ID LEN STATUS PARAMS.. CHK``;
 ``LEN = len(PARAMS) + 2``; ``CHK = ~(ID + LEN + INSTR|STATUS + PARAMS..) & 0xFF``;

@@ -12,11 +12,13 @@ Behaviour where the vendor document is silent is listed as decisions S13.. in
 from __future__ import annotations
 
 import math
+import random
 from typing import Iterable, Optional, Union
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Instruction, Request, StreamDecoder
 from desheng_servo_ros.registers import by_name, decode_value, Register, REGISTERS, registers_in
+from uav_serial_common.uart import collide
 
 # S20: run time 0 means "as fast as possible": 60 degrees (4096 / 6 ticks) in 0.2 s.
 MAX_SPEED_TICKS_PER_S = 4096 / 6 / 0.2
@@ -33,6 +35,9 @@ THERMAL_TIME_CONSTANT_S = 60.0
 OVER_TEMPERATURE_LIMIT_C = 70.0
 DEFAULT_FIRMWARE = (1, 28)
 START_POSITION = 2048
+# S24: servos sharing an id answer together; each reply after the first starts up to this many
+# bit times late (firmware latency jitter), and the wire carries the AND of them.
+COLLISION_JITTER_BITS = 2.0
 
 _POSITION_BLOCK_END = proto.TARGET_POSITION_ADDRESS + proto.POSITION_PAYLOAD_LENGTH
 _PRESET_STORE = {0x16: 'preset_position_1', 0x18: 'preset_position_2', 0x1A: 'preset_position_3'}
@@ -320,22 +325,29 @@ class ServoBusSim:
     """A half-duplex bus of simulated servos driven by the host's request bytes.
 
     ``feed(data, now)`` decodes requests (any split, any garbage) and returns the reply frames
-    the servos put on the wire.
+    the servos put on the wire. Servos that share an id answer at once and their replies collide
+    (S24): what comes out is what the host's UART reads from the mix, mostly a garbled frame.
+    ``collisions=False`` returns each reply whole instead, in bus order (a bus that keeps them
+    apart); ``seed`` makes the collisions' timing repeatable.
     """
 
     def __init__(self, ids: Iterable[int] = (1, 2, 3), *, now: float = 0.0,
                  firmware_version: tuple[int, int] = DEFAULT_FIRMWARE,
                  ambient_c: float = AMBIENT_C,
                  over_temperature_limit_c: float = OVER_TEMPERATURE_LIMIT_C,
-                 reset_keeps_id: bool = False) -> None:
+                 reset_keeps_id: bool = False, collisions: bool = True,
+                 seed: Optional[int] = 0) -> None:
         self.decoder = StreamDecoder('request')
         self.firmware_version = firmware_version
         self.ambient_c = ambient_c
         self.over_temperature_limit_c = over_temperature_limit_c
         self.reset_keeps_id = reset_keeps_id
+        self.collisions = collisions
+        self._rng = random.Random(seed)
         self.requests_handled = 0
         self.requests_ignored = 0
         self.replies_sent = 0
+        self.replies_collided = 0
         self._now = now
         self.servos: list[SimServo] = []
         for servo_id in ids:
@@ -427,6 +439,12 @@ class ServoBusSim:
                 data = s.read(params[0], params[1])
             # S15: the reply carries the id the request was addressed to.
             replies.append(proto.encode_reply(req.servo_id, s.status, data))
+        if len(replies) > 1 and self.collisions:
+            # S24: two servos answering one id drive the wire at once.
+            self.replies_collided += len(replies)
+            offsets = [0.0] + [self._rng.uniform(0.0, COLLISION_JITTER_BITS)
+                               for _ in replies[1:]]
+            return [collide(replies, offsets)]
         return replies
 
     def _ignore(self) -> list[bytes]:

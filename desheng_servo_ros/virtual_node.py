@@ -10,14 +10,13 @@ class directly; the node adds parameters and scenario services (``~/set_fault``,
 from __future__ import annotations
 
 import sys
-from typing import Iterable, List, Optional
+from typing import Any, Dict, Iterable, List, Optional
 
 from desheng_servo_ros.simulation import ServoBusSim
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool, Trigger
 from uav_serial_common.node_main import run_node
+from uav_serial_common.params import declare_parameters, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 from uav_serial_drivers.srv import SimServoFault
 
@@ -25,6 +24,23 @@ from uav_serial_drivers.srv import SimServoFault
 # time); 0.2 ms is the order of magnitude, and what the virtual bus adds to every reply.
 DEFAULT_RESPONSE_DELAY_S = 0.0002
 GARBAGE = bytes((0xFF, 0xF5, 0x07, 0x13, 0xFF, 0x00, 0xA5, 0xFF, 0xFF, 0x5A))
+WIRE_FAULTS = ('drop_probability', 'corrupt_probability', 'garbage_probability',
+               'reply_delay_s')
+PARAMETERS = (
+    ParamSpec('link', '/tmp/vservobus', 'symlink to the pty the driver opens', read_only=True),
+    ParamSpec('baud', 115200, 'wire timing baud rate; 0 = no wire delay. A driver at another '
+              'rate reads garbage, as on a real bus', read_only=True, int_range=(0, 4000000)),
+    ParamSpec('servo_ids', [1, 2, 3], 'ids of the simulated servos', read_only=True),
+    ParamSpec('response_delay_s', DEFAULT_RESPONSE_DELAY_S,
+              "the servo's own reply latency after a request [s]", float_range=(0.0, 1.0)),
+    ParamSpec('drop_probability', 0.0, 'chance that a reply is lost', float_range=(0.0, 1.0)),
+    ParamSpec('corrupt_probability', 0.0, 'chance that a reply has a bad checksum',
+              float_range=(0.0, 1.0)),
+    ParamSpec('garbage_probability', 0.0, 'chance of noise before a reply',
+              float_range=(0.0, 1.0)),
+    ParamSpec('reply_delay_s', 0.0, 'extra delay before every reply (fault) [s]',
+              float_range=(0.0, 1.0)),
+)
 
 
 class VirtualServoBus:
@@ -95,53 +111,27 @@ class VirtualServoBusNode(Node):
 
     def __init__(self) -> None:
         super().__init__('virtual_servo_bus')
-        prob = [FloatingPointRange(from_value=0.0, to_value=1.0, step=0.0)]
-        self.declare_parameter('link', '/tmp/vservobus', ParameterDescriptor(
-            description='symlink to the pty the driver opens', read_only=True))
-        self.declare_parameter('baud', 115200, ParameterDescriptor(
-            description='wire timing baud rate; 0 = no wire delay', read_only=True))
-        self.declare_parameter('servo_ids', [1, 2, 3], ParameterDescriptor(
-            description='ids of the simulated servos', read_only=True))
-        self.declare_parameter('response_delay_s', DEFAULT_RESPONSE_DELAY_S, ParameterDescriptor(
-            description='the servo\'s own reply latency after a request [s]',
-            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0, step=0.0)]))
-        for name, desc in (('drop_probability', 'chance that a reply is lost'),
-                           ('corrupt_probability', 'chance that a reply has a bad checksum'),
-                           ('garbage_probability', 'chance of noise before a reply')):
-            self.declare_parameter(name, 0.0, ParameterDescriptor(description=desc,
-                                                                  floating_point_range=prob))
-        self.declare_parameter('reply_delay_s', 0.0, ParameterDescriptor(
-            description='extra delay before every reply (fault) [s]',
-            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0, step=0.0)]))
-        p = self.get_parameter
-        self.bus = VirtualServoBus(p('link').value, list(p('servo_ids').value),
-                                   baud=p('baud').value,
-                                   response_delay_s=p('response_delay_s').value)
-        self._apply([p(n) for n in ('drop_probability', 'corrupt_probability',
-                                    'garbage_probability', 'reply_delay_s')])
-        self.add_on_set_parameters_callback(self._on_set)
+        values = declare_parameters(self, PARAMETERS)
+        self.bus = VirtualServoBus(values['link'], list(values['servo_ids']),
+                                   baud=values['baud'],
+                                   response_delay_s=values['response_delay_s'])
+        self._apply({name: values[name] for name in WIRE_FAULTS})
+        ParameterBinding(self, PARAMETERS, apply=self._apply)
         self.create_service(SimServoFault, '~/set_fault', self._srv_set_fault)
         self.create_service(SetBool, '~/disconnect', self._srv_disconnect)
         self.create_service(Trigger, '~/inject_garbage', self._srv_garbage)
         self.bus.start()
-        self.get_logger().info(f'virtual servo bus {list(p("servo_ids").value)} at '
-                               f'{self.bus.path} ({p("baud").value} baud)')
+        self.get_logger().info(f'virtual servo bus {list(values["servo_ids"])} at '
+                               f'{self.bus.path} ({values["baud"]} baud)')
 
-    def _apply(self, params: List[Parameter]) -> None:
+    def _apply(self, changes: Dict[str, Any]) -> None:
         runner = self.bus.runner
         with runner.locked():
-            for param in params:
-                if param.name == 'reply_delay_s':
-                    runner.faults.reply_delay_s = float(param.value)
-                elif param.name == 'response_delay_s':
-                    runner.response_delay_s = float(param.value)
-                elif param.name in ('drop_probability', 'corrupt_probability',
-                                    'garbage_probability'):
-                    setattr(runner.faults, param.name, float(param.value))
-
-    def _on_set(self, params: List[Parameter]) -> SetParametersResult:
-        self._apply(params)
-        return SetParametersResult(successful=True)
+            for name, value in changes.items():
+                if name == 'response_delay_s':
+                    runner.response_delay_s = float(value)
+                elif name in WIRE_FAULTS:
+                    setattr(runner.faults, name, float(value))
 
     def _srv_set_fault(self, req: SimServoFault.Request,
                        resp: SimServoFault.Response) -> SimServoFault.Response:

@@ -97,3 +97,21 @@ def test_diagnostics_names_carry_the_namespace_and_force_update_is_prompt(ros):
     updater.force_update()
     diags.wait(lambda m: any(s.name.endswith(': link') and s.message == 'offline'
                              and s.level == ERROR for s in m.status), 5, start=start)
+
+
+def test_a_removed_task_is_no_longer_published(ros):
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    node = make_node(ros, 'servo_bus_removal')
+    updater = DiagnosticsUpdater(node, '/dev/ttyUSB9', period_s=30.0)
+    updater.add('bus', lambda stat: stat.summary(OK, 'fine'))
+    updater.add('servo_3 (id 3)', lambda stat: stat.summary(OK, 'fine'))
+    updater.force_update()
+    diags.wait(lambda m: any(s.name.endswith('servo_3 (id 3)') for s in m.status), 5)
+    updater.remove('servo_3 (id 3)')
+    updater.add('servo_9 (id 9)', lambda stat: stat.summary(OK, 'fine'))
+    start = len(diags)
+    updater.force_update()
+    msg = diags.wait(lambda m: any(s.name.endswith('servo_9 (id 9)') for s in m.status), 5,
+                     start=start)
+    names = [s.name for s in msg.status]
+    assert names == ['/servo_bus_removal: bus', '/servo_bus_removal: servo_9 (id 9)']

@@ -88,3 +88,17 @@ def test_paced_writes_take_at_least_their_wire_time(tmp_path):
 def test_wire_time_is_ten_bits_per_byte():
     assert wire_time(12, 115200) == pytest.approx(12 * 10 / 115200)
     assert wire_time(12, 0) == 0.0
+
+
+@pytest.mark.parametrize('baud', [9600, 115200, 1000000, 250000])
+def test_line_baud_is_the_speed_the_driver_set_on_its_end(tmp_path, baud):
+    # 250000 has no Bxxx code: pyserial sets it as a custom rate (BOTHER, termios2).
+    with VirtualSerialPort(str(tmp_path / 'dev')) as port:
+        driver = serial.serial_for_url(port.path, baudrate=baud, timeout=0.1)
+        try:
+            assert port.line_baud() == baud
+            driver.baudrate = 19200
+            assert port.line_baud() == 19200
+        finally:
+            driver.close()
+    assert port.line_baud() is None  # unplugged: nobody's settings to read

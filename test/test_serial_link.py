@@ -2,6 +2,7 @@
 
 import contextlib
 import os
+import random
 import tempfile
 import threading
 import time
@@ -9,7 +10,7 @@ import time
 import pytest
 
 from uav_serial_common.process import wait_for
-from uav_serial_common.pty_port import VirtualSerialPort
+from uav_serial_common.pty_port import PortUnplugged, VirtualSerialPort
 from uav_serial_common.serial_link import LinkDown, LinkTimeout, SerialLink
 
 
@@ -50,7 +51,10 @@ class Echo:
                 self.received.append(line)
                 self.arrivals.append(time.monotonic())
                 if line.startswith(b'ask ') and not self.silent and line[4:] not in self.mute:
-                    self.port.write(b're ' + line[4:] + b'\n')
+                    try:
+                        self.port.write(b're ' + line[4:] + b'\n')
+                    except PortUnplugged:
+                        pass  # the cable was pulled as it answered: the reply is lost
 
     def stop(self):
         self.running = False
@@ -324,3 +328,72 @@ def test_a_chain_can_retry_a_silent_request_at_once_and_survives_a_handler_bug(d
         assert device.received[-4:] == [b'ask 1', b'ask 2', b'ask 2', b'ask 3']
         assert [frame for frame, _ in chain.results] == [b're 1', None, None, b're 3']
         assert link.request_chain(ListChain(link, [])) == 0
+
+
+def test_safety_14_a_port_that_fails_any_way_is_a_link_error_and_the_reader_lives_on(tmp_path):
+    # A vanished pty answers tcflush with termios.error, which is no OSError: it used to escape
+    # flush_input (and with it every request) and end the servo bus's read loop for good.
+    port = VirtualSerialPort(str(tmp_path / 'dev')).open()
+    echo = Echo(port)
+    link, _, _ = make_link(port.path, backoff_max_s=0.05)
+    escaped = []
+    hammering = threading.Event()
+    hammering.set()
+
+    def hammer():
+        n = 0
+        while hammering.is_set():
+            n += 1
+            try:
+                link.request(f'ask {n}\n'.encode(), lambda f, n=n: f == f're {n}'.encode(),
+                             timeout=0.02, flush=True)
+            except (LinkDown, LinkTimeout):
+                time.sleep(0.001)
+            except Exception as exc:  # noqa: BLE001 - what the test is looking for
+                escaped.append(repr(exc))
+    worker = threading.Thread(target=hammer, daemon=True)
+    rng = random.Random(14)
+    try:
+        assert link.wait_connected(2)
+        worker.start()
+        for _ in range(25):
+            time.sleep(rng.uniform(0.0, 0.03))
+            port.unplug()
+            # Right after the cable is pulled, before the reader has noticed.
+            for _ in range(3):
+                try:
+                    link.flush_input()
+                except LinkDown:
+                    pass
+            time.sleep(rng.uniform(0.0, 0.03))
+            port.replug()
+            wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        hammering.clear()
+        worker.join(5)
+        assert escaped == []
+        assert link.reader_alive and link.reader_error == ''
+        assert link.request(b'ask x\n', lambda f: f == b're x', timeout=1.0) == b're x'
+    finally:
+        hammering.clear()
+        echo.stop()
+        link.stop()
+        port.close()
+
+
+@pytest.mark.parametrize('kind', ['directory', 'regular file', 'missing'])
+def test_safety_19_a_port_that_is_no_serial_device_is_named_for_what_it_is(tmp_path, kind):
+    path = tmp_path / 'port'
+    if kind == 'directory':
+        path.mkdir()
+    elif kind == 'regular file':
+        path.write_text('')
+    link, _, _ = make_link(str(path))
+    try:
+        wait_for(lambda: link.last_error, 2, what='an open error')
+        expected = {'directory': f'{path} is a directory, not a serial device',
+                    'regular file': 'not a serial device',
+                    'missing': 'no such device'}[kind]
+        assert expected in link.last_error and not link.connected
+        assert link.reader_alive
+    finally:
+        link.stop()

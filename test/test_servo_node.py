@@ -39,6 +39,15 @@ def torque(rig, ids, enable):
     return resp
 
 
+def test_a_healthy_start_logs_no_warning(rig):
+    # Issue 11: it used to log "[WARN] ... is not open" right after "opened ...": a warning
+    # that means nothing teaches users to ignore warnings.
+    rig.joints.wait(lambda m: len(m.name) == 3, 5, what='joint_states of every servo')
+    output = rig.node.output()
+    assert 'opened' in output
+    assert '[WARN]' not in output and '[ERROR]' not in output, output
+
+
 def test_joint_states_are_in_rad_for_every_online_servo(rig):
     with rig.locked():
         rig.sim.move_by_hand(1, 3072)
@@ -65,7 +74,7 @@ def test_servo_states_list_every_servo_with_telemetry(rig):
     for s in msg.servos:
         assert s.online and s.temperature_c == pytest.approx(25, abs=2)
         assert not (s.overload or s.over_temperature or s.voltage_fault)
-    rig.diag('servo_bus: bus', lambda s: s.level == b'\x00' and '3/3' in s.message)
+    rig.diag('/servo_bus: bus', lambda s: s.level == b'\x00' and '3/3' in s.message)
 
 
 def test_command_is_one_sync_write_and_the_servos_reach_their_targets(rig):
@@ -240,11 +249,19 @@ def test_go_to_preset_runs_the_stored_position(rig):
 
 
 def test_set_id_is_refused_when_the_new_id_answers(rig):
-    mark = rig.wire.mark()
-    resp = rig.call(SetId, 'set_id', id=1, new_id=2)
-    assert not resp.success and 'already answers' in resp.message
-    assert [r.instruction for r in rig.wire.commands(mark)] == [Instruction.PING]
-    assert rig.sim.ids == [1, 2, 3]
+    # Id 9 is not in servo_ids (a configured id is refused before the wire, safety item 15)
+    # but a servo answers there.
+    with rig.locked():
+        rig.sim.add_servo(9)
+    try:
+        mark = rig.wire.mark()
+        resp = rig.call(SetId, 'set_id', id=1, new_id=9)
+        assert not resp.success and 'already answers' in resp.message
+        assert [r.instruction for r in rig.wire.commands(mark)] == [Instruction.PING]
+        assert rig.sim.ids == [1, 2, 3, 9]
+    finally:
+        with rig.locked():
+            rig.sim.remove_servo(9)
 
 
 def test_set_id_moves_a_servo_and_the_node_follows(rig):

@@ -29,7 +29,7 @@ def all_online(msg):
 def test_custom_joint_names_are_published(rig):
     msg = rig.joints.wait(lambda m: len(m.name) == 3, 5)
     assert list(msg.name) == ['pan', 'tilt', 'roll']
-    rig.diag('servo_bus: tilt (id 2)', lambda s: s.level == OK)
+    rig.diag('/servo_bus: tilt (id 2)', lambda s: s.level == OK)
 
 
 def test_a_removed_servo_goes_offline_while_the_others_keep_publishing(rig):
@@ -38,10 +38,10 @@ def test_a_removed_servo_goes_offline_while_the_others_keep_publishing(rig):
     start = len(rig.states)
     st = rig.state(3, start=start, pred=lambda s: not s.online, what='roll offline')
     assert st.name == 'roll' and st.error_count >= 3
-    status = rig.diag('servo_bus: roll (id 3)', lambda s: s.level == ERROR,
+    status = rig.diag('/servo_bus: roll (id 3)', lambda s: s.level == ERROR,
                       start=len(rig.diags))
     assert 'roll' in status.message and 'offline' in status.message
-    rig.diag('servo_bus: bus', lambda s: s.level == WARN and 'roll (id 3)' in s.message)
+    rig.diag('/servo_bus: bus', lambda s: s.level == WARN and 'roll (id 3)' in s.message)
     start = len(rig.joints)
     for k in range(5):
         msg = rig.joints.wait(lambda m: True, 5, start=start + k)
@@ -60,14 +60,14 @@ def test_stall_trips_overload_and_diagnostics_warn_naming_the_servo(rig):
         rig.sim.stall(1)
     st = rig.state(1, start=len(rig.states), pred=lambda s: s.overload, what='overload')
     assert st.status & 0x20 and st.name == 'pan'
-    status = rig.diag('servo_bus: pan (id 1)', lambda s: s.level == WARN, start=len(rig.diags))
+    status = rig.diag('/servo_bus: pan (id 1)', lambda s: s.level == WARN, start=len(rig.diags))
     assert 'overload' in status.message and 'pan' in status.message
     with rig.locked():
         rig.sim.stall(1, False)
     # Torque on again acknowledges the overload (S21).
     assert rig.call(SetTorque, 'set_torque', ids=[1], enable=True).success
     rig.state(1, start=len(rig.states), pred=lambda s: not s.overload, what='overload cleared')
-    rig.diag('servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
+    rig.diag('/servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
     assert rig.call(SetTorque, 'set_torque', ids=[1], enable=False).success
     rig.call(WriteRegister, 'write_register', id=1, register_name='stall_protection_time',
              value=3)
@@ -79,7 +79,7 @@ def test_over_temperature_warns(rig):
     # The status bit comes with every reply, the temperature with the next telemetry read.
     rig.state(2, start=len(rig.states), pred=lambda s: s.over_temperature and
               s.temperature_c >= 80, what='over-temperature at 85 degC')
-    status = rig.diag('servo_bus: tilt (id 2)', lambda s: s.level == WARN, start=len(rig.diags))
+    status = rig.diag('/servo_bus: tilt (id 2)', lambda s: s.level == WARN, start=len(rig.diags))
     assert 'over-temperature' in status.message
     with rig.locked():
         rig.sim.cool(2)
@@ -103,7 +103,7 @@ def test_garbage_on_the_line_is_skipped(rig):
 def test_a_lost_reply_is_read_again_at_once_and_costs_the_servo_nothing(rig):
     msg = rig.states.wait(all_online, 5, start=len(rig.states), what='all online')
     errors = [s.error_count for s in msg.servos]
-    retries = bus_value(rig.diag('servo_bus: bus', lambda s: True, start=len(rig.diags)),
+    retries = bus_value(rig.diag('/servo_bus: bus', lambda s: True, start=len(rig.diags)),
                         'retries')
     dropped = rig.dev.runner.replies_dropped
     rig.dev.runner.faults.drop_next = 1
@@ -112,7 +112,7 @@ def test_a_lost_reply_is_read_again_at_once_and_costs_the_servo_nothing(rig):
     msg = rig.states.wait(all_online, 5, start=start + 3, what='states after the drop')
     # The READ was sent again within the same cycle: no failed transaction, no data gap.
     assert [s.error_count for s in msg.servos] == errors
-    rig.diag('servo_bus: bus', lambda s: bus_value(s, 'retries') == retries + 1,
+    rig.diag('/servo_bus: bus', lambda s: bus_value(s, 'retries') == retries + 1,
              start=len(rig.diags))
 
 
@@ -121,34 +121,36 @@ def bus_value(status, key):
 
 
 def test_two_servos_answering_to_one_id_are_reported_as_a_duplicate_id(rig):
+    # Their replies collide (S24): mostly garbled, so the servo may show offline first.
     with rig.locked():
         rig.sim.add_servo(2, allow_duplicate=True)
     try:
-        status = rig.diag('servo_bus: tilt (id 2)', lambda s: s.level == ERROR,
+        status = rig.diag('/servo_bus: tilt (id 2)',
+                          lambda s: s.level == ERROR and 'duplicate id' in s.message,
                           start=len(rig.diags))
-        assert 'duplicate id' in status.message and '~/set_id' in status.message
-        bus = rig.diag('servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
+        assert '~/set_id' in status.message
+        bus = rig.diag('/servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
         assert 'id(s) 2' in bus.message
         # The servos with ids of their own are not suspected.
-        rig.diag('servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
+        rig.diag('/servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
         scan = rig.call(ScanBus, 'scan', first_id=1, last_id=5)
         assert scan.success and list(scan.ids) == [1, 2, 3]
         assert 'more than one servo answers to id(s) 2:' in scan.message, scan.message
     finally:
         with rig.locked():
             rig.sim.servos.pop()
-    rig.diag('servo_bus: tilt (id 2)', lambda s: s.level == OK, timeout=10,
+    rig.diag('/servo_bus: tilt (id 2)', lambda s: s.level == OK, timeout=10,
              start=len(rig.diags))
 
 
 def test_unplug_and_replug_recover_without_a_restart(rig):
     rig.dev.runner.unplug()
-    status = rig.diag('servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
+    status = rig.diag('/servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
     assert status.hardware_id == rig.dev.path
     rig.state(1, start=len(rig.states), pred=lambda s: not s.online, what='offline unplugged')
     rig.dev.runner.replug()
     rig.states.wait(all_online, 10, start=len(rig.states), what='all online after replug')
-    status = rig.diag('servo_bus: bus', lambda s: s.level == OK, start=len(rig.diags))
+    status = rig.diag('/servo_bus: bus', lambda s: s.level == OK, start=len(rig.diags))
     values = {v.key: v.value for v in status.values}
     assert int(values['reconnects']) >= 1
     assert rig.node.alive()

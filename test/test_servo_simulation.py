@@ -94,11 +94,39 @@ def test_broadcast_write_applies_to_all_without_reply():
 
 
 def test_broadcast_set_id_example_makes_every_servo_id_1():
-    sim = ServoBusSim([4, 5])
+    sim = ServoBusSim([4, 5], collisions=False)
     assert sim.feed(bytes.fromhex('FF FF FE 04 03 05 01 F4'), 0.0) == []
     assert sim.ids == [1, 1]
-    # S24: both answer; on a real bus these replies would collide.
+    # Both answer; with collisions off each reply comes whole, in bus order.
     assert len(send(sim, p.encode_ping(1), 0.0)) == 2
+
+
+def test_two_servos_at_one_id_collide_into_a_mostly_garbled_reply():
+    # S24: their replies go out together; the host reads the AND of both, a little apart.
+    sim = ServoBusSim([1, 2])
+    sim.move_by_hand(2, 1000)
+    write(sim, 2, 'id', 1, 0.0)
+    assert sim.ids == [1, 1]
+    outcomes = []
+    for k in range(200):
+        out = sim.feed(p.encode_read(1, 0x38, 2), 0.01 * k)
+        assert len(out) == 1
+        decoded = p.StreamDecoder('reply').feed(out[0])
+        outcomes.append('clean' if decoded and decoded[0].raw == out[0] else 'garbled')
+    # Different positions never come through clean; identical replies do, when they start
+    # within half a bit of each other (about 1 in 4).
+    assert outcomes.count('garbled') == 200
+    pings = [sim.feed(p.encode_ping(1), 3.0) for _ in range(200)]
+    clean = sum(1 for (frame,) in pings if frame == p.encode_reply(1, 0))
+    assert 20 <= clean <= 100
+    assert sim.replies_collided == 800
+    # Seeded (S25): the same inputs give the same bytes.
+    runs = []
+    for _ in range(2):
+        twin = ServoBusSim([1], seed=5)
+        twin.add_servo(1, allow_duplicate=True, position_ticks=3000)
+        runs.append([twin.feed(p.encode_read(1, 0x38, 2), 0.01 * k) for k in range(20)])
+    assert runs[0] == runs[1]
 
 
 def test_write_to_read_only_register_is_ignored_but_acknowledged():

@@ -1,8 +1,14 @@
-"""Errors a user meets are explained in /diagnostics with what to do: wrong baud, missing port."""
+"""Errors a user meets are explained in /diagnostics with what to do: wrong baud, missing port.
+
+The wrong baud is tried twice: with a device that answers everything with noise (NoisyDevice,
+bytes but never a frame) and with the virtual devices at another speed than the driver, which
+behave as real ones do (safety item 20: garbage both ways, so the servos stay silent).
+"""
 
 import random
 import threading
 
+from desheng_servo_ros.virtual_node import VirtualServoBus
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 
@@ -71,7 +77,7 @@ def test_servo_bus_on_a_wrong_baud_says_to_check_the_baud_parameter(ros, launch,
     diags = ros.subscribe(DiagnosticArray, '/diagnostics')
     launch.start('servo_bus_node', {'port': noisy.port.path, 'servo_ids': [1, 2]},
                  ros=ros, wait_service='/servo_bus/emergency_stop')
-    wait_diag(diags, 'servo_bus: bus', ['not one valid reply', 'check the baud'])
+    wait_diag(diags, '/servo_bus: bus', ['not one valid reply', 'check the baud'])
 
 
 def test_servo_bus_with_a_missing_port_says_so(ros, launch, tmp_path):
@@ -79,7 +85,72 @@ def test_servo_bus_with_a_missing_port_says_so(ros, launch, tmp_path):
     missing = str(tmp_path / 'ttyUSB8')
     launch.start('servo_bus_node', {'port': missing, 'servo_ids': [1]},
                  ros=ros, wait_service='/servo_bus/emergency_stop')
-    wait_diag(diags, 'servo_bus: bus', ['no such device', missing])
+    wait_diag(diags, '/servo_bus: bus', ['no such device', missing])
+
+
+def wait_error(diags, name_part, words, timeout=20.0):
+    """Wait for an ERROR status whose name contains `name_part` and whose message has `words`."""
+    def ok(msg):
+        return any(name_part in s.name and s.level == DiagnosticStatus.ERROR and
+                   all(w in s.message for w in words) for s in msg.status)
+    msg = diags.wait(ok, timeout, what=f'ERROR {name_part} mentioning {words}')
+    return next(s for s in msg.status if name_part in s.name and s.level == DiagnosticStatus.ERROR
+                and all(w in s.message for w in words))
+
+
+def test_safety_19_servo_bus_with_a_directory_as_port_says_it_is_a_directory(
+        ros, launch, tmp_path):
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    launch.start('servo_bus_node', {'port': str(tmp_path), 'servo_ids': [1]},
+                 ros=ros, wait_service='/servo_bus/emergency_stop')
+    wait_error(diags, '/servo_bus: bus', [f'{tmp_path} is a directory, not a serial device'])
+
+
+def test_safety_19_parachute_with_a_directory_as_port_says_it_is_a_directory(
+        ros, launch, tmp_path):
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    port = tmp_path / 'ports'
+    port.mkdir()
+    launch.start('parachute_node', {'port': str(port), 'blackbox_dir': str(tmp_path / 'bb')},
+                 ros=ros, wait_service='/parachute/deploy')
+    wait_error(diags, 'parachute', [f'{port} is a directory, not a serial device'])
+
+
+def test_safety_20_servo_bus_at_115200_against_a_bus_at_9600_says_check_the_baud(
+        ros, launch, tmp_path):
+    # The virtual bus honours the line settings: at the wrong speed the servos see garbage and
+    # stay silent, as real ones do.
+    bus = VirtualServoBus(str(tmp_path / 'bus'), [1, 2], baud=9600).start()
+    try:
+        diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+        launch.start('servo_bus_node', {'port': bus.path, 'servo_ids': [1, 2]},
+                     ros=ros, wait_service='/servo_bus/emergency_stop')
+        status = wait_error(diags, '/servo_bus: bus', ['no servo answers', 'baud'])
+        assert '115200' in status.message
+        assert bus.runner.garbled_chunks > 0 and bus.sim.requests_handled == 0
+    finally:
+        bus.stop()
+
+
+def test_safety_20_parachute_at_115200_against_a_module_at_9600_says_check_the_baud(
+        ros, launch, tmp_path):
+    link = str(tmp_path / 'vparachute')
+    launch.start('virtual_parachute', {'link': link, 'baud': 9600}, ros=ros,
+                 wait_service='/virtual_parachute/power_cycle')
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    launch.start('parachute_node', {'port': link, 'blackbox_dir': str(tmp_path / 'bb')},
+                 ros=ros, wait_service='/parachute/deploy')
+    wait_error(diags, 'parachute', ['baud'], timeout=30.0)
+
+
+def test_a_servo_bus_in_a_namespace_reports_under_its_fully_qualified_name(ros, launch, tmp_path):
+    # Issue 11: statuses named 'servo_bus: ...' could not tell two buses apart.
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    missing = str(tmp_path / 'ttyUSB5')
+    launch.start('servo_bus_node', {'port': missing, 'servo_ids': [4]}, namespace='/uav2',
+                 ros=ros, wait_service='/uav2/servo_bus/emergency_stop')
+    wait_diag(diags, '/uav2/servo_bus: bus', ['no such device', missing])
+    wait_diag(diags, '/uav2/servo_bus: servo_4 (id 4)', ['offline'])
 
 
 def test_handset_link_on_a_wrong_baud_says_to_check_the_baud_parameter(ros, launch, noisy):

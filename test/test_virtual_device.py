@@ -88,6 +88,46 @@ def test_unplug_for_a_while_replugs_at_the_same_path(device):
         again.close()
 
 
+def test_safety_20_a_driver_at_another_baud_sends_and_receives_garbage(tmp_path):
+    # As a real UART: the device samples the driver's bits at its own speed and the driver
+    # samples the device's at its own. Nothing valid gets through either way.
+    heard = []
+
+    def model(data, now):
+        heard.append(bytes(data))
+        return [bytes([0xAA, b, (0xAA + b) & 0xFF]) for b in data]
+    with VirtualDeviceRunner(str(tmp_path / 'dev'), model, baud=9600) as runner:
+        driver = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
+        try:
+            request = bytes.fromhex('FF FF 01 04 02 38 04 BA')
+            driver.write(request)
+            wait_for(lambda: heard, 2, what='the device to receive something')
+            assert b''.join(heard) != request and runner.driver_baud == 115200
+            expected = b''.join(bytes([0xAA, b, (0xAA + b) & 0xFF]) for b in b''.join(heard))
+            got = read_n(driver, len(expected), timeout=1.0)
+            assert got and got != expected
+            assert runner.garbled_chunks >= 2
+            while driver.read(256):  # the rest of the garbage (timeout 0.2 s: line idle)
+                pass
+            # The driver sets the device's speed: from now on everything gets through.
+            driver.baudrate = 9600
+            heard.clear()
+            driver.write(b'\x01')
+            assert read_n(driver, 3) == bytes([0xAA, 1, 0xAB]) and heard == [b'\x01']
+        finally:
+            driver.close()
+
+
+def test_a_device_without_wire_timing_ignores_the_drivers_baud(tmp_path):
+    with VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, baud=0) as runner:
+        driver = serial.serial_for_url(runner.path, baudrate=9600, timeout=0.2)
+        try:
+            driver.write(b'\x07')
+            assert read_n(driver, 3) == bytes([0xAA, 7, 0xB1])
+        finally:
+            driver.close()
+
+
 def test_unsolicited_output_is_faulted_when_asked_and_the_checksum_position_is_honoured(
         tmp_path):
     # A device that only talks on its own (a handset): frames AA n CHK 55, checksum before the

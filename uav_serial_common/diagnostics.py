@@ -81,7 +81,12 @@ class DiagnosticsUpdater:
 
     def add(self, name: str, task: Task) -> None:
         """Add a status task; its status is named ``<node>: <name>``."""
-        self._tasks.append((name, task))
+        # Copy-on-write: update() iterates over the list it took, whatever thread adds.
+        self._tasks = self._tasks + [(name, task)]
+
+    def remove(self, name: str) -> None:
+        """Remove the status task(s) called `name` (a device that is gone or renamed)."""
+        self._tasks = [(n, t) for n, t in self._tasks if n != name]
 
     def force_update(self) -> None:
         """Publish soon (within ``min_interval_s``); callable from any thread."""

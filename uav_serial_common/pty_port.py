@@ -3,14 +3,20 @@
 A `VirtualSerialPort` is the device end of a pty pair. The other end (the slave, which a driver
 opens with pyserial) is published at a stable symlink, like a udev name in ``/dev/serial/by-id``.
 `unplug()` makes the port vanish the way a USB adapter does (the open file starts failing and the
-path disappears); `replug()` brings a new pty back at the same path.
+path disappears); `replug()` brings a new pty back at the same path. `line_baud()` tells the speed
+the driver set on its end (termios of the slave, which the device side keeps open), so a virtual
+device can behave as a real one does at the wrong speed.
 """
 
 from __future__ import annotations
 
+import array
 import errno
+import fcntl
 import os
+import re
 import select
+import sys
 import termios
 import threading
 import time
@@ -20,6 +26,15 @@ from typing import Optional
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 WRITE_STALL_DROP_S = 0.2
 PACING_BURST_S = 0.002
+
+# termios speed codes (B9600 ...) to bit/s.
+_SPEEDS = {getattr(termios, name): int(name[1:]) for name in dir(termios)
+           if re.fullmatch(r'B[0-9]+', name)}
+_BOTHER = getattr(termios, 'BOTHER', 0o010000)
+# Linux TCGETS2 = _IOR('T', 0x2A, struct termios2): the numeric speeds behind BOTHER (a rate
+# without a Bxxx code, which pyserial sets that way). struct termios2 is 4 flags, c_line,
+# 19 control characters, then c_ispeed and c_ospeed: 44 bytes, the speeds at int 9 and 10.
+_TCGETS2 = 0x802C542A
 
 
 def wire_time(nbytes: int, baud: int) -> float:
@@ -145,6 +160,30 @@ class VirtualSerialPort:
             raise PortUnplugged('port is unplugged')
         return self._master
 
+    def line_baud(self) -> Optional[int]:
+        """Return the output speed (bit/s) the driver set on its end; None if unknown.
+
+        Termios settings belong to the terminal, not to a descriptor: the slave this port keeps
+        open shows what the driver's ``tcsetattr`` (pyserial's ``baudrate``) put there.
+        """
+        fd = self._slave
+        if fd is None:
+            return None
+        try:
+            code = termios.tcgetattr(fd)[5]
+        except (termios.error, OSError, ValueError):
+            return None
+        if code in _SPEEDS:
+            return _SPEEDS[code]
+        if code == _BOTHER and sys.platform.startswith('linux'):
+            speeds = array.array('i', [0] * 11)
+            try:
+                fcntl.ioctl(fd, _TCGETS2, speeds)
+            except OSError:
+                return None
+            return speeds[10] or None
+        return None
+
     # -- I/O ------------------------------------------------------------------------------------
 
     def read(self, timeout: float = 0.0, max_bytes: int = 4096) -> bytes:
@@ -160,8 +199,11 @@ class VirtualSerialPort:
                 return b''
             return os.read(master, max_bytes)
         except (OSError, ValueError) as exc:
-            # EIO: nobody holds the slave open; EBADF/ValueError: unplugged meanwhile.
-            if isinstance(exc, OSError) and exc.errno not in (errno.EIO, errno.EBADF):
+            # EIO: nobody holds the slave open; EBADF/ValueError: unplugged meanwhile; EAGAIN:
+            # unplugged and replugged meanwhile, and the new pty (the same descriptor number)
+            # has nothing to read yet.
+            gone = (errno.EIO, errno.EBADF, errno.EAGAIN)
+            if isinstance(exc, OSError) and exc.errno not in gone:
                 raise
             return b''
 

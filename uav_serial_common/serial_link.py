@@ -12,9 +12,11 @@ exponential backoff until `stop()`.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import select
+import termios
 import threading
 import time
 import traceback
@@ -29,6 +31,12 @@ except ImportError:  # pragma: no cover - not a POSIX system
     _PosixSerial = None
 
 Match = Callable[[Any], bool]
+
+# What a port can raise besides SerialException and OSError: termios.error (tcflush/tcgetattr on a
+# vanished device; not an OSError), and TypeError/AttributeError/ValueError when its descriptor
+# was closed under a concurrent close. None of them may escape the link or stop its reader.
+PORT_ERRORS = (serial.SerialException, OSError, termios.error, TypeError, AttributeError,
+               ValueError)
 
 
 class Decoder(Protocol):
@@ -194,6 +202,10 @@ class SerialLink:
         self.baud = baud
         self.stats = LinkStats()
         self.last_error = ''
+        # The reader thread's last unexpected failure (a bug or a port error nobody foresaw):
+        # it is logged, the port is reopened, and owners show it in their diagnostics.
+        self.reader_error = ''
+        self.reader_errors = 0
         self.last_rx_time: Optional[float] = None
         self._decoder = decoder
         self._on_frame = on_frame
@@ -254,6 +266,11 @@ class SerialLink:
         """Wait until the port is open; returns whether it is."""
         return self._connected.wait(timeout)
 
+    @property
+    def reader_alive(self) -> bool:
+        """Whether the reader thread runs (False before start() and after stop())."""
+        return self._thread is not None and self._thread.is_alive()
+
     # -- I/O ------------------------------------------------------------------------------------
 
     def write(self, data: bytes) -> None:
@@ -264,8 +281,8 @@ class SerialLink:
                 raise LinkDown(f'{self.url} is not open: {self.last_error or "not connected"}')
             try:
                 self._write_port(port, data)
-            except (serial.SerialException, OSError) as exc:
-                self._fail(f'write failed: {exc}')
+            except PORT_ERRORS as exc:
+                self._fail(f'write failed: {exc}', port)
                 raise LinkDown(f'{self.url}: write failed: {exc}') from exc
             self.stats.bytes_out += len(data)
             self.stats.frames_out += 1
@@ -340,41 +357,68 @@ class SerialLink:
             self._remove_waiter(run)
 
     def flush_input(self, port: bool = True) -> None:
-        """Discard unread input (unless `port` is False) and any partial frame."""
+        """Discard unread input (unless `port` is False) and any partial frame.
+
+        Raises LinkDown when the port fails the flush (a vanished device answers tcflush with
+        termios.error): the port is closed and reopened as after a failed read.
+        """
+        failure = None
         with self._rx_lock:
             serial_port = self._serial if port else None
             if serial_port is not None:
                 try:
                     serial_port.reset_input_buffer()
-                except (serial.SerialException, OSError):
-                    pass
+                except PORT_ERRORS as exc:
+                    failure = exc
             self._decoder.reset()
+        if failure is not None:
+            # Outside the lock: closing notifies the owner, which must not run under it.
+            self._fail(f'flush failed: {failure}', serial_port)
+            raise LinkDown(f'{self.url}: flush failed: {failure}') from failure
 
     # -- reader thread --------------------------------------------------------------------------
 
     def _run(self) -> None:
         backoff = self._backoff_initial
-        while not self._stop.is_set():
-            if self._serial is None:
-                if self._open():
-                    backoff = self._backoff_initial
-                else:
+        try:
+            while not self._stop.is_set():
+                try:
+                    backoff = self._run_once(backoff)
+                except Exception as exc:  # noqa: BLE001 - the reader must never die
+                    # Not a port error (those are handled below): a bug in a handler or an
+                    # error nobody foresaw. Say so once per kind, reopen the port, go on.
+                    self.reader_errors += 1
+                    text = f'{type(exc).__name__}: {exc}'
+                    if text != self.reader_error:
+                        self._log.error(f'{self.url}: reader failed ({text}); reopening the '
+                                        f'port:\n{traceback.format_exc()}')
+                    self.reader_error = text
+                    self._fail(f'reader failed: {text}')
                     self._stop.wait(backoff)
                     backoff = min(backoff * 2, self._backoff_max)
-                    continue
-            port = self._serial
-            try:
-                data = self._read_port(port)
-            except (serial.SerialException, OSError, TypeError, AttributeError,
-                    ValueError) as exc:
-                # TypeError/AttributeError/ValueError: the fd was closed under a concurrent close.
-                if not self._stop.is_set():
-                    self._fail(f'read failed: {exc}')
-                continue
-            if data:
-                self._receive(data)
-            elif self._idle_flush_s is not None:
-                self._flush_idle()
+        finally:
+            if not self._stop.is_set():  # pragma: no cover - only a BaseException gets here
+                self._log.error(f'{self.url}: reader thread stopped unexpectedly')
+
+    def _run_once(self, backoff: float) -> float:
+        """Open the port if needed, read once and hand the bytes on; return the next backoff."""
+        if self._serial is None:
+            if self._open():
+                return self._backoff_initial
+            self._stop.wait(backoff)
+            return min(backoff * 2, self._backoff_max)
+        port = self._serial
+        try:
+            data = self._read_port(port)
+        except PORT_ERRORS as exc:
+            if not self._stop.is_set():
+                self._fail(f'read failed: {exc}', port)
+            return backoff
+        if data:
+            self._receive(data)
+        elif self._idle_flush_s is not None:
+            self._flush_idle()
+        return backoff
 
     def _read_port(self, port: serial.SerialBase) -> bytes:
         fd = self._fast_fd
@@ -467,6 +511,7 @@ class SerialLink:
             self._waiters = tuple(w for w in self._waiters if w is not waiter)
 
     def _open(self) -> bool:
+        port = None
         try:
             port = serial.serial_for_url(
                 self.url, baudrate=self.baud, timeout=self._read_timeout, write_timeout=1.0,
@@ -478,7 +523,14 @@ class SerialLink:
                     pass
             port.open()
             port.reset_input_buffer()
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except Exception as exc:  # noqa: BLE001 - any failure to open is a failure to open
+            # Not only SerialException: a device that vanishes between open and flush answers
+            # tcflush with termios.error, which is no OSError.
+            if port is not None:
+                try:
+                    port.close()
+                except Exception:  # noqa: BLE001 - it is being given up anyway
+                    pass
             self.stats.open_failures += 1
             message = describe_open_error(self.url, exc)
             if message != self.last_error:
@@ -501,10 +553,15 @@ class SerialLink:
         self._notify(True, 'port open')
         return True
 
-    def _fail(self, reason: str) -> None:
+    def _fail(self, reason: str, port: Optional[serial.SerialBase] = None) -> None:
+        """Close the port after a failure of `port` (default: the open one) and reconnect."""
+        if port is not None and port is not self._serial:
+            return  # that port is closed already; the first failure's reason stands
         if self._connected.is_set():
             self._log.error(f'{self.url}: {reason}; reconnecting')
-        self.last_error = reason
+            self.last_error = reason
+        elif not self.last_error:
+            self.last_error = reason
         self._close(reason)
 
     def _close(self, reason: str) -> None:
@@ -531,15 +588,38 @@ class SerialLink:
                 self._log.error(f'connection handler failed ({reason})')
 
 
+def _errno_of(exc: BaseException) -> Optional[int]:
+    """Return the errno behind `exc`: its own, or that of the error it was raised from."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        number = getattr(exc, 'errno', None)
+        if isinstance(number, int):
+            return number
+        if isinstance(exc, termios.error) and exc.args and isinstance(exc.args[0], int):
+            return exc.args[0]
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def describe_open_error(url: str, exc: BaseException) -> str:
-    """Turn an open failure into a message that tells the user what to do."""
-    text = str(exc)
-    if 'Permission denied' in text or 'Errno 13' in text:
+    """Turn an open failure into a message that tells the user what to do (by its errno)."""
+    number = _errno_of(exc)
+    if number in (errno.EACCES, errno.EPERM):
         return (f'cannot open {url}: permission denied. Add your user to the dialout group '
                 f'(sudo usermod -aG dialout $USER, then log in again) or fix the udev rule.')
-    if 'No such file' in text or 'Errno 2' in text or 'could not open port' in text:
+    if number == errno.EISDIR or (number is None and os.path.isdir(url)):
+        return (f'cannot open {url}: {url} is a directory, not a serial device. Check the port '
+                f'parameter (e.g. /dev/ttyUSB0 or a /dev/serial/by-id/ name); retrying.')
+    if number == errno.ENOTTY:
+        return (f'cannot open {url}: it is not a serial device (a regular file or another '
+                f'kind of device?). Check the port parameter; retrying.')
+    if number == errno.ENOTDIR:
+        return (f'cannot open {url}: a part of the path is not a directory. Check the port '
+                f'parameter; retrying.')
+    if number in (errno.ENOENT, errno.ENODEV, errno.ENXIO):
         return (f'cannot open {url}: no such device. Is it plugged in? Check `ls -l {url}` '
                 f'and the port parameter; retrying.')
-    if 'busy' in text.lower() or 'Errno 16' in text or 'lock' in text.lower():
+    if number in (errno.EBUSY, errno.EAGAIN):
         return f'cannot open {url}: the port is in use by another program; retrying.'
-    return f'cannot open {url}: {text}; retrying.'
+    return f'cannot open {url}: {exc}; retrying.'

@@ -6,6 +6,11 @@ reads what the driver wrote, hands it to the model once it would have finished a
 wire, and sends the model's output back paced at the configured baud. Faults that concern the wire
 rather than the device (garbage, lost or late replies, bad checksums, an unplugged cable) are
 applied here, the same way for every device.
+
+The runner also honours the line settings the driver put on the pty: when the driver's speed
+differs from the device's ``baud``, what each side receives is what a UART at its own speed makes
+of the other's bits (``uav_serial_common.uart``): garbage both ways, as on a real wire, so a
+driver's "wrong baud?" diagnostics can be exercised.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterable, Optional, Union
 
 from uav_serial_common.pty_port import PortUnplugged, sleep_until, VirtualSerialPort, wire_time
+from uav_serial_common.uart import reframe
 
 Output = Union[bytes, Iterable[bytes], None]
 
@@ -59,6 +65,9 @@ class VirtualDeviceRunner:
         self.bytes_out = 0
         self.replies_dropped = 0
         self.replies_corrupted = 0
+        # Chunks that crossed the wire at mismatched speeds (the driver's baud was not ours).
+        self.garbled_chunks = 0
+        self.driver_baud: Optional[int] = None
         self._on_input = on_input
         self._on_tick = on_tick
         self._next_event = next_event
@@ -144,33 +153,47 @@ class VirtualDeviceRunner:
     def _run(self) -> None:
         rx_busy_until = 0.0
         while self._running.is_set():
-            if not self.port.plugged:
-                if self._replug_at is not None and time.monotonic() >= self._replug_at:
-                    self.replug()
-                else:
-                    time.sleep(0.005)
-                    self._tick()
-                    continue
-            data = self.port.read(timeout=self._poll_timeout())
-            if data:
-                now = time.monotonic()
-                # The bytes reached the pty at once; on a wire the last one arrives only after
-                # all of them were clocked out, and a half-duplex device answers after that.
-                arrival = max(now, rx_busy_until) + wire_time(len(data), self.baud)
-                rx_busy_until = arrival
-                sleep_until(arrival)
-                self.bytes_in += len(data)
-                for tap in self._taps:
-                    tap('rx', data, arrival)
-                with self._lock:
-                    try:
-                        output = self._on_input(data, arrival)
-                    except Exception:  # noqa: BLE001 - a model bug must not kill the device
-                        self._log.exception('device model failed on input %s', data.hex(' '))
-                        output = None
-                self._send(output, reply=True, ready_at=arrival)
-            if time.monotonic() >= self._tick_due:
+            try:
+                rx_busy_until = self._run_once(rx_busy_until)
+            except Exception:  # noqa: BLE001 - the device must outlive any fault of its pty
+                self._log.exception('virtual device: unexpected failure; going on')
+                time.sleep(0.005)
+
+    def _run_once(self, rx_busy_until: float) -> float:
+        """Serve one read (or an unplugged pause) and the tick if due; return rx_busy_until."""
+        if not self.port.plugged:
+            if self._replug_at is not None and time.monotonic() >= self._replug_at:
+                self.replug()
+            else:
+                time.sleep(0.005)
                 self._tick()
+                return rx_busy_until
+        data = self.port.read(timeout=self._poll_timeout())
+        if data:
+            now = time.monotonic()
+            sender = self._check_line()
+            # The bytes reached the pty at once; on a wire the last one arrives only after all
+            # of them were clocked out, and a half-duplex device answers after that.
+            arrival = max(now, rx_busy_until) + wire_time(len(data), sender)
+            rx_busy_until = arrival
+            if sender != self.baud:
+                # Our UART samples the driver's bits at our own speed.
+                data = reframe(data, sender, self.baud)
+                self.garbled_chunks += 1
+            sleep_until(arrival)
+            self.bytes_in += len(data)
+            for tap in self._taps:
+                tap('rx', data, arrival)
+            with self._lock:
+                try:
+                    output = self._on_input(data, arrival)
+                except Exception:  # noqa: BLE001 - a model bug must not kill the device
+                    self._log.exception('device model failed on input %s', data.hex(' '))
+                    output = None
+            self._send(output, reply=True, ready_at=arrival)
+        if time.monotonic() >= self._tick_due:
+            self._tick()
+        return rx_busy_until
 
     def _poll_timeout(self) -> float:
         """Return how long to wait for input before the model's next tick is due."""
@@ -183,10 +206,19 @@ class VirtualDeviceRunner:
         self._tick_due = due
         return max(0.0, due - time.monotonic())
 
+    def _check_line(self) -> int:
+        """Return the speed the driver's bytes travel at: its own setting, else ours."""
+        baud = self.port.line_baud()
+        self.driver_baud = baud
+        if baud is None or self.baud <= 0:
+            return self.baud
+        return baud
+
     def _tick(self) -> None:
         # Only when due, not after every request: the model advances on input anyway, and the
         # device must be back listening as soon as its reply is out.
         self._last_tick = time.monotonic()
+        self._check_line()
         if self._on_tick is None:
             output = None
         else:
@@ -243,8 +275,17 @@ class VirtualDeviceRunner:
 
     def _write(self, data: bytes, start: Optional[float] = None) -> Optional[float]:
         """Pace `data` out from `start`; return when its last byte arrived (None: unplugged)."""
+        receiver = self.driver_baud
         try:
-            end = self.port.write(data, self.baud, start)
+            if receiver is None or self.baud <= 0 or receiver == self.baud:
+                end = self.port.write(data, self.baud, start)
+            else:
+                # The driver's UART samples our bits at its own speed: it gets what it makes of
+                # them, once they have been on the wire for their time at our speed.
+                end = max(time.monotonic(), start or 0.0) + wire_time(len(data), self.baud)
+                sleep_until(end)
+                self.port.write(reframe(data, self.baud, receiver))
+                self.garbled_chunks += 1
         except PortUnplugged:
             return None
         self.bytes_out += len(data)

@@ -1,0 +1,49 @@
+"""Publish ServoCommand on /servo_bus/command at a rate for a while, from a process of its own.
+
+Run by test_servo_safety.py (so the flood does not take the GIL from the virtual bus in the test
+process). Usage: ``python flood_commands.py RATE_HZ SECONDS [IDS]`` (IDS: comma-separated servo
+ids, default 1,2; an unknown id makes every command a refusal); prints one JSON line: commands
+sent, the last positions, and the times (monotonic and wall) of the first and last publication.
+"""
+
+import json
+import sys
+import time
+
+import rclpy
+from rclpy.node import Node
+from uav_serial_drivers.msg import ServoCommand
+
+
+def main() -> None:
+    rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+    ids = [int(i) for i in (sys.argv[3] if len(sys.argv) > 3 else '1,2').split(',')]
+    rclpy.init()
+    node = Node('command_flood')
+    pub = node.create_publisher(ServoCommand, '/servo_bus/command', 10)
+    # Wait for the driver's subscription, so no command is lost to discovery.
+    deadline = time.monotonic() + 10
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    count = int(rate * seconds)
+    start = time.monotonic()
+    start_wall = time.time()
+    last = None
+    for k in range(count):
+        due = start + k / rate
+        while time.monotonic() < due:
+            time.sleep(max(0.0, min(0.0005, due - time.monotonic())))
+        x = round(-1.0 + 2.0 * (k % 1000) / 1000, 4)
+        last = [x, -x]
+        pub.publish(ServoCommand(ids=ids, positions=last, move_time_ms=0))
+        t_last, t_last_wall = time.monotonic(), time.time()
+    print(json.dumps({'sent': count, 'last': last, 't_start': start, 't_last': t_last,
+                      't_start_wall': start_wall, 't_last_wall': t_last_wall}), flush=True)
+    # Give DDS time to deliver the last ones before the publisher goes away.
+    time.sleep(0.5)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+if __name__ == '__main__':
+    main()

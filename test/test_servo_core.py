@@ -1,0 +1,431 @@
+"""The servo bus core without ROS: the simulated bus on a real pty, in this process, in seconds.
+
+The core (``desheng_servo_ros/core.py``) runs against ``ServoBusSim`` behind a
+``VirtualDeviceRunner`` (a real pty, opened by pyserial through ``SerialLink``). Time-based
+logic (cycles, telemetry, re-probes, duplicate-id checks) runs on a clock the test moves;
+``read_cycle()`` runs one cycle on the test's thread, so nothing depends on timing.
+"""
+
+import math
+import threading
+
+from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAILURES,
+                                    REPROBE_PERIOD_S, ServoBusConfig, ServoBusCore, WARN)
+from desheng_servo_ros.protocol import Instruction, StreamDecoder
+from desheng_servo_ros.units import Joint, resolve_targets, select, Units
+from desheng_servo_ros.virtual_node import VirtualServoBus
+import pytest
+from uav_serial_common.process import wait_for
+
+JOINTS = (Joint(1, 'pan'), Joint(2, 'tilt'), Joint(3, 'roll'))
+
+
+class FakeClock:
+    def __init__(self, t=1000.0):
+        self.t = t
+
+    def __call__(self):
+        return self.t
+
+    def advance(self, dt):
+        self.t += dt
+
+
+class Log:
+    """A logger that keeps what it is told."""
+
+    def __init__(self):
+        self.lines = []
+
+    def info(self, text):
+        self.lines.append(('info', text))
+
+    def warning(self, text):
+        self.lines.append(('warning', text))
+
+    def error(self, text):
+        self.lines.append(('error', text))
+
+    def text(self, level=None):
+        return '\n'.join(t for lv, t in self.lines if level in (None, lv))
+
+
+class Tap:
+    """Every request the driver put on the wire, decoded."""
+
+    def __init__(self, runner):
+        self.data = []
+        self.lock = threading.Lock()
+        runner.add_tap(self._tap)
+
+    def _tap(self, direction, data, t):
+        if direction == 'rx':
+            with self.lock:
+                self.data.append(bytes(data))
+
+    def mark(self):
+        with self.lock:
+            return len(self.data)
+
+    def requests(self, mark=0):
+        with self.lock:
+            data = b''.join(self.data[mark:])
+        return StreamDecoder('request').feed(data)
+
+
+class Rig:
+    def __init__(self, tmp_path, ids=(1, 2, 3), servo_ids=(1, 2, 3), loop=False, clock=None,
+                 device_baud=115200, **config):
+        self.dev = VirtualServoBus(str(tmp_path / 'bus'), list(ids), baud=device_baud,
+                                   response_delay_s=0.0, seed=1).start()
+        self.tap = Tap(self.dev.runner)
+        self.clock = clock or FakeClock()
+        self.log = Log()
+        self.cycles = []
+        settings = dict(port=self.dev.path, servo_ids=list(servo_ids), response_timeout_ms=25.0)
+        settings.update(config)
+        self.core = ServoBusCore(ServoBusConfig(**settings), clock=self.clock, logger=self.log,
+                                 on_cycle=self.cycles.append)
+        self.core.start(read_loop=loop)
+        assert self.core.bus.wait_connected(5)
+
+    @property
+    def sim(self):
+        return self.dev.sim
+
+    def stop(self):
+        try:
+            self.core.stop()
+        finally:
+            self.dev.stop()
+
+    def cycle(self, dt=0.02):
+        self.clock.advance(dt)
+        return self.core.read_cycle()
+
+    def by_id(self, snapshot, servo_id):
+        return next(s for s in snapshot.servos if s.id == servo_id)
+
+
+@pytest.fixture
+def rig(tmp_path):
+    rig = Rig(tmp_path)
+    yield rig
+    rig.stop()
+
+
+# -- units and targets (rules, no bus) ---------------------------------------------------------
+
+def test_units_are_rad_about_the_zero_tick():
+    units = Units(4096, 2048)
+    assert units.ticks_to_rad(3072) == pytest.approx(math.pi / 2)
+    assert units.rad_to_ticks(-math.pi / 2) == 1024
+    assert units.rad_to_ticks(units.ticks_to_rad(4095)) == 4095
+    lo, hi = units.rad_range()
+    assert lo == pytest.approx(-math.pi) and hi < math.pi
+    with pytest.raises(ValueError, match='outside the valid range'):
+        units.rad_to_ticks(math.pi)
+
+
+def test_targets_by_names_or_ids_with_the_default_run_time():
+    units = Units()
+    assert resolve_targets(JOINTS, units, ['tilt', 'pan'], [], [0.5, 0.0], -1, 300) == [
+        (2, units.rad_to_ticks(0.5), 300), (1, 2048, 300)]
+    assert resolve_targets(JOINTS, units, [], [3], [0.0], 0) == [(3, 2048, 0)]
+    for names, ids, positions, ms, why in (
+            (['pan'], [1], [0.0], 0, 'not both'), ([], [], [], 0, 'by names or by ids'),
+            (['pan', 'tilt'], [], [0.0], 0, '2 names but 1 positions'),
+            (['pan', 'pan'], [], [0.0, 0.0], 0, 'twice'), ([9], [], [0.0], 0, 'unknown'),
+            ([], [1, 1], [0.0, 0.0], 0, 'twice'), ([], [7], [0.0], 0, 'unknown servo id'),
+            (['pan'], [], [0.0], -2, 'move_time_ms')):
+        with pytest.raises(ValueError, match=why):
+            resolve_targets(JOINTS, units, names, ids, positions, ms)
+
+
+@pytest.mark.parametrize('value', [1e308, -1e308, math.inf, -math.inf, math.nan, 10 ** 400,
+                                   -(10 ** 400), 3.2, -3.15, 'x', None])
+def test_safety_13_no_position_a_command_can_carry_raises_anything_but_a_refusal(value):
+    # 1e308 rad used to overflow int(round(...)) and end the node (OverflowError, not a
+    # ValueError); every value is either a tick or a ValueError that says why.
+    with pytest.raises(ValueError, match='tilt \\(id 2\\): position'):
+        resolve_targets(JOINTS, Units(), [], [2], [value], 0)
+
+
+@pytest.mark.parametrize('ms', [-2, -(2 ** 31), 2 ** 31 - 1, 65536, 10 ** 30, True, 1.5])
+def test_safety_13_no_move_time_raises_anything_but_a_refusal(ms):
+    with pytest.raises(ValueError, match='move_time_ms'):
+        resolve_targets(JOINTS, Units(), [], [1], [0.0], ms)
+
+
+def test_safety_18_refusals_name_a_few_offenders_and_count_the_rest():
+    units = Units()
+    many = [f'nope_{k}' for k in range(10000)]
+    for call in (lambda: resolve_targets(JOINTS, units, many, [], [0.0] * 10000, 0),
+                 lambda: resolve_targets(JOINTS, units, ['x' * 1000000], [], [0.0], 0),
+                 lambda: resolve_targets(JOINTS, units, [], [7] * 10000, [0.0] * 10000, 0),
+                 lambda: resolve_targets(JOINTS, units, ['pan'] * 10000, [], [0.0] * 10000, 0),
+                 lambda: select(JOINTS, list(range(4, 250)) * 40)):
+        with pytest.raises(ValueError) as info:
+            call()
+        assert len(str(info.value)) < 300, str(info.value)[:400]
+    with pytest.raises(ValueError, match="'nope_0', 'nope_1', .* and 9995 more"):
+        resolve_targets(JOINTS, units, many, [], [0.0] * 10000, 0)
+
+
+def test_safety_18_service_refusals_through_the_core_are_bounded(rig):
+    mark = rig.tap.mark()
+    for result in (rig.core.write_positions([f'n{k}' for k in range(10000)], [], [0.0] * 10000,
+                                            0, False),
+                   rig.core.set_torque([9] * 10000, True),
+                   rig.core.go_to_preset(list(range(100, 250)), 1),
+                   rig.core.command(['y' * 100000] * 3, [], [0.0] * 3, 0)):
+        assert not result.ok and len(result.message) < 300, result.message[:400]
+    assert rig.tap.requests(mark) == []
+
+
+# -- read cycles --------------------------------------------------------------------------------
+
+def test_a_cycle_reads_every_servo_and_telemetry_is_spread_over_its_period(rig):
+    snap = rig.cycle()
+    assert [s.online for s in snap.servos] == [True] * 3
+    assert all(s.temperature_c == pytest.approx(25, abs=1) for s in snap.servos)
+    # The first cycle read the telemetry block of each; then they come one third apart.
+    mark = rig.tap.mark()
+    for _ in range(3):
+        rig.cycle(1.0 / 3 + 0.001)
+    blocks = [(r.servo_id, r.params[1]) for r in rig.tap.requests(mark)]
+    assert blocks == [(1, 24), (2, 4), (3, 4), (1, 4), (2, 24), (3, 4), (1, 4), (2, 4), (3, 24)]
+    assert rig.core.cycle_count == 4 and len(rig.cycles) >= 1
+
+
+def test_positions_and_velocity_follow_the_servo(rig):
+    with rig.dev.runner.locked():
+        rig.sim.move_by_hand(1, 3072)
+    snap = rig.cycle()
+    pan = rig.by_id(snap, 1)
+    assert pan.position_ticks == 3072 and pan.position_rad == pytest.approx(math.pi / 2)
+    assert pan.velocity == 0.0
+
+
+def test_a_lost_reply_is_retried_within_the_cycle_and_costs_nothing(rig):
+    rig.cycle()
+    retries = rig.core.bus.link.stats.retries
+    rig.dev.runner.faults.drop_next = 1
+    snap = rig.cycle()
+    assert all(s.online and s.error_count == 0 for s in snap.servos)
+    assert rig.core.bus.link.stats.retries == retries + 1
+
+
+def test_a_silent_servo_goes_offline_after_its_failures_and_is_reprobed_once_a_second(rig):
+    rig.cycle()
+    with rig.dev.runner.locked():
+        rig.sim.remove_servo(3)
+    for k in range(OFFLINE_AFTER_FAILURES):
+        mark = rig.tap.mark()
+        snap = rig.cycle()
+        # Each failed READ was sent again once (max_retries 1).
+        assert [r.servo_id for r in rig.tap.requests(mark)].count(3) == 2
+    roll = rig.by_id(snap, 3)
+    assert not roll.online and roll.error_count == OFFLINE_AFTER_FAILURES
+    assert 'stopped answering' in rig.log.text('warning')
+    health = rig.core.servo_health(3)
+    assert health.level == ERROR and 'offline' in health.message
+    assert rig.core.bus_health().level == WARN
+    # Offline: not read again until its probe is due, then once, without retries.
+    mark = rig.tap.mark()
+    rig.cycle(0.02)
+    assert 3 not in [r.servo_id for r in rig.tap.requests(mark)]
+    mark = rig.tap.mark()
+    rig.cycle(REPROBE_PERIOD_S)
+    assert [r.servo_id for r in rig.tap.requests(mark)].count(3) == 1
+    with rig.dev.runner.locked():
+        rig.sim.add_servo(3)
+    snap = rig.cycle(REPROBE_PERIOD_S)
+    assert rig.by_id(snap, 3).online and 'back online' in rig.log.text('info')
+    assert rig.core.bus_health().level == OK
+
+
+def test_two_servos_at_one_id_are_reported_as_a_duplicate_id(rig):
+    rig.cycle()
+    with rig.dev.runner.locked():
+        rig.sim.add_servo(2, allow_duplicate=True, position_ticks=1000)
+    for _ in range(12):
+        rig.cycle(CHECK_PERIOD_S / 4)
+    health = rig.core.servo_health(2)
+    assert health.level == ERROR and 'duplicate id' in health.message
+    assert rig.core.bus_health().level == ERROR and 'id(s) 2' in rig.core.bus_health().message
+    assert rig.core.servo_health(1).level == OK
+    assert 'two servos answer to id 2' in rig.log.text('error')
+
+
+def test_two_clean_replies_to_one_request_are_a_duplicate_id_too(tmp_path):
+    # On a bus that keeps the replies apart, the second one is a reply without a request.
+    rig = Rig(tmp_path)
+    try:
+        with rig.dev.runner.locked():
+            rig.sim.collisions = False
+            rig.sim.add_servo(2, allow_duplicate=True)
+        for _ in range(12):
+            rig.cycle(CHECK_PERIOD_S / 4)
+        assert 'duplicate id' in rig.core.servo_health(2).message
+        assert 'replies more than requests' in rig.log.text('error')
+    finally:
+        rig.stop()
+
+
+def test_a_failing_read_loop_is_reported_and_restarts(tmp_path):
+    rig = Rig(tmp_path, loop=True, clock=FakeClock())
+    try:
+        real = rig.core.bus.read_chain
+        calls = []
+
+        def once(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 1:
+                raise RuntimeError('a bug nobody foresaw')
+            return real(*args, **kwargs)
+        rig.core.bus.read_chain = once
+
+        def ran_again():
+            rig.clock.advance(0.02)  # cycles are due on the test's clock
+            return len(calls) >= 3
+        wait_for(ran_again, 5, what='the read loop to run again')
+        health = rig.core.bus_health()
+        assert health.level == ERROR and 'read loop failed' in health.message
+        assert 'restarted 1 time' in health.message
+        assert 'a bug nobody foresaw' in rig.log.text('error')
+        count = rig.core.cycle_count
+        for _ in range(5):
+            rig.clock.advance(0.02)
+            wait_for(lambda c=count: rig.core.cycle_count > c, 5, what='cycles going on')
+            count = rig.core.cycle_count
+        rig.clock.advance(60.0)
+        assert rig.core.bus_health().level == OK
+    finally:
+        rig.stop()
+
+
+# -- commands -----------------------------------------------------------------------------------
+
+def test_safety_17_a_command_flood_is_coalesced_and_the_newest_target_wins(rig):
+    mark = rig.tap.mark()
+    targets = [(-1.0 + k * 0.002) for k in range(1000)]
+    for rad in targets:
+        assert rig.core.command([], [1, 2], [rad, -rad], 0).ok
+    want = [rig.core.units.rad_to_ticks(targets[-1]), rig.core.units.rad_to_ticks(-targets[-1])]
+
+    def last_sync():
+        syncs = [r for r in rig.tap.requests(mark) if r.instruction == Instruction.SYNC_WRITE]
+        return syncs[-1] if syncs else None
+    wait_for(lambda: last_sync() is not None and last_sync().raw ==
+             proto.encode_sync_write_positions([(1, want[0], 0), (2, want[1], 0)]), 5,
+             what='the newest command on the wire')
+    syncs = [r for r in rig.tap.requests(mark) if r.instruction == Instruction.SYNC_WRITE]
+    assert len(syncs) < 100, len(syncs)
+    assert rig.core.commands_superseded >= 1000 * 2 - 2 * len(syncs)
+
+
+def test_a_service_move_supersedes_a_queued_command_and_emergency_stop_drops_them(rig):
+    rig.core.command([], [3], [0.5], 0)
+    result = rig.core.write_positions([], [3], [0.0], 0, False)
+    assert result.ok, result.message
+    assert rig.core.emergency_stop().ok
+    with rig.core._cmd_cond:
+        assert rig.core._pending == {}
+
+
+# -- ids: set_id, factory reset, scan (safety items 15, 16) -------------------------------------
+
+def test_safety_15_set_id_onto_an_id_servo_ids_gives_another_joint_is_refused(rig):
+    rig.cycle()
+    with rig.dev.runner.locked():
+        rig.sim.remove_servo(3)  # offline, but still servo_3's id
+    for _ in range(OFFLINE_AFTER_FAILURES):
+        rig.cycle()
+    mark = rig.tap.mark()
+    result = rig.core.set_id(2, 3)
+    assert not result.ok and 'servo_3' in result.message and 'servo_ids' in result.message
+    assert [r for r in rig.tap.requests(mark) if r.instruction != Instruction.READ] == []
+    assert rig.sim.ids == [1, 2]
+    assert [j.name for j in rig.core.servos] == ['servo_1', 'servo_2', 'servo_3']
+
+
+@pytest.mark.parametrize('collisions, second_position', [(True, 1000), (True, 2048),
+                                                         (False, 1000), (False, 2048)])
+def test_safety_16_set_id_is_refused_when_the_old_id_answers_more_than_once(
+        rig, collisions, second_position):
+    # Colliding replies (mostly garbled, S24) or two clean ones; positions apart or equal.
+    with rig.dev.runner.locked():
+        rig.sim.collisions = collisions
+        rig.sim.add_servo(2, allow_duplicate=True, position_ticks=second_position)
+    mark = rig.tap.mark()
+    result = rig.core.set_id(2, 9)
+    assert not result.ok and 'more than one servo answers at id 2' in result.message
+    assert [r for r in rig.tap.requests(mark) if r.instruction == Instruction.WRITE] == []
+    assert sorted(rig.sim.ids) == [1, 2, 2, 3]
+
+
+def test_set_id_moves_a_single_servo_and_renames_its_joint(rig):
+    result = rig.core.set_id(3, 9)
+    assert result.ok, result.message
+    assert [j.id for j in rig.core.servos] == [1, 2, 9]
+    assert rig.core.servos[2].name == 'servo_9' and sorted(rig.sim.ids) == [1, 2, 9]
+    assert rig.by_id(rig.cycle(), 9).online
+
+
+def test_safety_16_factory_reset_warns_when_the_factory_id_is_taken(rig):
+    result = rig.core.factory_reset(2, 'RESET')
+    assert result.ok
+    assert 'WARNING' in result.message and 'factory id 1' in result.message
+    assert 'servo_1' in result.message and 'more than one servo answers' in result.message
+    assert 'WARNING' in rig.log.text('warning')
+    result = rig.core.set_id(1, 9)
+    assert not result.ok and 'more than one servo answers at id 1' in result.message
+    assert rig.sim.ids == [1, 1, 3]
+
+
+def test_factory_reset_of_a_lone_servo_says_where_it_answers_now(tmp_path):
+    rig = Rig(tmp_path, ids=(2, 3), servo_ids=(2, 3))
+    try:
+        result = rig.core.factory_reset(2, 'RESET')
+        assert result.ok and 'now answers at the factory id 1' in result.message
+        assert 'WARNING' not in result.message
+        assert 'servo_ids lists 2' in result.message  # why set_id 1 -> 2 would be refused
+    finally:
+        rig.stop()
+
+
+def test_scan_names_ids_more_than_one_servo_answers_to(rig):
+    with rig.dev.runner.locked():
+        rig.sim.add_servo(3, allow_duplicate=True, position_ticks=500)
+    result = rig.core.scan(1, 6)
+    assert result.ok and result.data['ids'] == [1, 2, 3]
+    assert result.data['firmware_versions'][:2] == ['v1.28', 'v1.28']
+    assert 'more than one servo answers to id(s) 3' in result.message
+
+
+# -- health -------------------------------------------------------------------------------------
+
+def test_a_servo_bus_at_another_baud_is_silent_and_the_health_says_check_the_baud(tmp_path):
+    rig = Rig(tmp_path, device_baud=9600)
+    try:
+        for _ in range(OFFLINE_AFTER_FAILURES + 1):
+            rig.cycle()
+        health = rig.core.bus_health()
+        assert health.level == ERROR and 'baud parameter (115200)' in health.message
+        assert 'no servo answers' in rig.log.text('warning')
+    finally:
+        rig.stop()
+
+
+def test_a_missing_port_is_an_error_that_says_so_and_opening_is_no_error(tmp_path):
+    core = ServoBusCore(ServoBusConfig(port=str(tmp_path / 'ttyUSB7'), servo_ids=[1]),
+                        clock=FakeClock(), logger=Log())
+    assert core.bus_health().level == WARN and 'opening' in core.bus_health().message
+    core.start(read_loop=False)
+    try:
+        wait_for(lambda: core.bus_health().level == ERROR, 5, what='the open error')
+        assert 'no such device' in core.bus_health().message
+    finally:
+        core.stop()
