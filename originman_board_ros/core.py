@@ -500,15 +500,52 @@ class OriginManCore:
             self._thread.start()
 
     def stop(self, stop_motors: bool = True) -> None:
-        """Stop every motor (if the port is open and ``stop_motors``), the worker, the link."""
+        """Stop every motor (if the port is open and ``stop_motors``), the worker, the link.
+
+        The motors are stopped first (at once), and once more after the worker has ended, so
+        that the last motor frame on the wire is a stop whatever the worker wrote meanwhile
+        (desired settings include the motor type).
+        """
         if stop_motors and self.link.connected:
             self.stop_all_motors()
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
-            self._thread.join(5.0)
+            self._thread.join(3.0)
+            worker_ran = True
             self._thread = None
+        else:
+            worker_ran = False
+        if stop_motors and worker_ran and self.link.connected:
+            self.stop_all_motors()
         self.link.stop()
+
+    def reconfigure(self, config: OriginManConfig) -> None:
+        """Take changed parameters at runtime; ``port`` and ``baud`` need a restart.
+
+        Changed desired settings are written at once when the board is online (else at its
+        next connect); a changed ``bus_servo_ids`` is polled from the next cycle, keeping what
+        is known of the servos that stay. Raises ConfigError naming a bad value.
+        """
+        new = config.validated()
+        old = self.config
+        if (new.port, new.baud) != (old.port, old.baud):
+            raise ConfigError('port and baud are read at start only; restart the node')
+        desired = ('low_battery_mv', 'motor_type', 'pwm_servo_offsets_us')
+        with self._lock:
+            self.config = new
+            if new.bus_servo_ids != old.bus_servo_ids:
+                self._poll_ids = list(new.bus_servo_ids)
+                self._servos = {i: self._servos.get(i, BusServoStatus(i))
+                                for i in self._poll_ids}
+            if any(getattr(new, k) != getattr(old, k) for k in desired):
+                self._expected_offsets = {
+                    i + 1: v for i, v in enumerate(new.pwm_servo_offsets_us)}
+                if self._online:
+                    self._settings_due = self._clock()
+                    self._settings_ok = False
+                    self._settings_message = 'writing'
+        self._wake.set()
 
     def _run(self) -> None:
         while not self._stop.is_set():
