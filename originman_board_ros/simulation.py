@@ -410,7 +410,7 @@ class VirtualOriginManBoardModel:
             self.imu_rate_hz = float(rate_hz)
             self._imu_at = self._now + 1.0 / rate_hz if rate_hz > 0 else None
 
-    def set_imu_source(self, source: Optional['ImuSource']) -> None:
+    def set_imu_source(self, source: Optional[ImuSource]) -> None:
         """Let ``source(t)`` give ``(accel_g, gyro_dps)`` for each report at ``t``; None: fixed.
 
         A scenario that moves the board (a sway, a turn), or one that marks every report with
