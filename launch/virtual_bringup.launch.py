@@ -1,4 +1,4 @@
-"""Both virtual devices and both drivers wired to them: the whole stack without hardware.
+"""Every virtual device and every driver wired to it: the whole stack without hardware.
 
 ros2 launch uav_serial_drivers virtual_bringup.launch.py
 """
@@ -11,11 +11,12 @@ from launch_ros.substitutions import FindPackageShare
 
 
 def generate_launch_description():
-    """Run virtual_parachute + parachute_node and virtual_servo_bus + servo_bus_node."""
+    """Run each virtual device with its driver (parachute, servo bus, OriginMan board)."""
     share = FindPackageShare('uav_serial_drivers')
     parachute_link = LaunchConfiguration('parachute_link')
     servo_link = LaunchConfiguration('servo_link')
     namespace = LaunchConfiguration('namespace')
+    originman_link = LaunchConfiguration('originman_link')
     return LaunchDescription([
         DeclareLaunchArgument('namespace', default_value='',
                               description='namespace of every node'),
@@ -29,6 +30,12 @@ def generate_launch_description():
         Node(package='uav_serial_drivers', executable='virtual_servo_bus',
              name='virtual_servo_bus', namespace=namespace,
              parameters=[{'link': servo_link, 'servo_ids': [1, 2, 3]}], output='screen'),
+        DeclareLaunchArgument('originman_link', default_value='/tmp/voriginman',
+                              description='path of the virtual OriginMan board port'),
+        Node(package='uav_serial_drivers', executable='virtual_originman_board',
+             name='virtual_originman_board', namespace=namespace,
+             parameters=[{'link': originman_link, 'bus_servo_ids': [1, 2, 3]}],
+             output='screen'),
         Node(package='uav_serial_drivers', executable='parachute_node', name='parachute',
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'parachute.yaml']),
@@ -38,5 +45,10 @@ def generate_launch_description():
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'servo_bus.yaml']),
                          {'port': servo_link, 'servo_ids': [1, 2, 3]}],
+             output='screen'),
+        Node(package='uav_serial_drivers', executable='originman_board_node',
+             name='originman_board', namespace=namespace,
+             parameters=[PathJoinSubstitution([share, 'config', 'originman_board.yaml']),
+                         {'port': originman_link, 'bus_servo_ids': [1, 2, 3]}],
              output='screen'),
     ])
