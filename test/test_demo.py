@@ -14,7 +14,9 @@ def test_the_demo_mission_succeeds_and_leaves_no_process_behind():
     assert result.returncode == 0, result.stdout + result.stderr
     last = result.stdout.strip().splitlines()[-1]
     assert last.startswith('demo: OK'), last
-    for step in ['trigger event: source freefall', 'settings re-applied', 'refused:']:
+    for step in ['trigger event: source freefall', 'settings re-applied', 'refused:',
+                 'key 1: pressed → release_from_short_press → click',
+                 'raw [800, 200, 650] reached', 'motors stopped by the motor timeout']:
         assert step in result.stdout, f'{step!r} missing from the demo output'
     leftovers = subprocess.run(['pgrep', '-f', 'uav-demo-'], capture_output=True, text=True)
     assert leftovers.stdout == '', f'demo processes left behind: {leftovers.stdout}'

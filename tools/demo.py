@@ -18,7 +18,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, List, Optional
+from typing import Any, Callable, List, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 # The process plumbing the tests and the benchmarks use as well.
@@ -36,14 +36,16 @@ class Processes:
         self.workdir = workdir
         self.items: List[tuple] = []
 
-    def start(self, executable: str, params: dict) -> subprocess.Popen:
-        """Start an installed executable with a parameter file."""
+    def start(self, executable: str, params: dict,
+              ros_args: Sequence[str] = ()) -> subprocess.Popen:
+        """Start an installed executable with a parameter file (and more ``--ros-args``)."""
         import yaml
         path = executable_path(executable)
         params_file = self.workdir / f'{executable}.yaml'
         params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': params}}))
         log = open(self.workdir / f'{executable}.log', 'wb')
-        proc = subprocess.Popen([path, '--ros-args', '--params-file', str(params_file)],
+        proc = subprocess.Popen([path, '--ros-args', *ros_args, '--params-file',
+                                 str(params_file)],
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
                                 preexec_fn=die_with_parent)
         self.items.append((executable, proc, log))
@@ -121,6 +123,8 @@ class Mission:
         self.thread.start()
         self.view_stop = threading.Event()
         self.view = threading.Thread(target=self._live_view, daemon=True)
+        # Set by a later part of the mission to show its own device in the live view.
+        self.view_override: Optional[Callable[[], str]] = None
 
     def _set(self, attr: str) -> Callable[[Any], None]:
         def callback(msg: Any) -> None:
@@ -185,6 +189,8 @@ class Mission:
 
     def view_line(self) -> str:
         """One line: parachute status, battery, servo positions."""
+        if self.view_override is not None:
+            return self.view_override()
         with self.lock:
             status, battery, joints = self.status, self.battery, self.joints
         if status is None:
@@ -335,6 +341,155 @@ def run_mission(m: Mission, procs: Processes) -> str:
             f'deployment recorded, settings re-applied after reboot')
 
 
+# ---------------------------------------------------------------------------------------------
+# The OriginMan expansion board: virtual board + driver, IMU, a key press, a sweep, a motor stop
+# ---------------------------------------------------------------------------------------------
+
+BOARD_DRIVER_ARGS = ['-r', 'joint_states:=originman_board/joint_states']
+"""The board's servos get a joint_states of their own here, so the servo bus's stays alone."""
+
+
+def start_board(procs: Processes, workdir: Path) -> str:
+    """Start virtual_originman_board and originman_board_node on it; return the link path."""
+    link = str(workdir / 'voriginman')
+    procs.start('virtual_originman_board', {'link': link, 'bus_servo_ids': [1, 2, 3]})
+    deadline = time.monotonic() + 15
+    while not os.path.exists(link):
+        procs.check_alive()
+        if time.monotonic() > deadline:
+            raise DemoFailure('the virtual OriginMan board did not create its port')
+        time.sleep(0.05)
+    procs.start('originman_board_node', {'port': link, 'bus_servo_ids': [1, 2, 3],
+                                         'motor_timeout_s': 0.5}, BOARD_DRIVER_ARGS)
+    return link
+
+
+class BoardView:
+    """What the demo sees of the board: its topics and the virtual board's state."""
+
+    def __init__(self, m: Mission) -> None:
+        import json
+        from sensor_msgs.msg import BatteryState, Imu, JointState
+        from std_msgs.msg import String
+        from uav_serial_drivers.msg import ButtonEvent
+        self.m = m
+        self.json = json
+        self.imu: Optional[Any] = None
+        self.battery: Optional[Any] = None
+        self.joints: Optional[Any] = None
+        self.state: Optional[dict] = None
+        self.buttons: List[Any] = []
+        sub = m.node.create_subscription
+        sub(Imu, '/originman_board/imu', self._set('imu'), 10, callback_group=m.group)
+        sub(BatteryState, '/originman_board/battery', self._set('battery'), 10,
+            callback_group=m.group)
+        sub(JointState, '/originman_board/joint_states', self._set('joints'), 10,
+            callback_group=m.group)
+        sub(ButtonEvent, '/originman_board/button', self._button, 20, callback_group=m.group)
+        sub(String, '/virtual_originman_board/state', self._state, 10, callback_group=m.group)
+
+    def _set(self, attr: str) -> Callable[[Any], None]:
+        def callback(msg: Any) -> None:
+            with self.m.lock:
+                setattr(self, attr, msg)
+                self.m.lock.notify_all()
+        return callback
+
+    def _button(self, msg: Any) -> None:
+        with self.m.lock:
+            self.buttons.append(msg)
+            self.m.lock.notify_all()
+
+    def _state(self, msg: Any) -> None:
+        state = self.json.loads(msg.data)
+        with self.m.lock:
+            self.state = state
+            self.m.lock.notify_all()
+
+    def line(self) -> str:
+        """One line: IMU, battery, last key event, bus servos, motors."""
+        with self.m.lock:
+            imu, battery, joints, state = self.imu, self.battery, self.joints, self.state
+            key = self.buttons[-1].event_name if self.buttons else '-'
+        parts = ['board:']
+        if imu is not None:
+            a, w = imu.linear_acceleration, imu.angular_velocity
+            parts.append(f'IMU a ({a.x:+5.2f} {a.y:+5.2f} {a.z:+5.2f}) m/s² '
+                         f'ω ({w.x:+4.2f} {w.y:+4.2f} {w.z:+4.2f}) rad/s')
+        if battery is not None:
+            parts.append(f'| {battery.voltage:4.2f} V')
+        parts.append(f'| key {key}')
+        if joints is not None:
+            parts.append('| servos ' + ' '.join(f'{p:+.2f}' for p in joints.position) + ' rad')
+        if state is not None:
+            parts.append('| motors ' + ' '.join(f'{v:+.1f}' for v in state['motor_set_points'])
+                         + ' r/s')
+        return ' '.join(parts)
+
+
+def run_board_mission(m: Mission, procs: Processes) -> str:
+    """Show the board: IMU in SI units, a key press, a servo sweep, a motor stop."""
+    from uav_serial_drivers.msg import BusServoCommand, MotorSpeeds
+    from uav_serial_drivers.srv import PressKey, SetImu
+
+    def step(title: str) -> None:
+        procs.check_alive()
+        m.say(f'▶ {title}')
+
+    view = BoardView(m)
+    step('the OriginMan board: waiting for its IMU, battery and bus servos')
+    m.wait(lambda: view.imu is not None and view.battery is not None
+           and view.joints is not None and len(view.joints.name) == 3, 15,
+           'the board online with three bus servos')
+    m.view_override = view.line
+    if not m.view.is_alive():
+        m.view.start()
+
+    step('tilting the board 30° and turning it at 45°/s (the board sends g and deg/s)')
+    reply = m.call(SetImu, '/virtual_originman_board/set_imu', SetImu.Request(
+        accel_g=[0.0, 0.5, 0.866], gyro_dps=[0.0, 0.0, 45.0], rate_hz=-1.0))
+    if not reply.success:
+        raise DemoFailure(f'set_imu failed: {reply.message}')
+    imu = m.wait(lambda: view.imu if view.imu.angular_velocity.z > 0.7 else None, 5,
+                 'the tilted IMU')
+    a = imu.linear_acceleration
+    m.say(f'  ~/imu: a = ({a.x:.2f}, {a.y:.2f}, {a.z:.2f}) m/s², ω z = '
+          f'{imu.angular_velocity.z:.3f} rad/s, orientation unknown (covariance[0] = '
+          f'{imu.orientation_covariance[0]:.0f})')
+
+    step('pressing key 1 (a click)')
+    n_buttons = len(view.buttons)
+    reply = m.call(PressKey, '/virtual_originman_board/press_key',
+                   PressKey.Request(key_id=1, sequence='click'))
+    if not reply.success:
+        raise DemoFailure(f'press_key failed: {reply.message}')
+    m.wait(lambda: any(b.event_name == 'click' for b in view.buttons[n_buttons:]), 5,
+           'the click')
+    events = ' → '.join(b.event_name for b in view.buttons[n_buttons:])
+    m.say(f'  ~/button: key 1: {events}')
+
+    step('sweeping the bus servos (~/bus_servo/command): out, then back to the centre')
+    pub = m.node.create_publisher(BusServoCommand, '/originman_board/bus_servo/command', 10)
+    for positions in ([800, 200, 650], [500, 500, 500]):
+        pub.publish(BusServoCommand(ids=[1, 2, 3], positions=positions, duration_s=1.0))
+        want = [math.radians((p - 500) * 0.24) for p in positions]
+        m.wait(lambda: all(abs(p - w) < 1e-6 for p, w in zip(view.joints.position, want)), 8,
+               f'bus servos at {positions}')
+        m.say(f'  raw {positions} reached: ' + ', '.join(f'{w:+.3f}' for w in want) + ' rad')
+
+    step('running the motors, then going silent: the driver stops them (the board would not)')
+    motors = m.node.create_publisher(MotorSpeeds, '/originman_board/set_motor_speeds', 10)
+    motors.publish(MotorSpeeds(motor_ids=[1, 2, 3, 4], rps=[1.0, 1.0, -1.0, -1.0]))
+    m.wait(lambda: view.state and view.state['motor_set_points'] == [1.0, 1.0, -1.0, -1.0], 5,
+           'the motors turning')
+    started = time.monotonic()
+    m.wait(lambda: view.state['motor_set_points'] == [0.0] * 4, 5, 'the motors stopped')
+    last = view.state['wire']['last_motor']
+    m.say(f'  motors stopped by the motor timeout after {time.monotonic() - started:.1f} s: '
+          f'{last["kind"]} of wire ids {last["wire_ids"]}')
+    return 'board: IMU in SI units, key click, servo sweep, motors stopped by the timeout'
+
+
 def main() -> int:
     """Run the demo; return the exit code."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -365,8 +520,10 @@ def main() -> int:
                                        'trigger_request_policy': 'confirm'})
         procs.start('servo_bus_node', {'port': bus, 'servo_ids': [1, 2, 3],
                                        'torque_on_start': True})
+        start_board(procs, workdir)
         mission = Mission(tty)
         summary = run_mission(mission, procs)
+        summary += '; ' + run_board_mission(mission, procs)
         mission.close()
         mission = None
         print(f'demo: OK in {time.monotonic() - start:.1f} s — {summary}; '
