@@ -1,4 +1,4 @@
-"""Fuzz the four streaming decoders with random and mutated frames between valid ones.
+"""Fuzz the streaming decoders with random and mutated frames between valid ones.
 
 For each decoder a stream is built of segments: valid frames (the ground truth), random
 "frames" (random bytes of frame length, half of them starting with a real header) and mutated
@@ -19,7 +19,7 @@ import random
 import time
 from typing import Callable, Dict, List, Tuple
 
-from bench.decoders import dps_frames, servo_frames
+from bench.decoders import dps_frames, originman_frames, servo_frames
 
 
 def _dps_host_frames(rng: random.Random, count: int) -> List[bytes]:
@@ -51,6 +51,7 @@ def _servo_requests(rng: random.Random, count: int) -> List[bytes]:
 def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
     from desheng_servo_ros import protocol as sp
     from dps_parachute_ros import protocol as p
+    from originman_board_ros import protocol as op
     return {
         'dps_from_module': (lambda: p.StreamDecoder('from_module'), dps_frames,
                             [p.MODULE_HEADER, p.HOST_HEADER]),
@@ -59,6 +60,7 @@ def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
         'servo_reply': (lambda: sp.StreamDecoder('reply'), servo_frames, [sp.REPLY_HEADER]),
         'servo_request': (lambda: sp.StreamDecoder('request'), _servo_requests,
                           [sp.REQUEST_HEADER]),
+        'originman_from_board': (op.StreamDecoder, originman_frames, [op.HEADER]),
     }
 
 

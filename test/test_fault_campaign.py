@@ -13,7 +13,7 @@ import pytest
 
 
 @pytest.mark.parametrize('decoder', ['dps_from_module', 'dps_from_host', 'servo_reply',
-                                     'servo_request'])
+                                     'servo_request', 'originman_from_board'])
 def test_fuzzed_decoder_never_raises_and_recovers_every_clean_frame(decoder):
     r = fuzz.fuzz_one(decoder, 20000, seed=3)
     assert r['exceptions'] == 0
