@@ -18,7 +18,8 @@ import contextlib
 import time
 from typing import Dict, List
 
-from bench.common import node_process, ParachuteRig, percentile, ros_client, workdir
+from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
+                          workdir)
 from bench.device_proc import servo_bus_process
 
 
@@ -127,3 +128,81 @@ def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = Tr
         'deploy_service_p99_ms': percentile(deploy['service_ms'], 99),
         'alive': alive,
     }
+
+
+# ------------------------------------------------------------------------------------------
+# The OriginMan board's IMU: the report's last byte on the wire -> ~/imu received
+# ------------------------------------------------------------------------------------------
+
+def imu_latencies(rig, client, duration_s: float) -> Dict:
+    """Receive ``~/imu`` for `duration_s`; return latencies (ms) of the reports of the window.
+
+    Every report carries its own gyro x (a counter, from the model's IMU source), so a message
+    is matched to the wire time of exactly its report.
+    """
+    import threading
+    from sensor_msgs.msg import Imu
+    received: List[tuple] = []
+    lock = threading.Lock()
+
+    def on_imu(msg) -> None:
+        t = time.monotonic()
+        with lock:
+            received.append((msg.angular_velocity.x, t))
+    client.subscribe(Imu, '/originman_board/imu', on_imu, depth=200)
+    # The window opens once messages flow (discovery takes a while among many nodes).
+    wait_for(lambda: len(received) > 10, 30.0, what='the first ~/imu messages')
+    t0 = time.monotonic()
+    time.sleep(duration_s)
+    t1 = time.monotonic()
+    time.sleep(0.5)  # the last reports of the window arrive
+    with rig.tap._lock:
+        sent = {k: t for k, t in rig.tap.imu_times.items() if t0 <= t <= t1}
+    with lock:
+        got = {k: t for k, t in received}
+    latencies = [(got[k] - t) * 1000.0 for k, t in sent.items() if k in got]
+    return {'latencies_ms': latencies, 'sent': len(sent), 'missed': len(sent) - len(latencies)}
+
+
+def imu_run(duration_s: float = 30.0, rate_hz: float = 100.0,
+            background: bool = True) -> Dict:
+    """IMU latency of ``originman_board_node`` beside the other drivers; return figures.
+
+    Background: ``servo_bus_node`` polling 12 servos at full rate (its bus in another process)
+    and ``parachute_node`` with ``virtual_parachute`` streaming at 20 Hz, all as processes.
+    """
+    import itertools
+    from bench.common import OriginManRig
+    with workdir() as directory, contextlib.ExitStack() as stack:
+        others = []
+        if background:
+            servo_link = str(directory / 'bg-servo.pty')
+            ids = list(range(1, 13))
+            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
+            others.append(stack.enter_context(node_process(
+                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
+                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
+                tag='bg_servo_bus_node')))
+            chute_link = str(directory / 'bg-parachute.pty')
+            others.append(stack.enter_context(node_process(
+                'virtual_parachute', directory, {'link': chute_link, 'stream_rate_hz': 20.0},
+                tag='bg_virtual_parachute')))
+            others.append(stack.enter_context(node_process(
+                'parachute_node', directory, {'port': chute_link,
+                                              'blackbox_dir': str(directory / 'bg-bb')},
+                tag='bg_parachute_node')))
+        counter = itertools.count(1)
+
+        def marked(t: float) -> tuple:
+            return (0.0, 0.0, 1.0), (float(next(counter)), 0.0, 0.0)
+        rig = stack.enter_context(OriginManRig(directory, keep_imu=True, imu_rate_hz=rate_hz))
+        with rig.runner.locked():
+            rig.model.set_imu_source(marked)
+        client = stack.enter_context(ros_client('bench_imu_latency'))
+        rig.wait_ready()
+        r = imu_latencies(rig, client, duration_s)
+        alive = rig.node.alive() and all(o.alive() for o in others)
+    lat = r['latencies_ms']
+    return {'imu_latency_n': len(lat), 'imu_latency_missed': r['missed'],
+            'imu_latency_p50_ms': percentile(lat, 50), 'imu_latency_p99_ms': percentile(lat, 99),
+            'imu_latency_max_ms': max(lat) if lat else float('nan'), 'alive': alive}

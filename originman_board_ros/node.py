@@ -16,8 +16,9 @@ from __future__ import annotations
 from dataclasses import asdict
 import threading
 import time
-from typing import Any, Callable, Dict, List, Sequence
+from typing import Any, Callable, Dict, List, Sequence, Tuple
 
+from builtin_interfaces.msg import Time
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -113,6 +114,10 @@ class OriginManBoardNode(Node):
         self._send_failures = 0
         self._closing = False
         self._rates = m.ReportRates()
+        # The IMU path (reader thread): serialized bytes, stamped from the wall clock unless
+        # the node runs on simulated time.
+        self._imu = m.ImuPacker(self.imu_frame_id)
+        self._sim_time = bool(self.get_parameter('use_sim_time').value)
 
         pub = self.create_publisher
         self.imu_pub = pub(Imu, '~/imu', 10)
@@ -187,21 +192,32 @@ class OriginManBoardNode(Node):
     # -- parameters -----------------------------------------------------------------------------
 
     def _apply(self, changes: Dict[str, Any]) -> None:
+        if 'use_sim_time' in changes:
+            self._sim_time = bool(changes['use_sim_time'])
         if 'frame_id' in changes:
             self.frame_id = changes['frame_id']
         if 'imu_frame_id' in changes:
             self.imu_frame_id = changes['imu_frame_id']
+            self._imu = m.ImuPacker(self.imu_frame_id)
         if any(k in CONFIG_FIELDS for k in changes):
             self.core.reconfigure(_config(changes, self.core.config))
             self.diagnostics.force_update()
 
     # -- reports (link reader thread, core worker) -----------------------------------------------
 
-    def _stamp(self) -> Any:
-        return self.get_clock().now().to_msg()
+    def _now(self) -> Tuple[int, int]:
+        """Return the ROS time now as (sec, nanosec), cheaply when it is the wall clock."""
+        if self._sim_time:
+            stamp = self.get_clock().now().to_msg()
+            return stamp.sec, stamp.nanosec
+        return divmod(time.time_ns(), 1_000_000_000)
+
+    def _stamp(self) -> Time:
+        sec, nanosec = self._now()
+        return Time(sec=sec, nanosec=nanosec)
 
     def _on_imu(self, sample: ImuSample) -> None:
-        self.imu_pub.publish(m.imu_msg(sample, self._stamp(), self.imu_frame_id))
+        self.imu_pub.publish(self._imu.pack(sample, *self._now()))
 
     def _on_battery(self, sample: BatterySample) -> None:
         self.battery_pub.publish(m.battery_msg(sample, self._stamp(), self.frame_id))
