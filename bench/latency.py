@@ -18,8 +18,7 @@ import contextlib
 import time
 from typing import Dict, List
 
-from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
-                          workdir)
+from bench.common import node_process, ParachuteRig, percentile, ros_client, workdir
 from bench.device_proc import servo_bus_process
 
 
@@ -134,34 +133,29 @@ def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = Tr
 # The OriginMan board's IMU: the report's last byte on the wire -> ~/imu received
 # ------------------------------------------------------------------------------------------
 
-def imu_latencies(rig, client, duration_s: float) -> Dict:
+def imu_latencies(rig, directory, duration_s: float) -> Dict:
     """Receive ``~/imu`` for `duration_s`; return latencies (ms) of the reports of the window.
 
     Every report carries its own gyro x (a counter, from the model's IMU source), so a message
-    is matched to the wire time of exactly its report.
+    is matched to the wire time of exactly its report. The receiver is a process of its own
+    (``bench.imu_receiver``): this one runs the board, and its GIL would be in the figure.
     """
-    import threading
-    from sensor_msgs.msg import Imu
-    received: List[tuple] = []
-    lock = threading.Lock()
-
-    def on_imu(msg) -> None:
-        t = time.monotonic()
-        with lock:
-            received.append((msg.angular_velocity.x, t))
-    client.subscribe(Imu, '/originman_board/imu', on_imu, depth=200)
-    # The window opens once messages flow (discovery takes a while among many nodes).
-    wait_for(lambda: len(received) > 10, 30.0, what='the first ~/imu messages')
-    t0 = time.monotonic()
-    time.sleep(duration_s)
-    t1 = time.monotonic()
-    time.sleep(0.5)  # the last reports of the window arrive
+    import json
+    from bench.imu_receiver import imu_receiver
+    out = directory / 'imu_received.json'
+    with imu_receiver('/originman_board/imu', out) as wall_offset:
+        t0 = time.monotonic() + 0.5
+        time.sleep(duration_s + 0.5)
+        t1 = time.monotonic()
+        time.sleep(0.5)  # the last reports of the window arrive
+    received = {k: (t, stamp - wall_offset) for k, t, stamp in json.loads(out.read_text())}
     with rig.tap._lock:
         sent = {k: t for k, t in rig.tap.imu_times.items() if t0 <= t <= t1}
-    with lock:
-        got = {k: t for k, t in received}
-    latencies = [(got[k] - t) * 1000.0 for k, t in sent.items() if k in got]
-    return {'latencies_ms': latencies, 'sent': len(sent), 'missed': len(sent) - len(latencies)}
+    latencies = [(received[k][0] - t) * 1000.0 for k, t in sent.items() if k in received]
+    # Information: the driver's share, to its publish (the header stamp, wall clock).
+    driver = [(received[k][1] - t) * 1000.0 for k, t in sent.items() if k in received]
+    return {'latencies_ms': latencies, 'driver_ms': driver, 'sent': len(sent),
+            'missed': len(sent) - len(latencies)}
 
 
 def imu_run(duration_s: float = 30.0, rate_hz: float = 100.0,
@@ -198,11 +192,12 @@ def imu_run(duration_s: float = 30.0, rate_hz: float = 100.0,
         rig = stack.enter_context(OriginManRig(directory, keep_imu=True, imu_rate_hz=rate_hz))
         with rig.runner.locked():
             rig.model.set_imu_source(marked)
-        client = stack.enter_context(ros_client('bench_imu_latency'))
         rig.wait_ready()
-        r = imu_latencies(rig, client, duration_s)
+        r = imu_latencies(rig, directory, duration_s)
         alive = rig.node.alive() and all(o.alive() for o in others)
     lat = r['latencies_ms']
     return {'imu_latency_n': len(lat), 'imu_latency_missed': r['missed'],
             'imu_latency_p50_ms': percentile(lat, 50), 'imu_latency_p99_ms': percentile(lat, 99),
-            'imu_latency_max_ms': max(lat) if lat else float('nan'), 'alive': alive}
+            'imu_latency_max_ms': max(lat) if lat else float('nan'),
+            'imu_latency_driver_p50_ms': percentile(r['driver_ms'], 50),
+            'imu_latency_driver_p99_ms': percentile(r['driver_ms'], 99), 'alive': alive}

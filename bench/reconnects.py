@@ -4,10 +4,10 @@ Each cycle pulls the cable (``VirtualDeviceRunner.unplug``: the pty closes and i
 vanishes, as a USB adapter does), waits ``unplug_s``, plugs it back at the same path and times
 the recovery on the device's side of the wire: from the replug to the first complete
 transaction of the driver on the new port (servo: a position READ answered; parachute: a host
-frame answered by the module). The driver's open file descriptors, pty descriptors
-and threads are sampled after every cycle; a leak is growth in the second half of the cycles
-beyond the high-water mark of the first half (pools that start threads lazily are not leaks);
-``crashes`` counts driver processes that died.
+frame answered by the module; OriginMan board: a bus servo read answered). The driver's open
+file descriptors, pty descriptors and threads are sampled after every cycle; a leak is growth
+in the second half of the cycles beyond the high-water mark of the first half (pools that start
+threads lazily are not leaks); ``crashes`` counts driver processes that died.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from __future__ import annotations
 import time
 from typing import Dict, List
 
-from bench.common import (fd_count, median, ParachuteRig, pty_fds, ServoRig, thread_count,
-                          wait_for, workdir)
+from bench.common import (fd_count, median, OriginManRig, ParachuteRig, pty_fds, ServoRig,
+                          thread_count, wait_for, workdir)
 
 
 def _resources(pid: int) -> Dict[str, int]:
@@ -46,6 +46,11 @@ def _parachute_recovered(rig: ParachuteRig, since: float) -> float:
         if first_rx is None:
             return 0.0
         return next((t for t, f in tap.tx if t >= first_rx and f.from_module), 0.0)
+
+
+def _originman_recovered(rig: OriginManRig, since: float) -> float:
+    replies = rig.tap.bus_replies(since)
+    return replies[0][0] if replies else 0.0
 
 
 def _cycles(rig, recovered, cycles: int, unplug_s: float, timeout_s: float) -> Dict:
@@ -114,9 +119,17 @@ def parachute(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0)
         return _cycles(rig, _parachute_recovered, cycles, unplug_s, timeout_s)
 
 
+def originman(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0) -> Dict:
+    """Unplug/replug the OriginMan board `cycles` times under ``originman_board_node``."""
+    with workdir() as directory, OriginManRig(directory) as rig:
+        rig.wait_ready()
+        return _cycles(rig, _originman_recovered, cycles, unplug_s, timeout_s)
+
+
 def run(cycles: int = 100) -> Dict:
-    """Both devices; return per-device results and the summary figures."""
-    results = {'servo': servo(cycles), 'parachute': parachute(cycles)}
+    """Every device; return per-device results and the summary figures."""
+    results = {'servo': servo(cycles), 'parachute': parachute(cycles),
+               'originman': originman(cycles)}
     return {
         'per_device': results,
         'reconnect_cycles': min(r['cycles'] for r in results.values()),

@@ -1,9 +1,11 @@
-"""Both drivers for a while on lossy wires: no crash, bounded memory, no stalled topic.
+"""The drivers for a while on lossy wires: no crash, bounded memory, no stalled topic.
 
-``servo_bus_node`` (12 servos, 50 Hz, 115200 baud) and ``parachute_node`` (status stream at
-20 Hz) run side by side against their virtual devices in this process; each device drops 1 %
-and corrupts (checksum) 1 % of its replies at random (``WireFaults``). A subscriber in a private
-rclpy context records every ``/joint_states`` and ``/parachute/status`` message. Figures:
+``servo_bus_node`` (12 servos, 50 Hz, 115200 baud), ``parachute_node`` (status stream at
+20 Hz) and ``originman_board_node`` (IMU at 50 Hz, 3 bus servos polled at 10 Hz, 1 Mbaud) run
+side by side against their virtual devices in this process; each device drops 1 % and corrupts
+(checksum) 1 % of its replies at random (``WireFaults``; the OriginMan board: of every frame it
+sends, its reports included). A subscriber in a private rclpy context records every
+``/joint_states`` of the servo bus, ``/parachute/status`` and ``/originman_board/imu``. Figures:
 crashes, RSS growth of each driver from the end of the warm-up (``min(30 s, 10 %)``) to the
 end, and the longest gap between two consecutive messages of each topic by their header stamps
 (the driver's publish times; the gap as received here is reported too).
@@ -16,7 +18,7 @@ import threading
 import time
 from typing import Dict, List
 
-from bench.common import ParachuteRig, ros_client, rss_bytes, ServoRig, workdir
+from bench.common import OriginManRig, ParachuteRig, ros_client, rss_bytes, ServoRig, workdir
 
 
 class _DeviceProbe:
@@ -118,43 +120,49 @@ class _Gaps:
 def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         sample_s: float = 2.0) -> Dict:
     """Soak both drivers for `duration_s`; return the figures."""
-    from sensor_msgs.msg import JointState
+    from sensor_msgs.msg import Imu, JointState
     from uav_serial_drivers.msg import ParachuteStatus
     warmup = min(30.0, 0.1 * duration_s)
     with workdir() as directory, contextlib.ExitStack() as stack:
         servo = stack.enter_context(ServoRig(directory, list(range(1, 13)), 115200,
                                              {'publish_rate_hz': 50.0}, seed=11))
         chute = stack.enter_context(ParachuteRig(directory, stream_period_s=0.05, seed=12))
-        probes = {'servo': _DeviceProbe(), 'parachute': _DeviceProbe()}
-        servo.runner.add_tap(probes['servo'])
-        chute.runner.add_tap(probes['parachute'])
+        board = stack.enter_context(OriginManRig(directory, seed=13))
+        rigs = {'servo': servo, 'parachute': chute, 'originman': board}
+        probes = {name: _DeviceProbe() for name in rigs}
+        for name, rig in rigs.items():
+            rig.runner.add_tap(probes[name])
         watchdog = _Watchdog()
         stack.callback(watchdog.stop)
         client = stack.enter_context(ros_client('bench_soak'))
-        joints, status = _Gaps(), _Gaps()
-        client.subscribe(JointState, '/joint_states', joints)
+        joints, status, imu = _Gaps(), _Gaps(), _Gaps()
+        # The board's bus servos (bus_servo_<id>) share /joint_states with the servo bus.
+        client.subscribe(JointState, '/joint_states', lambda msg: None if msg.name and
+                         msg.name[0].startswith('bus_servo_') else joints(msg))
         client.subscribe(ParachuteStatus, '/parachute/status', status)
-        servo.wait_ready()
-        chute.wait_ready()
-        for rig in (servo, chute):
+        client.subscribe(Imu, '/originman_board/imu', imu)
+        for rig in rigs.values():
+            rig.wait_ready()
+        for rig in rigs.values():
             rig.runner.faults.drop_probability = drop
             rig.runner.faults.corrupt_probability = corrupt
-        pids = {'servo': servo.node.pid, 'parachute': chute.node.pid}
+        pids = {name: rig.node.pid for name, rig in rigs.items()}
         time.sleep(min(warmup, 5.0))
         start = time.monotonic()
         joints.reset()
         status.reset()
+        imu.reset()
         for probe in probes.values():
             probe.reset()
         watchdog.max_late = 0.0
-        logs_at_start = {'servo': len(servo.node.output()), 'parachute': len(chute.node.output())}
+        logs_at_start = {name: len(rig.node.output()) for name, rig in rigs.items()}
         rss: Dict[str, List[float]] = {k: [] for k in pids}
         baseline: Dict[str, int] = {}
         end = start + duration_s
         alive = True
         while time.monotonic() < end:
             time.sleep(min(sample_s, max(0.0, end - time.monotonic())))
-            alive = servo.node.alive() and chute.node.alive()
+            alive = all(rig.node.alive() for rig in rigs.values())
             if not alive:
                 break
             for name, pid in pids.items():
@@ -165,14 +173,18 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         growth = {name: (rss[name][-1] - baseline.get(name, rss[name][0])) / 1e6
                   if rss[name] else float('nan') for name in pids}
         faults = {name: (rig.runner.replies_dropped, rig.runner.replies_corrupted)
-                  for name, rig in (('servo', servo), ('parachute', chute))}
+                  for name, rig in rigs.items()}
         result = {
             'soak_s': round(t_end - start, 1),
-            'soak_crashes': sum(1 for rig in (servo, chute) if not rig.node.alive()),
+            'soak_crashes': sum(1 for rig in rigs.values() if not rig.node.alive()),
             'soak_rss_growth_mb_servo': growth['servo'],
             'soak_rss_growth_mb_parachute': growth['parachute'],
+            'soak_rss_growth_mb_originman': growth['originman'],
             'soak_max_gap_s_joint_states': joints.final(t_end),
             'soak_max_gap_s_status': status.final(t_end),
+            'soak_max_gap_s_imu': imu.final(t_end),
+            'soak_rx_gap_s_imu': imu.max_rx_gap,
+            'soak_imu_msgs': imu.count,
             'soak_rx_gap_s_joint_states': joints.max_rx_gap,
             'soak_rx_gap_s_status': status.max_rx_gap,
             'soak_joint_states_msgs': joints.count,
@@ -189,10 +201,11 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
                                               round(watchdog.max_late_at - start, 1)),
                 'joint_states_gap_ended_at': round(joints.max_gap_at - start, 1),
                 'status_gap_ended_at': round(status.max_gap_at - start, 1),
+                'imu_gap_ended_at': round(imu.max_gap_at - start, 1),
             },
             'soak_driver_log': {
                 name: _log_events(rig.node.output()[logs_at_start[name]:])
-                for name, rig in (('servo', servo), ('parachute', chute))},
+                for name, rig in rigs.items()},
             'alive': alive,
         }
     return result

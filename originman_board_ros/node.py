@@ -14,6 +14,7 @@ no exception leaves a callback. Decisions O1.. are in ``docs/protocols.md``.
 from __future__ import annotations
 
 from dataclasses import asdict
+import sys
 import threading
 import time
 from typing import Any, Callable, Dict, List, Sequence, Tuple
@@ -43,6 +44,8 @@ from uav_serial_common.params import (check_values, declare_parameters, Paramete
 
 REFUSAL_LOG_PERIOD_S = 5.0
 """A refused topic message is logged at most once per cause in this period (the contract)."""
+SWITCH_INTERVAL_S = 0.001
+"""The GIL switch interval of the driver process (Python's default is 5 ms)."""
 EXECUTOR_THREADS = 6
 """One per callback group that can be busy at once: bus servo services, PWM services,
 ``~/stop_motors``, topics, diagnostics, parameter services."""
@@ -264,9 +267,11 @@ class OriginManBoardNode(Node):
             if result.ok:
                 return
             if result.cause:
-                # Refused before anything was sent; the core counted it for diagnostics.
+                # Refused before anything was sent; the core counted it for diagnostics, which
+                # show it at once (the updater publishes at most every 0.1 s).
                 self._log_once(result.cause, f'{name}: refused ({result.cause}), nothing '
                                              f'sent: {result.message}')
+                self.diagnostics.force_update()
             else:
                 self._send_failures += 1
                 self._log_once('not_sent', f'{name}: {result.message}')
@@ -328,9 +333,11 @@ class OriginManBoardNode(Node):
 
 def main(args: Sequence[str] = None) -> int:
     """Run ``originman_board_node`` until SIGINT/SIGTERM."""
+    # The reader thread publishes each IMU report as it arrives; when another thread holds
+    # the GIL, it would wait up to the 5 ms default switch interval (imu_latency_p99_ms).
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run_node(OriginManBoardNode, args, threads=EXECUTOR_THREADS)
 
 
 if __name__ == '__main__':
-    import sys
     sys.exit(main())
