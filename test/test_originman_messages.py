@@ -5,7 +5,8 @@ import math
 from builtin_interfaces.msg import Time
 from originman_board_ros import messages as m
 from originman_board_ros import protocol as p
-from originman_board_ros.core import (BatterySample, BusServoStatus, ImuSample, imu_to_si,
+from originman_board_ros.core import (AsrSample, BatterySample, BusServoStatus, gamepad_axes,
+                                      gamepad_buttons, GamepadSample, ImuSample, imu_to_si,
                                       OriginManSnapshot, SbusSample, sbus_normalize)
 import pytest
 from rclpy.serialization import deserialize_message
@@ -51,6 +52,16 @@ def test_o16_sbus_message_keeps_raw_and_normalized():
                                 False, True), STAMP, 'board')
     assert list(msg.channels) == list(raw) and msg.ch17 and msg.failsafe
     assert [round(float(v), 3) for v in msg.normalized[:4]] == [-1.0, 0.0, 0.999, 1.0]
+
+
+def test_o15_joy_and_o2_asr_messages():
+    report = p.GamepadReport(buttons=0b101, hat=9, lx=127, ly=-128, rx=0, ry=64)
+    msg = m.joy_msg(GamepadSample(0.0, tuple(gamepad_axes(report)),
+                                  tuple(gamepad_buttons(report)), report), STAMP, 'board')
+    assert list(msg.axes) == pytest.approx([1.0, -1.0, 0.0, 64 / 127, 1.0, 0.0])
+    assert list(msg.buttons) == [1, 0, 1] + [0] * 13
+    assert list(m.asr_msg(AsrSample(0.0, b'\xbb\xcc\x01\x02\x03')).data) == [
+        0xBB, 0xCC, 1, 2, 3]
 
 
 def test_joint_states_hold_only_online_servos_named_bus_servo_id():

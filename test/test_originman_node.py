@@ -166,6 +166,9 @@ def test_reports_are_published_in_si_units_with_the_keys_exact_events(ros, launc
     assert list(frame.channels) == raw and not frame.failsafe
     assert [round(float(v), 4) for v in frame.normalized[:5]] == [-1.0, 0.0, 0.9988, 1.0, -1.0]
 
+    # Noise on the wire is skipped; the board stays online.
+    rig.board_call(Trigger, 'inject_garbage')
+    rig.diag('link', lambda s: int(values_of(s)['bytes discarded']) > 0, 10, 'noise discarded')
     status, values = rig.diag('link', lambda s: s.level == b'\x00'
                               and values_of(s)['imu rate [Hz]'] != 'n/a', 10, 'IMU rate')
     assert float(values['imu rate [Hz]']) > 0 and int(values['frames']) > 0
