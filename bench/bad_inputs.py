@@ -7,7 +7,8 @@ polling while the cases run, so "a byte on the wire" means a frame that the driv
 background traffic does not contain: first the benchmark records, for a few seconds, every
 distinct frame the idle driver sends (position/telemetry READs, status/aux queries); then any
 other frame that reaches the device between a call and 50 ms after its response counts
-against that case.
+against that case. The handset driver has no services: its bad inputs are frames on the wire,
+battery messages and parameter sets (``handset``), and it must never write to the modem (H11).
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ import threading
 import time
 from typing import Any, Dict, List, Tuple
 
-from bench.common import OriginManRig, ParachuteRig, ros_client, ServoRig, wait_for, workdir
+from bench.common import (HandsetRig, OriginManRig, ParachuteRig, ros_client, ServoRig, wait_for,
+                          workdir)
 
 NAN = math.nan
 INF = math.inf
@@ -378,7 +380,8 @@ def originman(observe_s: float = 3.0) -> Dict:
 
 def run() -> Dict:
     """Every driver; return per-driver results and the summary figures."""
-    results = {'servo': servo(), 'parachute': parachute(), 'originman': originman()}
+    results = {'servo': servo(), 'parachute': parachute(), 'handset': handset(),
+               'originman': originman()}
     return {
         'per_driver': results,
         'bad_inputs_cases': sum(r['cases'] for r in results.values()),
@@ -391,3 +394,158 @@ def run() -> Dict:
 if __name__ == '__main__':
     import pprint
     pprint.pprint(run())
+
+
+# -- the handset link: bad frames on the wire, bad battery messages, bad parameters --------
+
+def handset_frame_cases() -> List[Tuple[str, bytes, str]]:
+    """Return (name, bytes, expected counter) of frames the handset driver must refuse."""
+    import struct
+    from handset_link_ros import protocol as hp
+    T = hp.CommandType
+    good = hp.encode_command(T.SET_YAW, 45, 'int16')
+
+    def raw(type_: int, payload: bytes) -> bytes:
+        return hp.build_frame(type_, payload)
+
+    def f32(value: float) -> bytes:
+        return struct.pack('<f', value)
+
+    def out(type_: int, value: float, encoding: str) -> bytes:
+        return hp.encode_command(type_, value, encoding, check=False)
+    oor, bad, unk = 'out_of_range', 'malformed', 'unknown_type'
+    return [
+        ('yaw 500 int16', out(T.SET_YAW, 500, 'int16'), oor),
+        ('yaw -181 json', out(T.SET_YAW, -181, 'json'), oor),
+        ('pitch 91 json', out(T.SET_PITCH, 91, 'json'), oor),
+        ('roll -90.5 json', out(T.SET_ROLL, -90.5, 'json'), oor),
+        ('altitude 1000.5 float32', raw(T.SET_ALTITUDE, f32(1000.5)), oor),
+        ('altitude -101 int16', out(T.SET_ALTITUDE, -101, 'int16'), oor),
+        ('lights 101 int8', out(T.SET_LIGHTS, 101, 'int8'), oor),
+        ('lights -1 int8', out(T.SET_LIGHTS, -1, 'int8'), oor),
+        ('lights 50.5 json', raw(T.SET_LIGHTS, b'{"lights": 50.5}'), oor),
+        ('camera angle 95 json', out(T.SET_CAMERA_ANGLE, 95, 'json'), oor),
+        ('record 2 int8', out(T.SET_CAMERA_RECORD, 2, 'int8'), oor),
+        ('record 0.5 float32', raw(T.SET_CAMERA_RECORD, f32(0.5)), oor),
+        ('pitch NaN float32', raw(T.SET_PITCH, f32(math.nan)), oor),
+        ('yaw inf float32', raw(T.SET_YAW, f32(math.inf)), oor),
+        ('roll -inf float32', raw(T.SET_ROLL, f32(-math.inf)), oor),
+        ('bad checksum', good[:-2] + bytes([good[-2] ^ 0x01]) + good[-1:], bad),
+        ('bad end byte', good[:-1] + b'\x56', bad),
+        ('LEN 1', b'\xaa\x01\x01\x55', bad),
+        ('json NaN', raw(T.SET_ALTITUDE, b'{"altitude": NaN}'), bad),
+        ('json Infinity', raw(T.SET_YAW, b'{"yaw": Infinity}'), bad),
+        ('json 1e400', raw(T.SET_YAW, b'{"yaw": 1e400}'), bad),
+        ('json duplicate key', raw(T.SET_YAW, b'{"yaw": 1, "yaw": 2}'), bad),
+        ('json wrong key', raw(T.SET_YAW, b'{"pitch": 1}'), bad),
+        ('json trailing comma', raw(T.SET_YAW, b'{"yaw": 1,}'), bad),
+        ('json single quotes', raw(T.SET_YAW, b"{'yaw': 1}"), bad),
+        ('json string value', raw(T.SET_YAW, b'{"yaw": "1"}'), bad),
+        ('json not UTF-8', raw(T.SET_YAW, b'{"yaw": \xff}'), bad),
+        ('json true for yaw', raw(T.SET_YAW, b'{"yaw": true}'), bad),
+        ('3-byte payload', raw(T.SET_YAW, b'\x01\x02\x03'), bad),
+        ('empty payload', raw(T.SET_YAW, b''), bad),
+        ('truncated frame', good[:4], bad),
+        ('unknown type 0x00', raw(0x00, b'\x01'), unk),
+        ('unknown type 0x08', raw(0x08, b'{"x": 1}'), unk),
+        ('unknown type 0xFF', raw(0xFF, b''), unk),
+    ]
+
+
+def _refused_params() -> List[Tuple[str, Any]]:
+    return [('link_timeout_s', 0.0), ('link_timeout_s', -1.0), ('link_timeout_s', NAN),
+            ('link_timeout_s', INF), ('expected_rate_hz', 0.0), ('low_battery_fraction', 1.5),
+            ('low_battery_fraction', -0.1), ('battery_topic', 'elsewhere'),
+            ('port', '/dev/null'), ('baud', 9600), ('frame_id', 42)]
+
+
+def handset(observe_s: float = 1.0) -> Dict:
+    """Feed the handset driver bad frames, bad battery messages and bad parameters."""
+    from handset_link_ros import protocol as hp
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import BatteryState
+    from uav_serial_drivers.msg import Failsafe, HandsetLink, HandsetSetpoint
+    setpoints: List[Any] = []
+    links: List[Any] = []
+    failsafes: List[Any] = []
+    accepted: List[str] = []
+    errors: List[str] = []
+    cases = handset_frame_cases()
+    with workdir() as directory, HandsetRig(directory) as rig, \
+            ros_client('bench_bad_inputs_handset') as client:
+        client.subscribe(HandsetSetpoint, '/handset_link/setpoint', setpoints.append, depth=200)
+        client.subscribe(HandsetLink, '/handset_link/link', links.append)
+        client.subscribe(Failsafe, '/handset_link/failsafe', failsafes.append, latched=True)
+        rig.wait_ready()
+        wait_for(lambda: setpoints and failsafes, 20, what='the first setpoint')
+        with rig.runner.locked():
+            rig.sim.set_radio_link(False)  # from now on the wire carries only these cases
+        n = len(links)
+        base = wait_for(lambda: links[n + 1:] and links[-1], 5, what='a quiet link report')
+        time.sleep(observe_s)
+        refused = 0
+        for i, (name, data, _) in enumerate(cases):
+            # A valid frame after each case: once its setpoint is here, the case was read too.
+            sentinel_yaw = -100.0 - 0.25 * i
+            sentinel = hp.encode_command(hp.CommandType.SET_YAW, sentinel_yaw)
+            start = len(setpoints)
+            with rig.runner.locked():
+                rig.sim.send_raw(data)
+                rig.sim.send_raw(sentinel)
+            try:
+                wait_for(lambda: any(m.yaw_deg == sentinel_yaw for m in setpoints[start:]), 3,
+                         what=f'the sentinel after {name}')
+            except TimeoutError:
+                errors.append(f'{name}: the valid frame after it never arrived')
+                continue
+            others = [m for m in setpoints[start:] if m.yaw_deg != sentinel_yaw or
+                      m.updated != ['yaw_deg']]
+            if others:
+                accepted.append(f'{name}: published {others[0].updated}')
+            else:
+                refused += 1
+        expected = {k: sum(1 for c in cases if c[2] == k)
+                    for k in ('out_of_range', 'malformed', 'unknown_type')}
+
+        def counted() -> bool:
+            last = links[-1]
+            return all(getattr(last, f'frames_{k}') - getattr(base, f'frames_{k}') >= v
+                       for k, v in expected.items())
+        try:
+            wait_for(counted, 5, what='the rejections counted in ~/link')
+        except TimeoutError:
+            pass
+        last = links[-1]
+        got = {k: getattr(last, f'frames_{k}') - getattr(base, f'frames_{k}') for k in expected}
+        if got != expected:
+            errors.append(f'counted {got}, expected {expected}')
+        # Battery messages that say nothing about the battery (H9): the failsafe stays.
+        pub = client.node.create_publisher(BatteryState, '/battery', 10)
+        n_failsafes = len(failsafes)
+        battery_cases = [math.nan, -0.5, 1.5, INF, -INF]
+        for level in battery_cases:
+            pub.publish(BatteryState(percentage=level))
+        time.sleep(0.5)
+        battery_refused = len(battery_cases) if len(failsafes) == n_failsafes else 0
+        if not battery_refused:
+            accepted.append(f'bad battery messages changed the failsafe: {failsafes[-1]}')
+        # Parameters: each set must be refused.
+        service = client.client(SetParameters, '/handset_link/set_parameters')
+        param_refused = 0
+        for name, value in _refused_params():
+            request = SetParameters.Request(
+                parameters=[Parameter(name, value=value).to_parameter_msg()])
+            result = client.call(service, request).results[0]
+            if result.successful:
+                accepted.append(f'parameter {name}={value!r} accepted')
+            else:
+                param_refused += 1
+        alive = rig.node.alive()
+        wire = [f'{rig.tap.rx_bytes} bytes written to the modem (H11: none)'] \
+            if rig.tap.rx_bytes else []
+    if not alive:
+        errors.append('handset_link_node died')
+    total = len(cases) + len(battery_cases) + len(_refused_params())
+    return {'cases': total, 'refused': refused + battery_refused + param_refused,
+            'accepted': accepted, 'bytes_on_wire': wire, 'errors': errors}

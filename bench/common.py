@@ -500,6 +500,88 @@ class ParachuteRig(_Rig):
         self._wait_ready(streaming, timeout, 'the driver to turn the stream on')
 
 
+# ------------------------------------------------------------------------------------------
+# The handset link: a virtual handset in this process, handset_link_node as a process
+# ------------------------------------------------------------------------------------------
+
+class HandsetWireTap:
+    """The virtual handset's wire: every frame sent, with the time its last byte arrived.
+
+    The runner writes one frame per chunk (``step_frames``), so a chunk's time is its frame's
+    end. ``rx_bytes`` counts what the driver wrote to the modem's port: H11 says none.
+    """
+
+    def __init__(self) -> None:
+        from handset_link_ros.protocol import StreamDecoder
+        self._decoder = StreamDecoder()
+        self._lock = threading.Lock()
+        self.sent: List[tuple] = []
+        self.rx_bytes = 0
+
+    def __call__(self, direction: str, data: bytes, t: float) -> None:
+        from handset_link_ros.protocol import Command
+        with self._lock:
+            if direction == 'rx':
+                self.rx_bytes += len(data)
+                return
+            self.sent.extend((t, r) for r in self._decoder.feed(data) if isinstance(r, Command))
+
+    def snapshot(self) -> List[tuple]:
+        """Return a copy of ``[(t_last_byte, Command)]``."""
+        with self._lock:
+            return list(self.sent)
+
+
+def numbered_stick(k: int) -> Dict[str, float]:
+    """Return stick values unique to tick `k` (within 1800 ticks), all inside the H4 ranges."""
+    return {'yaw_deg': round(-180.0 + (k % 3600) * 0.1, 1),
+            'pitch_deg': round(-90.0 + (k % 1800) * 0.1, 1),
+            'roll_deg': round(90.0 - (k % 1800) * 0.1, 1),
+            'altitude_m': round(-100.0 + (k % 110000) * 0.01, 2)}
+
+
+class HandsetRig(_Rig):
+    """A virtual handset in this process (a tap on its wire) and `handset_link_node` on it.
+
+    The handset is `VirtualHandset` behind `handset_link_ros.virtual_node.create_runner`, as in
+    ``virtual_handset`` (frames paced at the baud, wire faults per frame). With `numbered`, the
+    four stick values change every tick (`numbered_stick`), so each frame can be matched to the
+    ``~/setpoint`` that carries it.
+    """
+
+    executable = 'handset_link_node'
+
+    def __init__(self, directory: Path, baud: int = 115200, numbered: bool = False,
+                 parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
+                 tag: str = 'handset_link_node') -> None:
+        from handset_link_ros.simulation import VirtualHandset
+        from handset_link_ros.virtual_node import create_runner
+        self.link = str(directory / f'{tag}.pty')
+        self.sim = VirtualHandset(now=time.monotonic())
+        self.ticks = 0
+        params = {'port': self.link, 'baud': baud}
+        params.update(parameters or {})
+        runner = create_runner(self.sim, self.link, baud, seed,
+                               on_tick=self._numbered if numbered else None)
+        super().__init__(directory, runner, HandsetWireTap(), params, tag)
+
+    def _numbered(self, now: float) -> List[bytes]:
+        due = self.sim.next_event_time()
+        if due is not None and due <= now + 1e-9:
+            self.ticks += 1
+            self.sim.set_sticks(**numbered_stick(self.ticks))
+        return self.sim.step_frames(now)
+
+    def wait_ready(self, timeout: float = 40.0) -> None:
+        """Wait until the driver has heard the handset (its log says so); raise if it died."""
+        self._wait_ready(lambda: 'handset heard' in self.node.output(), timeout,
+                         'the driver to hear the handset')
+
+
+# ------------------------------------------------------------------------------------------
+# The OriginMan board: a virtual board in this process, originman_board_node as a process
+# ------------------------------------------------------------------------------------------
+
 class OriginManWireTap:
     """Decode both directions of the OriginMan board's port into timed messages.
 

@@ -3,6 +3,8 @@
 - ``cpu_servo_pct``: ``servo_bus_node`` with 12 servos at ``publish_rate_hz`` 50 (default
   telemetry period 1 s) on a virtual bus at 115200 baud.
 - ``cpu_parachute_pct``: ``parachute_node`` with the module's status stream at 20 Hz.
+- ``cpu_handset_pct``: ``handset_link_node`` with the handset at 50 Hz (four stick frames per
+  tick, JSON, auxiliary once a second), 200 ``~/setpoint`` messages/s with one subscriber.
 - ``cpu_originman_pct``: ``originman_board_node`` with the board's IMU at 100 Hz and 3 bus servos
   polled at 10 Hz (default telemetry period 2 s), 1 Mbaud.
 
@@ -48,6 +50,25 @@ def parachute_cpu(duration_s: float = 10.0, warmup_s: float = 2.0,
     return {'cpu_pct': pct}
 
 
+def handset_cpu(duration_s: float = 10.0, warmup_s: float = 2.0) -> Dict[str, float]:
+    """Return the handset driver's CPU percent at 50 Hz, and the setpoints/s it published."""
+    from bench.common import HandsetRig, ros_client
+    from uav_serial_drivers.msg import HandsetSetpoint
+    count = [0]
+    with workdir() as directory, HandsetRig(directory) as rig, \
+            ros_client('bench_cpu_handset') as client:
+        client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
+                         lambda m: count.__setitem__(0, count[0] + 1))
+        rig.wait_ready()
+        time.sleep(warmup_s)
+        meter = CpuMeter(rig.node.pid)
+        start, t0 = count[0], time.monotonic()
+        time.sleep(duration_s)
+        pct = meter.percent()
+        rate = (count[0] - start) / (time.monotonic() - t0)
+    return {'cpu_pct': pct, 'setpoints_s': rate}
+
+
 def originman_cpu(duration_s: float = 10.0, warmup_s: float = 2.0,
                   imu_rate_hz: float = 100.0, poll_hz: float = 10.0) -> Dict[str, float]:
     """Return the OriginMan driver's CPU percent: IMU at `imu_rate_hz`, 3 servos at `poll_hz`."""
@@ -68,13 +89,15 @@ def originman_cpu(duration_s: float = 10.0, warmup_s: float = 2.0,
 
 
 def run(duration_s: float = 10.0) -> Dict[str, float]:
-    """Measure both drivers one after the other; return the ``cpu_*`` figures."""
+    """Measure the drivers one after the other; return the ``cpu_*`` figures."""
     servo = servo_cpu(duration_s)
     parachute = parachute_cpu(duration_s)
+    handset = handset_cpu(duration_s)
     board = originman_cpu(duration_s)
     return {'cpu_servo_pct': servo['cpu_pct'], 'cpu_servo_cycles_s': servo['cycles_s'],
-            'cpu_parachute_pct': parachute['cpu_pct'], 'cpu_originman_pct': board['cpu_pct'],
-            'cpu_originman_imu_hz': board['imu_hz'],
+            'cpu_parachute_pct': parachute['cpu_pct'], 'cpu_handset_pct': handset['cpu_pct'],
+            'cpu_handset_setpoints_s': handset['setpoints_s'],
+            'cpu_originman_pct': board['cpu_pct'], 'cpu_originman_imu_hz': board['imu_hz'],
             'cpu_originman_servo_reads_s': board['servo_reads_s']}
 
 

@@ -48,6 +48,49 @@ def _servo_requests(rng: random.Random, count: int) -> List[bytes]:
     return out
 
 
+def _handset_frames(rng: random.Random, count: int) -> List[bytes]:
+    """Handset frames as the handset sends them: mostly sticks, every type and encoding (H5)."""
+    from handset_link_ros import protocol as hp
+    types = list(hp.SPECS)
+    weights = [20, 20, 20, 20, 4, 4, 4]
+    out = []
+    for type_ in rng.choices(types, weights, k=count):
+        spec = hp.SPECS[type_]
+        encoding = rng.choice(hp.ENCODINGS)
+        if spec.whole or encoding in ('int8', 'int16'):
+            lo, hi = int(spec.lo), int(spec.hi)
+            if encoding == 'int8':
+                lo, hi = max(lo, -128), min(hi, 127)
+            value = rng.randint(lo, hi)
+        else:
+            value = round(rng.uniform(spec.lo, spec.hi), rng.choice((0, 1, 3)))
+        if encoding == 'float32':
+            value = float(value)
+        out.append(hp.encode_command(type_, value, encoding))
+    return out
+
+
+class _HandsetFuzzDecoder:
+    """The handset decoder, returning only the sound frames it takes.
+
+    A rejected candidate is no frame: the search resumes inside it (H3).
+    """
+
+    def __init__(self) -> None:
+        from handset_link_ros import protocol as hp
+        self._decoder = hp.StreamDecoder()
+        self._malformed = hp.Malformed
+
+    def _frames(self, results: list) -> list:
+        return [r for r in results if not (isinstance(r, self._malformed) and r.type is None)]
+
+    def feed(self, data: bytes) -> list:
+        return self._frames(self._decoder.feed(data))
+
+    def flush(self) -> list:
+        return self._frames(self._decoder.flush())
+
+
 def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
     from desheng_servo_ros import protocol as sp
     from dps_parachute_ros import protocol as p
@@ -60,6 +103,7 @@ def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
         'servo_reply': (lambda: sp.StreamDecoder('reply'), servo_frames, [sp.REPLY_HEADER]),
         'servo_request': (lambda: sp.StreamDecoder('request'), _servo_requests,
                           [sp.REQUEST_HEADER]),
+        'handset': (_HandsetFuzzDecoder, _handset_frames, [b'\xaa']),
         'originman_from_board': (op.StreamDecoder, originman_frames, [op.HEADER]),
     }
 

@@ -10,6 +10,11 @@
 
 Both run while ``servo_bus_node`` polls 12 servos at full rate on a virtual bus in another
 process (``bench.device_proc``), so the driver competes for the two cores as on a drone.
+
+The handset's frame-to-``~/setpoint`` latency (``run_handset``) and the OriginMan board's
+report-to-``~/imu`` latency (``imu_run``) are measured the same way, with ``parachute_node``
+and ``virtual_parachute`` (status stream at 20 Hz) running beside the servo bus as well
+(``_background``).
 """
 
 from __future__ import annotations
@@ -18,8 +23,34 @@ import contextlib
 import time
 from typing import Dict, List
 
-from bench.common import node_process, ParachuteRig, percentile, ros_client, workdir
+from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
+                          workdir)
 from bench.device_proc import servo_bus_process
+
+
+def _background(stack: contextlib.ExitStack, directory, parachute: bool = True) -> List:
+    """Start the other drivers as processes in `stack`; return their `node_process` handles.
+
+    ``servo_bus_node`` polls 12 servos at full rate on a virtual bus in another process; with
+    `parachute`, ``parachute_node`` runs on ``virtual_parachute`` streaming at 20 Hz.
+    """
+    servo_link = str(directory / 'bg-servo.pty')
+    ids = list(range(1, 13))
+    stack.enter_context(servo_bus_process(servo_link, 115200, ids))
+    nodes = [stack.enter_context(node_process(
+        'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
+                                      'servo_ids': ids, 'publish_rate_hz': 1000.0},
+        tag='bg_servo_bus_node'))]
+    if parachute:
+        chute_link = str(directory / 'bg-parachute.pty')
+        nodes.append(stack.enter_context(node_process(
+            'virtual_parachute', directory, {'link': chute_link, 'stream_rate_hz': 20.0},
+            tag='bg_virtual_parachute')))
+        nodes.append(stack.enter_context(node_process(
+            'parachute_node', directory, {'port': chute_link,
+                                          'blackbox_dir': str(directory / 'bg-blackbox')},
+            tag='bg_parachute_node')))
+    return nodes
 
 
 def _is_confirm(frame) -> bool:
@@ -100,22 +131,14 @@ def deploy_latencies(rig: ParachuteRig, client, count: int, gap_s: float = 0.25)
 def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = True) -> Dict:
     """Measure both latencies with the servo driver as background load; return figures."""
     with workdir() as directory, contextlib.ExitStack() as stack:
-        bg_node = None
-        if background:
-            servo_link = str(directory / 'bg-servo.pty')
-            ids = list(range(1, 13))
-            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
-            bg_node = stack.enter_context(node_process(
-                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
-                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
-                tag='bg_servo_bus_node'))
+        bg = _background(stack, directory, parachute=False) if background else []
         rig = stack.enter_context(ParachuteRig(directory))
         client = stack.enter_context(ros_client('bench_latency'))
         rig.wait_ready()
         time.sleep(1.0)
         confirm = confirm_latencies(rig, confirm_count)
         deploy = deploy_latencies(rig, client, deploy_count)
-        alive = rig.node.alive() and (bg_node is None or bg_node.alive())
+        alive = rig.node.alive() and all(p.alive() for p in bg)
     c, d = confirm['latencies_ms'], deploy['latencies_ms']
     return {
         'confirm_n': len(c), 'confirm_missed': confirm['missed'],
@@ -129,9 +152,69 @@ def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = Tr
     }
 
 
-# ------------------------------------------------------------------------------------------
-# The OriginMan board's IMU: the report's last byte on the wire -> ~/imu received
-# ------------------------------------------------------------------------------------------
+# -- the handset link -----------------------------------------------------------------------------
+
+def _handset_key(field: str, value: float) -> tuple:
+    return field, round(value, 4)
+
+
+def handset_latencies(rig, client, duration_s: float) -> Dict:
+    """Record `duration_s` of numbered ticks; return frame-to-``~/setpoint`` latencies (ms).
+
+    A frame's time is when its last byte arrived at the driver's port (the runner's pacing); a
+    message's time is when this process received it. Each stick frame carries a value unique to
+    its tick, so each is matched to the message that carries it.
+    """
+    from uav_serial_drivers.msg import HandsetSetpoint
+    received: List[tuple] = []
+    client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
+                     lambda m: received.append((time.monotonic(), m)), depth=100)
+    wait_for(lambda: received, 20, what='the first setpoint')  # the subscription matched
+    time.sleep(0.5)
+    t0 = time.monotonic()
+    time.sleep(duration_s)
+    t1 = time.monotonic()
+    time.sleep(0.5)  # the last frames' messages
+    arrivals: Dict[tuple, float] = {}
+    for t_rx, msg in list(received):
+        for field in msg.updated:
+            arrivals.setdefault(_handset_key(field, getattr(msg, field)), t_rx)
+    latencies: List[float] = []
+    missed = 0
+    for t_wire, cmd in rig.tap.snapshot():
+        if not t0 <= t_wire <= t1 or cmd.field not in ('yaw', 'pitch', 'roll', 'altitude'):
+            continue
+        field = {'yaw': 'yaw_deg', 'pitch': 'pitch_deg', 'roll': 'roll_deg',
+                 'altitude': 'altitude_m'}[cmd.field]
+        t_rx = arrivals.get(_handset_key(field, float(cmd.value)))
+        if t_rx is None:
+            missed += 1
+        else:
+            latencies.append((t_rx - t_wire) * 1000.0)
+    return {'latencies_ms': latencies, 'missed': missed}
+
+
+def run_handset(duration_s: float = 20.0, background: bool = True) -> Dict:
+    """Measure the handset's frame-to-setpoint latency with the other drivers running."""
+    from bench.common import HandsetRig
+    with workdir() as directory, contextlib.ExitStack() as stack:
+        bg = _background(stack, directory) if background else []
+        rig = stack.enter_context(HandsetRig(directory, numbered=True))
+        client = stack.enter_context(ros_client('bench_handset_latency'))
+        rig.wait_ready()
+        r = handset_latencies(rig, client, duration_s)
+        alive = rig.node.alive() and all(p.alive() for p in bg)
+    lat = r['latencies_ms']
+    return {
+        'handset_latency_n': len(lat), 'handset_latency_missed': r['missed'],
+        'handset_latency_p50_ms': percentile(lat, 50),
+        'handset_latency_p99_ms': percentile(lat, 99),
+        'handset_latency_max_ms': max(lat) if lat else float('nan'),
+        'alive': alive,
+    }
+
+
+# -- the OriginMan board's IMU: the report's last byte on the wire -> ~/imu received --------------
 
 def imu_latencies(rig, directory, duration_s: float) -> Dict:
     """Receive ``~/imu`` for `duration_s`; return latencies (ms) of the reports of the window.
@@ -160,31 +243,11 @@ def imu_latencies(rig, directory, duration_s: float) -> Dict:
 
 def imu_run(duration_s: float = 30.0, rate_hz: float = 100.0,
             background: bool = True) -> Dict:
-    """IMU latency of ``originman_board_node`` beside the other drivers; return figures.
-
-    Background: ``servo_bus_node`` polling 12 servos at full rate (its bus in another process)
-    and ``parachute_node`` with ``virtual_parachute`` streaming at 20 Hz, all as processes.
-    """
+    """IMU latency of ``originman_board_node`` beside the other drivers; return figures."""
     import itertools
     from bench.common import OriginManRig
     with workdir() as directory, contextlib.ExitStack() as stack:
-        others = []
-        if background:
-            servo_link = str(directory / 'bg-servo.pty')
-            ids = list(range(1, 13))
-            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
-            others.append(stack.enter_context(node_process(
-                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
-                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
-                tag='bg_servo_bus_node')))
-            chute_link = str(directory / 'bg-parachute.pty')
-            others.append(stack.enter_context(node_process(
-                'virtual_parachute', directory, {'link': chute_link, 'stream_rate_hz': 20.0},
-                tag='bg_virtual_parachute')))
-            others.append(stack.enter_context(node_process(
-                'parachute_node', directory, {'port': chute_link,
-                                              'blackbox_dir': str(directory / 'bg-bb')},
-                tag='bg_parachute_node')))
+        bg = _background(stack, directory) if background else []
         counter = itertools.count(1)
 
         def marked(t: float) -> tuple:
@@ -194,7 +257,7 @@ def imu_run(duration_s: float = 30.0, rate_hz: float = 100.0,
             rig.model.set_imu_source(marked)
         rig.wait_ready()
         r = imu_latencies(rig, directory, duration_s)
-        alive = rig.node.alive() and all(o.alive() for o in others)
+        alive = rig.node.alive() and all(p.alive() for p in bg)
     lat = r['latencies_ms']
     return {'imu_latency_n': len(lat), 'imu_latency_missed': r['missed'],
             'imu_latency_p50_ms': percentile(lat, 50), 'imu_latency_p99_ms': percentile(lat, 99),

@@ -4,10 +4,11 @@ Each cycle pulls the cable (``VirtualDeviceRunner.unplug``: the pty closes and i
 vanishes, as a USB adapter does), waits ``unplug_s``, plugs it back at the same path and times
 the recovery on the device's side of the wire: from the replug to the first complete
 transaction of the driver on the new port (servo: a position READ answered; parachute: a host
-frame answered by the module; OriginMan board: a bus servo read answered). The driver's open
-file descriptors, pty descriptors and threads are sampled after every cycle; a leak is growth
-in the second half of the cycles beyond the high-water mark of the first half (pools that start
-threads lazily are not leaks); ``crashes`` counts driver processes that died.
+frame answered by the module; handset, whose driver never writes: the first ``~/setpoint`` this
+process receives after the replug; OriginMan board: a bus servo read answered). The driver's
+open file descriptors, pty descriptors and threads are sampled after every cycle; a leak is
+growth in the second half of the cycles beyond the high-water mark of the first half (pools that
+start threads lazily are not leaks); ``crashes`` counts driver processes that died.
 """
 
 from __future__ import annotations
@@ -119,6 +120,23 @@ def parachute(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0)
         return _cycles(rig, _parachute_recovered, cycles, unplug_s, timeout_s)
 
 
+def handset(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0) -> Dict:
+    """Unplug/replug the handset's modem `cycles` times under ``handset_link_node``."""
+    from bench.common import HandsetRig, ros_client
+    from uav_serial_drivers.msg import HandsetSetpoint
+    received: List[float] = []
+
+    def recovered(rig: HandsetRig, since: float) -> float:
+        return next((t for t in received[-400:] if t >= since), 0.0)
+    with workdir() as directory, HandsetRig(directory) as rig, \
+            ros_client('bench_reconnects_handset') as client:
+        client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
+                         lambda m: received.append(time.monotonic()))
+        rig.wait_ready()
+        wait_for(lambda: received, 20, what='the first setpoint')
+        return _cycles(rig, recovered, cycles, unplug_s, timeout_s)
+
+
 def originman(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0) -> Dict:
     """Unplug/replug the OriginMan board `cycles` times under ``originman_board_node``."""
     with workdir() as directory, OriginManRig(directory) as rig:
@@ -129,7 +147,7 @@ def originman(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0)
 def run(cycles: int = 100) -> Dict:
     """Every device; return per-device results and the summary figures."""
     results = {'servo': servo(cycles), 'parachute': parachute(cycles),
-               'originman': originman(cycles)}
+               'handset': handset(cycles), 'originman': originman(cycles)}
     return {
         'per_device': results,
         'reconnect_cycles': min(r['cycles'] for r in results.values()),

@@ -21,7 +21,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import (bad_inputs, blackbox_kill9, cpu, decoders, fuzz, latency,  # noqa: E402
-                   reconnects, servo_rate, soak)
+                   reconnects, report_memory, servo_rate, soak)
 from bench.common import claim_domain_id  # noqa: E402
 
 Row = Tuple[str, str, str, str]  # name, value, goal, verdict
@@ -110,6 +110,15 @@ def bench_latency(res: Results, a: argparse.Namespace) -> None:
     res.note(f'confirm max {r["confirm_max_ms"]:.2f} ms; deploy p50 {r["deploy_p50_ms"]:.2f} '
              f'ms, max {r["deploy_max_ms"]:.2f} ms; deploy service round trip p99 '
              f'{r["deploy_service_p99_ms"]:.1f} ms (call -> response, includes the module ack)')
+    h = latency.run_handset(duration_s=3.0 if a.quick else 20.0)
+    res.add('handset_latency_p50_ms', h['handset_latency_p50_ms'])
+    res.add('handset_latency_p99_ms', h['handset_latency_p99_ms'], '<= 5',
+            h['handset_latency_p99_ms'] <= 5.0)
+    res.add('handset_latency_n', h['handset_latency_n'], '0 missed',
+            h['handset_latency_missed'] == 0 and h['alive'])
+    res.note(f'handset latency max {h["handset_latency_max_ms"]:.2f} ms over '
+             f'{h["handset_latency_n"]} stick frames, {h["handset_latency_missed"]} missed '
+             f'(the document allows 20 ms)')
 
 
 def bench_imu_latency(res: Results, a: argparse.Namespace) -> None:
@@ -130,8 +139,11 @@ def bench_cpu(res: Results, a: argparse.Namespace) -> None:
     res.add('cpu_servo_pct', r['cpu_servo_pct'], '<= 25', r['cpu_servo_pct'] <= 25.0)
     res.add('cpu_parachute_pct', r['cpu_parachute_pct'], '<= 5',
             r['cpu_parachute_pct'] <= 5.0)
+    res.add('cpu_handset_pct', r['cpu_handset_pct'], '<= 3', r['cpu_handset_pct'] <= 3.0)
     res.add('cpu_originman_pct', r['cpu_originman_pct'], '<= 5',
             r['cpu_originman_pct'] <= 5.0)
+    res.note(f'cpu_handset: {r["cpu_handset_setpoints_s"]:.0f} setpoints/s published (50 Hz '
+             'x 4 stick frames, JSON)')
     res.note(f'cpu_originman: IMU at {r["cpu_originman_imu_hz"]:.1f} Hz, '
              f'{r["cpu_originman_servo_reads_s"]:.1f} bus servo reads/s (3 servos at 10 Hz, '
              'telemetry every 2 s)')
@@ -163,17 +175,18 @@ def bench_soak(res: Results, a: argparse.Namespace) -> None:
     r = soak.run(duration_s=a.soak_s)
     res.add('soak_s', r['soak_s'])
     res.add('soak_crashes', r['soak_crashes'], '0', r['soak_crashes'] == 0)
-    for name in ('servo', 'parachute', 'originman'):
+    for name in ('servo', 'parachute', 'handset', 'originman'):
         v = r[f'soak_rss_growth_mb_{name}']
         res.add(f'soak_rss_growth_mb_{name}', v, '< 5', v < 5.0)
-    for name in ('joint_states', 'status', 'imu'):
+    topics = ('joint_states', 'status', 'setpoint', 'imu')
+    for name in topics:
         v = r[f'soak_max_gap_s_{name}']
         res.add(f'soak_max_gap_s_{name}', v, '<= 1', v <= 1.0)
-    res.note(f'soak: gaps as received here {r["soak_rx_gap_s_joint_states"]:.2f} s / '
-             f'{r["soak_rx_gap_s_status"]:.2f} s / {r["soak_rx_gap_s_imu"]:.2f} s; '
-             f'{r["soak_joint_states_msgs"]} joint_states, {r["soak_status_msgs"]} status, '
-             f'{r["soak_imu_msgs"]} imu messages; replies dropped/corrupted by the wire: '
-             f'{r["soak_faults"]}')
+    res.note('soak: gaps as received here '
+             + ' / '.join(f'{r[f"soak_rx_gap_s_{name}"]:.2f} s' for name in topics) + '; '
+             + ', '.join(f'{r[f"soak_{name}_msgs"]} {name}' for name in topics)
+             + ' messages; replies (handset: frames; OriginMan board: every frame it sends) '
+             f'dropped/corrupted by the wire: {r["soak_faults"]}')
     res.note('soak stalls (value s, at s into the window): ' + ', '.join(
         f'{k} {v}' for k, v in r['soak_stalls'].items()))
     for name, lines in r['soak_driver_log'].items():
@@ -198,9 +211,25 @@ def bench_bad_inputs(res: Results, a: argparse.Namespace) -> None:
             r['bad_inputs_refused'] == r['bad_inputs_cases'] and not r['bad_inputs_errors'])
     res.add('bad_inputs_bytes_on_wire', r['bad_inputs_bytes_on_wire'], '0',
             r['bad_inputs_bytes_on_wire'] == 0)
+    h = r['per_driver']['handset']
+    res.add('bad_inputs_handset', f'{h["refused"]}/{h["cases"]}', 'all refused',
+            h['refused'] == h['cases'] and not h['errors'] and not h['bytes_on_wire'])
     for name, d in r['per_driver'].items():
         for text in d['accepted'] + d['bytes_on_wire'] + d['errors']:
             res.note(f'bad_inputs {name}: {text}')
+
+
+def bench_report(res: Results, a: argparse.Namespace) -> None:
+    mb = 50 if a.quick else 500
+    r = report_memory.run(size_mb=mb)
+    peak, seconds = r[f'report_{mb}mb_peak_mb'], r[f'report_{mb}mb_s']
+    res.add(f'report_{mb}mb_peak_mb', peak, '<= 256', peak <= 256)
+    res.add(f'report_{mb}mb_s', seconds)
+    c = r['report_counts']
+    res.note(f'report: {r["report_file_mb"]:.0f} MB black box ({c.get("records")} records, '
+             f'{c.get("deployments")} deployments, {c.get("unanswered requests")} lost frames, '
+             f'{c.get("reboots")} reboots) reported at {r["report_mb_s"]:.1f} MB/s; HTML '
+             f'{r["report_html_kb"]:.0f} kB')
 
 
 FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
@@ -214,6 +243,7 @@ FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'soak': bench_soak,
     'kill9': bench_kill9,
     'bad_inputs': bench_bad_inputs,
+    'report': bench_report,
 }
 
 

@@ -1,52 +1,145 @@
 """Black box: every frame, request, decision and state change of one run as JSON lines.
 
 One file per run (``parachute-<UTC time>-<pid>.jsonl``) in a directory that is created when
-missing; old files are kept. Callers on any thread only put a record on a queue, so the serial
-reader never waits for the disk; one writer thread serializes, writes (buffered) and, on safety
-events, flushes and fsyncs. ``sync()`` returns once everything recorded before it is on disk.
-No ROS here.
+missing. Callers on any thread only put a record on a queue, so neither the serial reader nor a
+deploy ever waits for the disk; one writer thread serializes, writes in batches and, on safety
+events, flushes and fsyncs. ``sync()`` returns whether everything recorded before it reached the
+disk.
+
+A logging problem never takes the parachute away (README, "Safety model of deploy"): the
+constructor never raises, a directory that cannot be used, a full disk or an I/O error only
+make records lost. Lost records are counted, the problem is reported through ``on_problem``
+(the driver logs it, throttled, and keeps its diagnostics ERROR) and writing is retried, so the
+box recovers by itself when the disk does. ``max_bytes`` bounds the directory: the oldest runs
+are removed first, never the current one (decision D14 in ``docs/protocols.md``). No ROS here.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+import errno
 import json
 import os
 import queue
 import threading
 import time
-from typing import Any, Optional
+from typing import Any, Callable, List, Optional
 
 FLUSH_PERIOD_S = 1.0
 """Unsynced records reach the OS at least this often (fsync only on safety events)."""
+BATCH_BYTES = 1 << 16
+"""A batch this large is written at once."""
+REOPEN_PERIOD_S = 5.0
+"""A black-box file that could not be created is tried again this often."""
+BUDGET_CHECK_BYTES = 1 << 18
+"""The size bound is checked again after this much was written (and at start)."""
+
+
+@dataclass(frozen=True)
+class BlackBoxStatus:
+    """What the diagnostics show about the black box."""
+
+    path: str
+    directory: str
+    writing: bool               # the last write (and fsync) succeeded
+    error: str                  # the last write error, '' when writing
+    open_failed: bool           # no file could be created in the directory (yet)
+    records: int                # records written
+    lost: int                   # records that never reached the file
+    run_bytes: int              # size of this run's file
+    total_bytes: int            # size of every run in the directory, at the last check
+    max_bytes: Optional[int]
+    removed_runs: int           # old runs removed to stay within max_bytes
+    over_budget: bool           # this run alone is larger than max_bytes
+
+
+class _Sync:
+    __slots__ = ('event', 'ok')
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.ok = False
+
+
+_CLOSE = object()
+_TICK = object()
 
 
 class BlackBox:
-    """A thread-safe JSON-lines recorder with explicit fsync points."""
+    """A thread-safe JSON-lines recorder with explicit fsync points that never raises."""
 
-    def __init__(self, directory: str, prefix: str = 'parachute') -> None:
+    def __init__(self, directory: str, prefix: str = 'parachute',
+                 max_bytes: Optional[int] = None, path: Optional[str] = None,
+                 on_problem: Optional[Callable[[str, bool], None]] = None,
+                 reopen_period_s: float = REOPEN_PERIOD_S) -> None:
+        """Open this run's file (or `path`, for tests); `on_problem(text, ok)` hears changes."""
+        self.reopen_period_s = reopen_period_s
         self.directory = os.path.abspath(os.path.expanduser(directory))
-        os.makedirs(self.directory, exist_ok=True)
-        stamp = time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())
-        for n in range(1000):
-            suffix = f'-{n}' if n else ''
-            self.path = os.path.join(self.directory,
-                                     f'{prefix}-{stamp}-{os.getpid()}{suffix}.jsonl')
-            try:
-                # 'x': never append to (or clobber) another run's file.
-                self._file = open(self.path, 'x', encoding='utf-8', buffering=1 << 16)
-                break
-            except FileExistsError:
-                continue
-        else:
-            raise FileExistsError(f'no free black-box file name in {self.directory}')
-        self._queue: 'queue.SimpleQueue[Any]' = queue.SimpleQueue()
-        self.records = 0
+        self.prefix = prefix
+        self.on_problem = on_problem
+        self._lock = threading.Lock()   # guards the counters and status fields below
+        self._max_bytes = max_bytes
+        self._fixed_path = path
+        self.path = path or ''
+        self._fd: Optional[int] = None
+        self._records = 0
+        self._lost = 0
+        self._run_bytes = 0
+        self._total_bytes = 0
+        self._removed = 0
+        self._error = ''
+        self._open_failed = False
+        self._writing = True
         self.syncs = 0
-        self.errors = 0
-        self.last_error = ''
         self._closed = False
+        self._buf: List[bytes] = []
+        self._buf_bytes = 0
+        self._next_open = 0.0
+        self._since_check = 0
+        self._open()
+        self._enforce_budget()
+        self._queue: 'queue.SimpleQueue[Any]' = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name='blackbox', daemon=True)
         self._thread.start()
+
+    # -- API (any thread) -------------------------------------------------------------------
+
+    @property
+    def records(self) -> int:
+        """Records written so far."""
+        with self._lock:
+            return self._records
+
+    @property
+    def errors(self) -> int:
+        """Records lost so far (kept for older callers: read `status().lost`)."""
+        with self._lock:
+            return self._lost
+
+    @property
+    def last_error(self) -> str:
+        """The last write error, '' while writing works."""
+        with self._lock:
+            return self._error
+
+    def set_max_bytes(self, max_bytes: Optional[int]) -> None:
+        """Change the size bound; it is applied by the writer thread at once."""
+        with self._lock:
+            self._max_bytes = max_bytes
+            self._since_check = BUDGET_CHECK_BYTES
+        if not self._closed:
+            self._queue.put(_TICK)
+
+    def status(self) -> BlackBoxStatus:
+        """Return the present state, for diagnostics and the preflight check."""
+        with self._lock:
+            max_bytes = self._max_bytes
+            return BlackBoxStatus(
+                path=self.path, directory=self.directory, writing=self._writing,
+                error=self._error, open_failed=self._open_failed, records=self._records,
+                lost=self._lost, run_bytes=self._run_bytes, total_bytes=self._total_bytes,
+                max_bytes=max_bytes, removed_runs=self._removed,
+                over_budget=max_bytes is not None and self._run_bytes > max_bytes)
 
     def record(self, kind: str, **fields: Any) -> None:
         """Queue one record; ``t`` (wall, s) and ``mono`` (monotonic, s) are added here."""
@@ -65,24 +158,26 @@ class BlackBox:
         """Flush and fsync everything recorded so far.
 
         With ``timeout`` None, return at once (the sync happens in the background); else wait
-        up to ``timeout`` s and return whether the data is on disk.
+        up to ``timeout`` s and return whether the data is on disk (False when a write or the
+        fsync failed, or the time ran out).
         """
         if self._closed:
             return False
-        done = threading.Event()
-        self._queue.put(done)
+        item = _Sync()
+        self._queue.put(item)
         if timeout is None:
             return True
-        return done.wait(timeout)
+        return item.event.wait(timeout) and item.ok
 
-    def close(self) -> None:
+    def close(self, timeout: float = 2.0) -> None:
         """Sync and close the file; later records are ignored."""
         if self._closed:
             return
-        self.sync(2.0)
         self._closed = True
-        self._queue.put(None)
-        self._thread.join(2.0)
+        self._queue.put(_CLOSE)
+        self._thread.join(timeout)
+
+    # -- writer thread ------------------------------------------------------------------------
 
     def _run(self) -> None:
         last_flush = time.monotonic()
@@ -90,30 +185,158 @@ class BlackBox:
             try:
                 item = self._queue.get(timeout=FLUSH_PERIOD_S)
             except queue.Empty:
-                item = False
+                item = _TICK
             try:
-                if item is None:
-                    self._file.flush()
-                    os.fsync(self._file.fileno())
-                    self._file.close()
+                if item is _CLOSE:
+                    self._flush()
+                    self._fsync()
+                    if self._fd is not None:
+                        os.close(self._fd)
+                        self._fd = None
                     return
-                if isinstance(item, threading.Event):
-                    self._file.flush()
-                    os.fsync(self._file.fileno())
-                    self.syncs += 1
-                    item.set()
+                if isinstance(item, _Sync):
+                    item.ok = self._flush() and self._fsync() and self.status().writing
+                    item.event.set()
                     last_flush = time.monotonic()
                     continue
-                if item is not False:
-                    self._file.write(json.dumps(item, default=str, separators=(',', ':')))
-                    self._file.write('\n')
-                    self.records += 1
+                if item is not _TICK:
+                    line = (json.dumps(item, default=str, separators=(',', ':')) + '\n').encode()
+                    self._buf.append(line)
+                    self._buf_bytes += len(line)
                 now = time.monotonic()
-                if now - last_flush >= FLUSH_PERIOD_S:
-                    self._file.flush()
+                if self._buf_bytes >= BATCH_BYTES or now - last_flush >= FLUSH_PERIOD_S:
+                    self._flush()
                     last_flush = now
-            except (OSError, ValueError) as exc:  # a full disk must not stop the driver
-                self.errors += 1
-                self.last_error = str(exc)
-                if isinstance(item, threading.Event):
-                    item.set()
+                with self._lock:
+                    due = self._since_check >= BUDGET_CHECK_BYTES
+                if due:
+                    self._enforce_budget()
+            except Exception as exc:  # noqa: BLE001 - the recorder must outlive any bug
+                self._failed(f'internal error: {exc!r}', 0)
+                if isinstance(item, _Sync):
+                    item.event.set()
+
+    def _open(self) -> bool:
+        """Create this run's file (or open the fixed path); False when it cannot be."""
+        self._next_open = time.monotonic() + self.reopen_period_s
+        try:
+            if self._fixed_path:
+                self._fd = os.open(self._fixed_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
+                                   0o644)
+            else:
+                os.makedirs(self.directory, exist_ok=True)
+                self._fd = self._create_run_file()
+        except OSError as exc:
+            with self._lock:
+                self._open_failed = True
+            where = self._fixed_path or self.directory
+            self._failed(f'cannot create a file in {where!r}: {exc.strerror or exc}', 0)
+            return False
+        with self._lock:
+            self._open_failed = False
+        return True
+
+    def _create_run_file(self) -> int:
+        stamp = time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())
+        for n in range(1000):
+            suffix = f'-{n}' if n else ''
+            name = f'{self.prefix}-{stamp}-{os.getpid()}{suffix}.jsonl'
+            path = os.path.join(self.directory, name)
+            try:
+                # O_EXCL: never append to (or clobber) another run's file.
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                continue
+            self.path = path
+            return fd
+        raise FileExistsError(17, 'no free black-box file name', self.directory)
+
+    def _flush(self) -> bool:
+        """Write the batch; on failure its records are counted lost. Returns success."""
+        batch, count = b''.join(self._buf), len(self._buf)
+        self._buf, self._buf_bytes = [], 0
+        if self._fd is None and (time.monotonic() < self._next_open or not self._open()):
+            if count:
+                self._failed(self.last_error, count)
+            return False
+        view = memoryview(batch)
+        try:
+            while view:
+                written = os.write(self._fd, view)
+                view = view[written:]
+        except OSError as exc:
+            self._failed(exc.strerror or str(exc), count)
+            return False
+        with self._lock:
+            self._records += count
+            self._run_bytes += len(batch)
+            self._since_check += len(batch)
+        if count:
+            self._recovered()
+        return True
+
+    def _fsync(self) -> bool:
+        if self._fd is None:
+            return False
+        try:
+            os.fsync(self._fd)
+        except OSError as exc:
+            if exc.errno != errno.EINVAL:  # EINVAL: a special file, nothing to sync
+                self._failed(f'fsync failed: {exc.strerror or exc}', 0)
+                return False
+        self.syncs += 1
+        return True
+
+    def _failed(self, error: str, lost: int) -> None:
+        with self._lock:
+            self._lost += lost
+            first = self._writing or error != self._error
+            self._writing = False
+            self._error = error
+            text = f'cannot write: {error}; {self._lost} records lost'
+        if self.on_problem is not None and (first or lost):
+            self.on_problem(text, False)
+
+    def _recovered(self) -> None:
+        with self._lock:
+            if self._writing:
+                return
+            self._writing = True
+            self._error = ''
+            text = f'writing again to {self.path}; {self._lost} records were lost'
+        if self.on_problem is not None:
+            self.on_problem(text, True)
+
+    def _enforce_budget(self) -> None:
+        """Remove the oldest runs until the directory fits in max_bytes (never this run)."""
+        with self._lock:
+            self._since_check = 0
+            max_bytes = self._max_bytes
+        if self._fixed_path:
+            return
+        try:
+            runs = []
+            for name in os.listdir(self.directory):
+                if name.startswith(self.prefix + '-') and name.endswith('.jsonl'):
+                    path = os.path.join(self.directory, name)
+                    st = os.stat(path)
+                    runs.append((st.st_mtime, path, st.st_size))
+        except OSError:
+            return
+        total = sum(size for _, _, size in runs)
+        removed = 0
+        if max_bytes is not None:
+            for _, path, size in sorted(runs):
+                if total <= max_bytes:
+                    break
+                if path == self.path:
+                    continue
+                try:
+                    os.unlink(path)
+                except OSError:
+                    continue
+                total -= size
+                removed += 1
+        with self._lock:
+            self._total_bytes = total
+            self._removed += removed

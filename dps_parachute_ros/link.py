@@ -58,10 +58,17 @@ class LinkBusy(LinkError):
 class _Decoder:
     """The DPS stream decoder, plus a record of every frame and the time of the last one."""
 
-    def __init__(self, blackbox: Optional[BlackBox]) -> None:
+    def __init__(self, blackbox: Optional[BlackBox], clock: Callable[[], float]) -> None:
         self.inner = p.StreamDecoder('from_module')
         self.blackbox = blackbox
-        self.last_frame_time: Optional[float] = None
+        self.clock = clock
+        # (valid module frames so far, clock time of the last one): one tuple, so a reader on
+        # another thread always sees a matching pair.
+        self.last_frame: Tuple[int, Optional[float]] = (0, None)
+
+    @property
+    def last_frame_time(self) -> Optional[float]:
+        return self.last_frame[1]
 
     @property
     def pending(self) -> int:
@@ -81,7 +88,7 @@ class _Decoder:
             # Our own echoed frames (host header) are no sign of life, a trigger request is.
             if any(f.header == p.MODULE_HEADER or f.code == p.CMD_TRIGGER_REQUEST
                    for f in frames):
-                self.last_frame_time = time.monotonic()
+                self.last_frame = (self.last_frame[0] + 1, self.clock())
             if self.blackbox is not None:
                 for f in frames:
                     self.blackbox.frame('rx', f.raw)
@@ -96,11 +103,15 @@ class ParachuteLink:
                  on_connection: Optional[Callable[[bool, str], None]] = None,
                  blackbox: Optional[BlackBox] = None,
                  logger: Optional[Any] = None,
-                 layout: p.FlagLayout = 'table') -> None:
+                 layout: p.FlagLayout = 'table',
+                 clock: Callable[[], float] = time.monotonic,
+                 on_tx: Optional[Callable[[bytes], None]] = None) -> None:
+        """`clock` stamps `last_frame_time`; `on_tx(frame)` hears every frame that left."""
         self.layout: p.FlagLayout = layout
         self.blackbox = blackbox
         self._on_message = on_message
-        self._decoder = _Decoder(blackbox)
+        self._on_tx_hook = on_tx
+        self._decoder = _Decoder(blackbox, clock)
         self._locks: dict[Tuple[Type, ...], threading.Lock] = {}
         self._locks_guard = threading.Lock()
         self._collector: Optional[list] = None
@@ -116,9 +127,9 @@ class ParachuteLink:
         """Open the port (in the reader thread, with reconnects)."""
         self.serial.start()
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 2.0) -> None:
         """Close the port and stop the reader thread."""
-        self.serial.stop()
+        self.serial.stop(timeout)
 
     @property
     def connected(self) -> bool:
@@ -127,8 +138,13 @@ class ParachuteLink:
 
     @property
     def last_frame_time(self) -> Optional[float]:
-        """Monotonic time of the last valid frame from the module, None if none yet."""
-        return self._decoder.last_frame_time
+        """Clock time of the last valid frame from the module, None if none yet."""
+        return self._decoder.last_frame[1]
+
+    @property
+    def last_frame(self) -> Tuple[int, Optional[float]]:
+        """(valid module frames received so far, clock time of the last one)."""
+        return self._decoder.last_frame
 
     @property
     def decoder(self) -> p.StreamDecoder:
@@ -235,5 +251,8 @@ class ParachuteLink:
         self._on_message(msg)
 
     def _on_tx(self, data: bytes) -> None:
+        # Called by SerialLink right after the bytes were written, in the writing thread.
         if self.blackbox is not None:
             self.blackbox.frame('tx', data)
+        if self._on_tx_hook is not None:
+            self._on_tx_hook(data)

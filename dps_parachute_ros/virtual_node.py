@@ -10,10 +10,8 @@ from __future__ import annotations
 
 import json
 import time
-from typing import List, Optional
+from typing import Any, Dict, List, Optional
 
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -22,6 +20,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros.simulation import VirtualParachute
 from uav_serial_common.node_main import run_node
+from uav_serial_common.params import declare_parameters, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 
 GARBAGE = bytes.fromhex('00 ff 41 13 75 42 61 37 a5')
@@ -41,8 +40,37 @@ def create_runner(sim: VirtualParachute, link_path: Optional[str], baud: int = 1
     )
 
 
-def _float_range(lo: float, hi: float) -> List[FloatingPointRange]:
-    return [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+def _codes_problem(codes: List[int]) -> str:
+    return '' if all(0 <= code <= 255 for code in codes or ()) else \
+        'lost_commands: codes are 0..255'
+
+
+PARAMS = (
+    ParamSpec('link', '/tmp/vparachute', 'path of the symlink to the pty', read_only=True),
+    ParamSpec('baud', 115200, 'wire rate in bit/s; 0 = no wire delay', read_only=True,
+              int_range=(0, 4000000)),
+    ParamSpec('stream_rate_hz', 10.0, 'status stream rate when streaming is on',
+              float_range=(0.5, 100.0)),
+    ParamSpec('external_power', True, 'external power connected (then crashes ask the host '
+              'first)'),
+    ParamSpec('tilt_deg', 0.0, 'true tilt to the horizontal plane [deg]',
+              float_range=(0.0, 180.0)),
+    ParamSpec('accel_g', 1.0, 'measured acceleration magnitude [g]', float_range=(0.0, 16.0)),
+    ParamSpec('light_v', -1.0, 'force the light sensor [V]; -1 = modelled bay light',
+              float_range=(-1.0, 25.5)),
+    ParamSpec('free_fall_duration_s', 2.0, 'length of a ~/free_fall [s]',
+              float_range=(0.0, 60.0)),
+    ParamSpec('drop_probability', 0.0, 'chance a reply is lost', float_range=(0.0, 1.0)),
+    ParamSpec('corrupt_probability', 0.0, 'chance a reply has a bad checksum',
+              float_range=(0.0, 1.0)),
+    ParamSpec('garbage_probability', 0.0, 'chance of noise before a reply',
+              float_range=(0.0, 1.0)),
+    ParamSpec('reply_delay_s', 0.0, 'extra delay before every reply [s]',
+              float_range=(0.0, 5.0)),
+    ParamSpec('lost_commands', Parameter.Type.INTEGER_ARRAY, 'command codes 0..255 of host '
+              'frames lost before the module sees them, e.g. [17] (0x11): every deploy frame',
+              check=_codes_problem),
+)
 
 
 class VirtualParachuteNode(Node):
@@ -50,32 +78,14 @@ class VirtualParachuteNode(Node):
 
     def __init__(self) -> None:
         super().__init__('virtual_parachute')
-        d = self._declare
-        link = d('link', '/tmp/vparachute', 'path of the symlink to the pty', read_only=True)
-        baud = d('baud', 115200, 'wire rate in bit/s; 0 = no wire delay', read_only=True,
-                 int_range=(0, 4000000))
-        rate = d('stream_rate_hz', 10.0, 'status stream rate when streaming is on',
-                 float_range=(0.5, 100.0))
-        d('external_power', True, 'external power connected (then crashes ask the host first)')
-        d('tilt_deg', 0.0, 'true tilt to the horizontal plane [deg]', float_range=(0.0, 180.0))
-        d('accel_g', 1.0, 'measured acceleration magnitude [g]', float_range=(0.0, 16.0))
-        d('light_v', -1.0, 'force the light sensor [V]; -1 = modelled bay light',
-          float_range=(-1.0, 25.5))
-        d('free_fall_duration_s', 2.0, 'length of a ~/free_fall [s]', float_range=(0.0, 60.0))
-        d('drop_probability', 0.0, 'chance a reply is lost', float_range=(0.0, 1.0))
-        d('corrupt_probability', 0.0, 'chance a reply has a bad checksum',
-          float_range=(0.0, 1.0))
-        d('garbage_probability', 0.0, 'chance of noise before a reply', float_range=(0.0, 1.0))
-        d('reply_delay_s', 0.0, 'extra delay before every reply [s]', float_range=(0.0, 5.0))
-        d('lost_commands', Parameter.Type.INTEGER_ARRAY, 'command codes 0..255 of host frames '
-          'lost before the module sees them, e.g. [17] (0x11): every deploy frame')
-
-        self.sim = VirtualParachute(now=time.monotonic(), stream_period_s=1.0 / rate)
+        values = declare_parameters(self, PARAMS)
+        link, baud = values['link'], values['baud']
+        self.sim = VirtualParachute(now=time.monotonic(),
+                                    stream_period_s=1.0 / values['stream_rate_hz'])
         self.runner = create_runner(self.sim, link, baud)
-        for param in self._parameters.values():
-            self._apply(param.name, param.value)
+        self._apply_all(values)
         self.runner.start()
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        ParameterBinding(self, PARAMS, apply=self._apply_all)
 
         group = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, '~/power_cycle', self._power_cycle, callback_group=group)
@@ -90,15 +100,9 @@ class VirtualParachuteNode(Node):
         self.get_logger().info(f'virtual DPS-S module on {link} ({self.runner.port.device_name}) '
                                f'at {baud} baud')
 
-    def _declare(self, name: str, default, description: str, read_only: bool = False,
-                 int_range=None, float_range=None):
-        descriptor = ParameterDescriptor(description=description, read_only=read_only)
-        if int_range is not None:
-            descriptor.integer_range = [IntegerRange(from_value=int_range[0],
-                                                     to_value=int_range[1], step=1)]
-        if float_range is not None:
-            descriptor.floating_point_range = _float_range(*float_range)
-        return self.declare_parameter(name, default, descriptor).value
+    def _apply_all(self, values: Dict[str, Any]) -> None:
+        for name, value in values.items():
+            self._apply(name, value)
 
     def _apply(self, name: str, value) -> None:
         sim, faults = self.sim, self.runner.faults
@@ -123,16 +127,6 @@ class VirtualParachuteNode(Node):
                 faults.reply_delay_s = value
             elif name == 'lost_commands':
                 sim.lost_commands = set(value or ())
-
-    def _on_set_parameters(self, params) -> SetParametersResult:
-        for param in params:
-            if param.name == 'lost_commands' and any(
-                    not 0 <= code <= 255 for code in param.value or ()):
-                return SetParametersResult(successful=False,
-                                           reason='lost_commands: codes are 0..255')
-        for param in params:
-            self._apply(param.name, param.value)
-        return SetParametersResult(successful=True)
 
     # -- services -------------------------------------------------------------------------------
 

@@ -59,6 +59,8 @@ AUX_FIELDS: dict[int, str] = {
 """Auxiliary command type to its ``Auxiliary`` field."""
 
 NAN = math.nan
+RUNTIME_FIELDS = frozenset({'link_timeout_s', 'expected_rate_hz', 'low_battery_fraction'})
+"""``HandsetConfig`` fields ``reconfigure()`` may change while the link runs."""
 
 
 @dataclass(frozen=True)
@@ -284,6 +286,26 @@ class HandsetCore:
                     self._update_battery(now, emits)
             self._emit(emits)
 
+    def reconfigure(self, **changes: Any) -> None:
+        """Change ``link_timeout_s``, ``expected_rate_hz`` or ``low_battery_fraction`` at runtime.
+
+        Raises ValueError naming a bad value (nothing changes then). The rules are applied to the
+        new values at once: a shorter timeout can declare the link lost, a higher threshold the
+        battery low (H25).
+        """
+        fixed = set(changes) - RUNTIME_FIELDS
+        if fixed:
+            raise ValueError(f'{", ".join(sorted(fixed))} cannot change while the link runs')
+        with self._emit_lock:
+            emits: list = []
+            with self._lock:
+                self.config = replace(self.config, **changes)
+                now = self._clock()
+                self._check_link(now, emits)
+                if not math.isnan(self._battery):
+                    self._update_battery(now, emits)
+            self._emit(emits)
+
     # -- snapshots ------------------------------------------------------------------------------
 
     def setpoint(self) -> Setpoint:
@@ -361,8 +383,11 @@ class HandsetCore:
             self._connected = True
             if self._link_lost:
                 self._link_lost = False
-                emits.append(('INFO', 'handset link regained (H8)'))
-                emits.append((self._on_failsafe, self._failsafe(now)))
+                failsafe = self._failsafe(now)
+                # H24: a failsafe change is a WARN at least, the clearing included.
+                emits.append(('WARN', f'handset link regained (H8); failsafe now '
+                                      f'{failsafe.action}: {failsafe.reason}'))
+                emits.append((self._on_failsafe, failsafe))
             else:
                 emits.append(('INFO', 'handset heard: link up'))
             emits.append((self._on_link, self._link_state(now)))
@@ -446,9 +471,11 @@ class HandsetCore:
         elif self._battery_low and level >= clear - 1e-9:
             # H20: 0.20 + 0.05 is 0.25000000000000006 in binary, and 25 % must clear.
             self._battery_low = False
-            emits.append(('INFO', f'battery back at {level * 100:.1f} % (>= {clear * 100:.0f} '
-                                  f'%): low-battery condition cleared (H9)'))
-            emits.append((self._on_failsafe, self._failsafe(now)))
+            failsafe = self._failsafe(now)
+            emits.append(('WARN', f'battery back at {level * 100:.1f} % (>= {clear * 100:.0f} '
+                                  f'%): low-battery condition cleared (H9); failsafe now '
+                                  f'{failsafe.action}: {failsafe.reason}'))
+            emits.append((self._on_failsafe, failsafe))
 
     def _failsafe(self, now: float) -> Failsafe:
         reasons = []

@@ -11,12 +11,13 @@ from launch_ros.substitutions import FindPackageShare
 
 
 def generate_launch_description():
-    """Run each virtual device with its driver (parachute, servo bus, OriginMan board)."""
+    """Run each virtual device with its driver (parachute, servo bus, handset, OriginMan board)."""
     share = FindPackageShare('uav_serial_drivers')
     parachute_link = LaunchConfiguration('parachute_link')
     servo_link = LaunchConfiguration('servo_link')
-    namespace = LaunchConfiguration('namespace')
+    handset_link = LaunchConfiguration('handset_link')
     originman_link = LaunchConfiguration('originman_link')
+    namespace = LaunchConfiguration('namespace')
     return LaunchDescription([
         DeclareLaunchArgument('namespace', default_value='',
                               description='namespace of every node'),
@@ -24,14 +25,16 @@ def generate_launch_description():
                               description='path of the virtual parachute port'),
         DeclareLaunchArgument('servo_link', default_value='/tmp/vservobus',
                               description='path of the virtual servo bus port'),
+        DeclareLaunchArgument('handset_link', default_value='/tmp/vhandset',
+                              description='path of the virtual handset modem port'),
+        DeclareLaunchArgument('originman_link', default_value='/tmp/voriginman',
+                              description='path of the virtual OriginMan board port'),
         Node(package='uav_serial_drivers', executable='virtual_parachute',
              name='virtual_parachute', namespace=namespace,
              parameters=[{'link': parachute_link}], output='screen'),
         Node(package='uav_serial_drivers', executable='virtual_servo_bus',
              name='virtual_servo_bus', namespace=namespace,
              parameters=[{'link': servo_link, 'servo_ids': [1, 2, 3]}], output='screen'),
-        DeclareLaunchArgument('originman_link', default_value='/tmp/voriginman',
-                              description='path of the virtual OriginMan board port'),
         Node(package='uav_serial_drivers', executable='virtual_originman_board',
              name='virtual_originman_board', namespace=namespace,
              parameters=[{'link': originman_link, 'bus_servo_ids': [1, 2, 3]}],
@@ -50,5 +53,13 @@ def generate_launch_description():
              name='originman_board', namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'originman_board.yaml']),
                          {'port': originman_link, 'bus_servo_ids': [1, 2, 3]}],
+             output='screen'),
+        Node(package='uav_serial_drivers', executable='virtual_handset',
+             name='virtual_handset', namespace=namespace,
+             parameters=[{'link': handset_link}], output='screen'),
+        Node(package='uav_serial_drivers', executable='handset_link_node', name='handset_link',
+             namespace=namespace,
+             parameters=[PathJoinSubstitution([share, 'config', 'handset_link.yaml']),
+                         {'port': handset_link}],
              output='screen'),
     ])

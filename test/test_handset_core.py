@@ -135,7 +135,8 @@ def test_h8_link_lost_after_the_timeout_since_the_last_valid_frame_and_regained(
     regained = rig.seen.failsafes[-1]
     assert not regained.link_lost and regained.action == ACTION_NONE
     assert rig.seen.links[-1].connected
-    assert any('regained' in t for t in rig.seen.logs_at('INFO'))
+    regained_log = [t for t in rig.seen.logs_at('WARN') if 'regained' in t]
+    assert len(regained_log) == 1 and 'failsafe now NONE' in regained_log[0]
 
 
 def test_h14_h8_frames_the_driver_refuses_do_not_keep_the_link(rig):
@@ -171,7 +172,9 @@ def test_h20_h9_low_below_20_percent_clears_at_25(rig):
     assert [f.battery_low for f in rig.seen.failsafes[1:]] == [True, False, True]
     assert rig.seen.failsafes[-1].action == ACTION_RETURN_TO_HOME
     assert 'battery low: 19.0 % < 20 %' in rig.seen.failsafes[-1].reason
-    assert len(rig.seen.logs_at('WARN')) == 2
+    # H19, H24: every change is logged at WARN with its reason, the clearing included.
+    warnings = rig.seen.logs_at('WARN')
+    assert len(warnings) == 3 and 'cleared' in warnings[1] and 'failsafe now NONE' in warnings[1]
 
 
 def test_h9_nan_says_nothing_about_the_battery(rig):
@@ -201,6 +204,24 @@ def test_h9_the_threshold_is_configurable():
     assert rig.core.failsafe().battery_low
     rig.core.on_battery(0.35)
     assert not rig.core.failsafe().battery_low
+
+
+def test_h25_reconfigure_applies_the_rules_to_the_new_values_at_once(rig):
+    rig.run(0.5)
+    rig.sim.set_radio_link(False)
+    rig.wait(1.0)
+    assert not rig.core.failsafe().link_lost
+    rig.core.reconfigure(link_timeout_s=0.5)
+    assert rig.seen.failsafes[-1].link_lost
+    rig.core.on_battery(0.22)
+    assert not rig.core.failsafe().battery_low
+    rig.core.reconfigure(low_battery_fraction=0.25)
+    assert rig.seen.failsafes[-1].battery_low
+    with pytest.raises(ValueError, match='low_battery_fraction'):
+        rig.core.reconfigure(low_battery_fraction=2.0)
+    with pytest.raises(ValueError, match='port'):
+        rig.core.reconfigure(port='/dev/ttyUSB9')
+    assert (rig.core.config.low_battery_fraction, rig.core.config.port) == (0.25, 'loop://')
 
 
 def test_h10_return_to_home_is_requested_while_either_condition_holds(rig):

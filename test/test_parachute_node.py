@@ -8,112 +8,19 @@ import json
 import math
 import time
 
-import pytest
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
-from std_srvs.srv import SetBool, Trigger
-
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.simulation import VirtualParachute
-from dps_parachute_ros.virtual_node import create_runner
-from uav_serial_common.process import LaunchedProcesses, wait_for
-from uav_serial_common.ros_client import RosHarness
+from parachute_rig import Rig
+import pytest
 from sensor_msgs.msg import BatteryState
-from std_msgs.msg import Bool
-from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
+from std_srvs.srv import SetBool, Trigger
+from uav_serial_common.process import wait_for
+from uav_serial_drivers.msg import TriggerEvent, TriggerRequest
 from uav_serial_drivers.srv import (Confirmed, Deploy, GetParachuteConfig, GetTriggerRecords,
                                     SetAutoTriggers, SetThresholds)
 
-NODE = '/parachute'
-DESIRED = dict(attitude_threshold_deg=70, freefall_threshold_g=0.4, freefall_time_s=0.5,
-               light_threshold_v=1.5)
 DEPLOY_FRAME = bytes.fromhex('42 61 11 02 01 14')
 CONFIRM_FRAME = bytes.fromhex('42 61 39 a5 01 df')
-
-
-class Wire:
-    """Every host frame the virtual module received, with its time."""
-
-    def __init__(self, runner):
-        self.frames = []
-        self._decoder = p.StreamDecoder('from_host')
-        runner.add_tap(self._tap)
-
-    def _tap(self, direction, data, t):
-        if direction == 'rx':
-            for frame in self._decoder.feed(data):
-                self.frames.append((t, frame.raw))
-
-    def mark(self):
-        return len(self.frames)
-
-    def since(self, mark, code=None):
-        return [raw for _, raw in self.frames[mark:] if code is None or raw[2] == code]
-
-
-class Rig:
-    def __init__(self, tmp):
-        self.tmp = tmp
-        self.sim = VirtualParachute(now=time.monotonic())
-        self.runner = create_runner(self.sim, str(tmp / 'vpara')).start()
-        self.wire = Wire(self.runner)
-        self.ros = RosHarness()
-        self.procs = LaunchedProcesses(tmp, 'parachute_node')
-        sub = self.ros.subscribe
-        self.status = sub(ParachuteStatus, f'{NODE}/status')
-        self.config = sub(ParachuteConfig, f'{NODE}/config', latched=True)
-        self.events = sub(TriggerEvent, f'{NODE}/trigger_event', latched=True)
-        self.requests = sub(TriggerRequest, f'{NODE}/trigger_request')
-        self.battery = sub(BatteryState, f'{NODE}/battery')
-        self.triggered = sub(Bool, f'{NODE}/triggered', latched=True)
-        self.diagnostics = sub(DiagnosticArray, '/diagnostics')
-        params = dict(port=self.runner.path, blackbox_dir=str(tmp / 'bb'),
-                      defer_timeout_s=0.5, aux_poll_period_s=0.5, **DESIRED)
-        self.proc = self.procs.start('parachute_node', parameters=params, ros=self.ros,
-                                     wait_service=f'{NODE}/deploy')
-
-    def call(self, srv, name, request=None, timeout=10.0):
-        return self.ros.call(srv, f'{NODE}/{name}', request, timeout)
-
-    def model(self):
-        return self.runner.locked()
-
-    def fresh(self, external_power=True):
-        """Power-cycle the module and wait until the node has re-initialized it."""
-        with self.model():
-            self.sim.set_tilt(0)
-            self.sim.set_accel(1.0)
-            self.sim.set_external_power(external_power)
-            self.sim.power_cycle()
-            boot = self.sim.boot_count
-        self.config.wait(lambda m: m.boot_count == boot and m.settings_verified, 10,
-                         what=f'config re-read after power cycle (boot {boot})')
-        start = len(self.status)
-        self.status.wait(lambda m: m.online and m.streaming and not m.triggered and
-                         not m.armed, 10, what='fresh streaming status', start=start)
-
-    def arm(self):
-        reply = self.call(SetBool, 'arm', SetBool.Request(data=True))
-        assert reply.success, reply.message
-        return reply
-
-    def set_param(self, name, value):
-        if isinstance(value, str):
-            pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
-        elif isinstance(value, float):
-            pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
-        else:
-            pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
-        request = SetParameters.Request(parameters=[Parameter(name=name, value=pv)])
-        return self.ros.call(SetParameters, f'{NODE}/set_parameters', request).results[0]
-
-    def close(self, failed):
-        self.procs.stop_all()
-        if failed:
-            print(f'--- parachute_node output ---\n{self.proc.output()}')
-        self.ros.close()
-        self.runner.stop()
 
 
 @pytest.fixture(scope='module')
@@ -121,8 +28,7 @@ def rig(tmp_path_factory, request):
     failed_before = request.session.testsfailed
     rig = Rig(tmp_path_factory.mktemp('parachute'))
     try:
-        rig.config.wait(lambda m: m.valid and m.settings_verified, 15, what='verified config')
-        rig.status.wait(lambda m: m.online and m.streaming, 10, what='online status')
+        rig.wait_ready()
         yield rig
     finally:
         rig.close(request.session.testsfailed > failed_before)
@@ -216,7 +122,7 @@ def test_deploy_success_event_and_black_box(rig):
     rig.status.wait(lambda m: m.triggered and not m.armed, 3, what='triggered status')
     rig.triggered.wait(lambda m: m.data, 3, what='~/triggered true')
     diag = rig.diagnostics.wait(lambda m: any(
-        s.name == 'parachute: state' and s.level == DiagnosticStatus.ERROR for s in m.status),
+        s.name == '/parachute: state' and s.level == DiagnosticStatus.ERROR for s in m.status),
         5, what='ERROR diagnostic while triggered')
     assert diag
     # The black box holds the frames both ways and the decision, synced before the reply.
@@ -472,7 +378,7 @@ def test_unplug_goes_offline_and_replug_recovers(rig):
     rig.runner.unplug()
     rig.status.wait(lambda m: not m.online, 2, start=start, what='offline status')
     rig.diagnostics.wait(lambda m: any(
-        s.name == 'parachute: link' and s.level == DiagnosticStatus.ERROR for s in m.status),
+        s.name == '/parachute: link' and s.level == DiagnosticStatus.ERROR for s in m.status),
         2, start=diag_start, what='link ERROR diagnostic')
     reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
     assert not reply.success and 'offline' in reply.message

@@ -55,7 +55,7 @@ def test_parachute_on_a_wrong_baud_says_to_check_the_baud_parameter(
     launch.start('parachute_node', {'port': noisy.port.path,
                                     'blackbox_dir': str(tmp_path / 'bb')},
                  ros=ros, wait_service='/parachute/deploy')
-    status = wait_diag(diags, 'parachute: link', ['wrong baud rate', '`baud` parameter'])
+    status = wait_diag(diags, '/parachute: link', ['wrong baud rate', '`baud` parameter'])
     assert 'valid DPS-S frame' in status.message
 
 
@@ -64,7 +64,7 @@ def test_parachute_with_a_missing_port_says_so(ros, launch, tmp_path):
     missing = str(tmp_path / 'ttyUSB9')
     launch.start('parachute_node', {'port': missing, 'blackbox_dir': str(tmp_path / 'bb')},
                  ros=ros, wait_service='/parachute/deploy')
-    wait_diag(diags, 'parachute: link', ['no such device', missing])
+    wait_diag(diags, '/parachute: link', ['no such device', missing])
 
 
 def test_servo_bus_on_a_wrong_baud_says_to_check_the_baud_parameter(ros, launch, noisy):
@@ -80,3 +80,19 @@ def test_servo_bus_with_a_missing_port_says_so(ros, launch, tmp_path):
     launch.start('servo_bus_node', {'port': missing, 'servo_ids': [1]},
                  ros=ros, wait_service='/servo_bus/emergency_stop')
     wait_diag(diags, 'servo_bus: bus', ['no such device', missing])
+
+
+def test_handset_link_on_a_wrong_baud_says_to_check_the_baud_parameter(ros, launch, noisy):
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    launch.start('handset_link_node', {'port': noisy.port.path, 'link_timeout_s': 0.5},
+                 ros=ros, wait_topic='/handset_link/failsafe')
+    status = wait_diag(diags, '/handset_link: link', ['wrong baud rate', '`baud` parameter'])
+    assert status.message.startswith('link lost')
+
+
+def test_handset_link_with_a_missing_port_says_so(ros, launch, tmp_path):
+    diags = ros.subscribe(DiagnosticArray, '/diagnostics')
+    missing = str(tmp_path / 'ttyUSB7')
+    launch.start('handset_link_node', {'port': missing, 'link_timeout_s': 0.5},
+                 ros=ros, wait_topic='/handset_link/failsafe')
+    wait_diag(diags, '/handset_link: link', ['link lost', 'no such device', missing])

@@ -1,16 +1,20 @@
-"""`make demo`: both drivers against both virtual devices, and a short scripted mission.
+"""`make demo`: every driver against its virtual device, and a short scripted mission.
 
 Everything goes through the drivers' public ROS interfaces, as a user's mission logic would.
-The four executables run as processes; this script is one more ROS node that watches them and
-calls their services, with a compact live view. Exit code 0 on success, 1 with the reason else.
+The executables run as processes (the parachute module, the servo bus, the handset and the
+OriginMan board, each virtual, each with its driver); this script is one more ROS node that
+watches them and calls their services and topics, with a compact live view of each device.
+Exit code 0 on success, 1 with the reason else.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -18,7 +22,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 # The process plumbing the tests and the benchmarks use as well.
@@ -50,6 +54,16 @@ class Processes:
                                 preexec_fn=die_with_parent)
         self.items.append((executable, proc, log))
         return proc
+
+    def start_device(self, executable: str, params: dict, link: str) -> None:
+        """Start a virtual device; wait until its port exists at `link` for its driver."""
+        self.start(executable, dict(params, link=link))
+        deadline = time.monotonic() + 15
+        while not os.path.exists(link):
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise DemoFailure(f'{executable} did not create its port {link}')
+            time.sleep(0.05)
 
     def check_alive(self) -> None:
         """Fail the demo if a process died."""
@@ -117,26 +131,36 @@ class Mission:
             callback_group=self.group)
         sub(TriggerRequest, '/parachute/trigger_request', self._append('requests'), 10,
             callback_group=self.group)
+        # The other devices' parts of the mission keep what they see in views of their own.
+        self.handset = HandsetView(self)
+        self.board = BoardView(self)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
         self.view_stop = threading.Event()
         self.view = threading.Thread(target=self._live_view, daemon=True)
-        # Set by a later part of the mission to show its own device in the live view.
-        self.view_override: Optional[Callable[[], str]] = None
+        self.out = threading.Lock()  # the live view and the step lines share the terminal
+        self.drawn = 0  # lines of the live view on the terminal (tty)
+        self.printed: Dict[int, str] = {}  # view lines as last printed (no tty)
 
-    def _set(self, attr: str) -> Callable[[Any], None]:
+    def _set(self, attr: str, owner: Any = None) -> Callable[[Any], None]:
+        """Return a callback keeping the last message in `owner.attr` (owner: this mission)."""
+        target = self if owner is None else owner
+
         def callback(msg: Any) -> None:
             with self.lock:
-                setattr(self, attr, msg)
+                setattr(target, attr, msg)
                 self.lock.notify_all()
         return callback
 
-    def _append(self, attr: str) -> Callable[[Any], None]:
+    def _append(self, attr: str, owner: Any = None) -> Callable[[Any], None]:
+        """Return a callback appending each message to the list `owner.attr`."""
+        target = self if owner is None else owner
+
         def callback(msg: Any) -> None:
             with self.lock:
-                getattr(self, attr).append(msg)
+                getattr(target, attr).append(msg)
                 self.lock.notify_all()
         return callback
 
@@ -178,19 +202,25 @@ class Mission:
             parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
         return self.call(SetParameters, f'{node}/set_parameters', request).results
 
+    def step(self, procs: Processes, title: str) -> None:
+        """Start a step of the mission: every process still alive, its title printed."""
+        procs.check_alive()
+        self.say(f'▶ {title}')
+
     # -- output -----------------------------------------------------------------------------------
 
     def say(self, text: str) -> None:
         """Print a line above the live view."""
         stamp = f'[{time.monotonic() - self.t0:5.1f}s]'
-        if self.tty:
-            sys.stdout.write('\r\033[K')
-        print(f'{stamp} {text}', flush=True)
+        with self.out:
+            drawn = self.drawn
+            self._erase_view()
+            print(f'{stamp} {text}', flush=True)
+            if drawn:
+                self._draw_view()
 
-    def view_line(self) -> str:
-        """One line: parachute status, battery, servo positions."""
-        if self.view_override is not None:
-            return self.view_override()
+    def view_lines(self) -> List[str]:
+        """Lines of the live view: parachute, servo bus, handset, OriginMan board (two)."""
         with self.lock:
             status, battery, joints = self.status, self.battery, self.joints
         if status is None:
@@ -200,33 +230,51 @@ class Mission:
             chute = (f'parachute: {"online" if status.online else "OFFLINE"} {state:<9} '
                      f'tilt {status.tilt_deg:4.0f}° accel {status.accel_g:3.1f} g '
                      f'bay {"open" if status.bay_open else "closed"}')
-        power = ''
         if battery is not None and not math.isnan(battery.voltage):
             charging = battery.power_supply_status == battery.POWER_SUPPLY_STATUS_CHARGING
-            power = f' | cell {battery.voltage:4.2f} V{" charging" if charging else ""}'
-        servos = ''
+            chute += f' | cell {battery.voltage:4.2f} V{" charging" if charging else ""}'
+        servos = 'servo bus: (no joint_states yet)'
         if joints is not None:
-            servos = ' | ' + ' '.join(f'{n} {p:+.2f}' for n, p in
-                                      zip(joints.name, joints.position)) + ' rad'
-        return chute + power + servos
+            servos = 'servo bus: ' + ' '.join(f'{n} {p:+.2f}' for n, p in
+                                              zip(joints.name, joints.position)) + ' rad'
+        return [chute, servos, self.handset.line(), *self.board.lines()]
+
+    def _erase_view(self) -> None:
+        # The cursor is at the end of the view's last line: up to its first line, clear below.
+        if self.drawn:
+            up = f'\033[{self.drawn - 1}A' if self.drawn > 1 else ''
+            sys.stdout.write('\r' + up + '\033[J')
+            sys.stdout.flush()
+            self.drawn = 0
+
+    def _draw_view(self) -> None:
+        width = shutil.get_terminal_size((200, 24)).columns - 1  # no wrapping
+        lines = [line[:width] for line in self.view_lines()]
+        sys.stdout.write('\n'.join(lines))
+        sys.stdout.flush()
+        self.drawn = len(lines)
 
     def _live_view(self) -> None:
         period = 0.2 if self.tty else 2.0
         while not self.view_stop.wait(period):
-            line = self.view_line()
-            if self.tty:
-                sys.stdout.write('\r\033[K' + line[:200])
-                sys.stdout.flush()
-            else:
-                print(f'[{time.monotonic() - self.t0:5.1f}s]   · {line}', flush=True)
+            with self.out:
+                if self.tty:
+                    self._erase_view()
+                    self._draw_view()
+                    continue
+                # A log: each device's line again only once it says something new.
+                for i, line in enumerate(self.view_lines()):
+                    if self.printed.get(i) != line:
+                        self.printed[i] = line
+                        print(f'[{time.monotonic() - self.t0:5.1f}s]   · {line}', flush=True)
 
     def close(self) -> None:
         """Stop the live view and ROS."""
         self.view_stop.set()
         if self.view.is_alive():
             self.view.join(1)
-        if self.tty:
-            sys.stdout.write('\r\033[K')
+        with self.out:
+            self._erase_view()
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.rclpy.try_shutdown()
@@ -238,17 +286,13 @@ def run_mission(m: Mission, procs: Processes) -> str:
     from uav_serial_drivers.srv import (Deploy, GetParachuteConfig, GetTriggerRecords,
                                         WritePositions)
 
-    def step(title: str) -> None:
-        procs.check_alive()
-        m.say(f'▶ {title}')
-
-    step('waiting for both drivers to come online')
+    m.step(procs, 'waiting for the parachute and servo bus drivers to come online')
     m.wait(lambda: m.status is not None and m.status.online, 15, 'the parachute online')
     m.wait(lambda: m.joints is not None and len(m.joints.name) == 3, 15,
            'joint_states of three servos')
     m.view.start()
 
-    step("reading the module's configuration (~/get_config)")
+    m.step(procs, "reading the module's configuration (~/get_config)")
     config = m.call(GetParachuteConfig, '/parachute/get_config',
                     GetParachuteConfig.Request()).config
     boot_before = config.boot_count
@@ -257,7 +301,7 @@ def run_mission(m: Mission, procs: Processes) -> str:
           f'light {config.light_threshold_v:.1f} V, '
           f'boot #{config.boot_count}, {config.baud_rate} baud')
 
-    step('setting thresholds (ros2 param set: written, read back, kept across reboots)')
+    m.step(procs, 'setting thresholds (ros2 param set: written, read back, kept across reboots)')
     desired = {'attitude_threshold_deg': 70, 'freefall_threshold_g': 0.6,
                'freefall_time_s': 0.5}
     results = m.set_params('/parachute', desired)
@@ -271,20 +315,20 @@ def run_mission(m: Mission, procs: Processes) -> str:
         raise DemoFailure(f'read-back does not match: {config}')
     m.say('  read back: attitude 70°, free fall 0.6 g for 0.50 s ✓')
 
-    step('a deploy without the confirmation token is refused (nothing is sent)')
+    m.step(procs, 'a deploy without the confirmation token is refused (nothing is sent)')
     reply = m.call(Deploy, '/parachute/deploy', Deploy.Request(confirm='deploy'))
     if reply.success:
         raise DemoFailure('a deploy without the exact token was accepted')
     m.say(f'  refused: {reply.message}')
 
-    step('arming (~/arm)')
+    m.step(procs, 'arming (~/arm)')
     reply = m.call(SetBool, '/parachute/arm', SetBool.Request(data=True))
     if not reply.success:
         raise DemoFailure(f'arming failed: {reply.message}')
     m.wait(lambda: m.status.armed, 5, 'status armed')
     m.say(f'  armed ✓ ({reply.message})')
 
-    step('sweeping the servos: one synchronized move (SYNC WRITE), then a staged one')
+    m.step(procs, 'sweeping the servos: one synchronized move (SYNC WRITE), then a staged one')
     names = list(m.joints.name)
     for targets, staged in (([0.8, -0.8, 0.4], False), ([0.0, 0.0, 0.0], True)):
         reply = m.call(WritePositions, '/servo_bus/write_positions', WritePositions.Request(
@@ -296,7 +340,8 @@ def run_mission(m: Mission, procs: Processes) -> str:
         m.say(f'  {"staged (REG WRITE + ACTION)" if staged else "synchronized"} move to '
               f'{targets} rad reached')
 
-    step('dropping the aircraft: a 1.2 s free fall on external power (the module must ask)')
+    m.step(procs, 'dropping the aircraft: a 1.2 s free fall on external power '
+           '(the module must ask)')
     m.set_params('/virtual_parachute', {'external_power': True, 'free_fall_duration_s': 1.2})
     n_events = len(m.events)
     n_requests = len(m.requests)
@@ -311,7 +356,7 @@ def run_mission(m: Mission, procs: Processes) -> str:
     m.say(f'  trigger event: source {event.source_name}')
     m.wait(lambda: m.status.triggered, 5, 'status triggered')
 
-    step("reading the module's trigger records (~/get_trigger_records)")
+    m.step(procs, "reading the module's trigger records (~/get_trigger_records)")
     records = m.call(GetTriggerRecords, '/parachute/get_trigger_records',
                      GetTriggerRecords.Request())
     if not records.success or not records.records:
@@ -322,12 +367,13 @@ def run_mission(m: Mission, procs: Processes) -> str:
           f'{newest.attitude_threshold_deg}° / {newest.freefall_threshold_g:.1f} g / '
           f'{newest.freefall_time_s:.2f} s')
 
-    step('locking (~/arm false)')
+    m.step(procs, 'locking (~/arm false)')
     reply = m.call(SetBool, '/parachute/arm', SetBool.Request(data=False))
     if not reply.success:
         raise DemoFailure(f'locking failed: {reply.message}')
 
-    step('power-cycling the module: the driver sees the reboot and re-applies the settings')
+    m.step(procs, 'power-cycling the module: the driver sees the reboot and re-applies the '
+           'settings')
     n_configs = len(m.configs)
     m.call(Trigger, '/virtual_parachute/power_cycle', Trigger.Request())
     config = m.wait(lambda: next((c for c in m.configs[n_configs:]
@@ -341,111 +387,171 @@ def run_mission(m: Mission, procs: Processes) -> str:
             f'deployment recorded, settings re-applied after reboot')
 
 
-# ---------------------------------------------------------------------------------------------
-# The OriginMan expansion board: virtual board + driver, IMU, a key press, a sweep, a motor stop
-# ---------------------------------------------------------------------------------------------
+def write_report(blackbox: Path, earlier_runs: set) -> str:
+    """Write the black-box report of this run (blackbox_report) beside its file."""
+    from dps_parachute_ros.report import build_report
+    runs = sorted(set(blackbox.glob('parachute-*.jsonl')) - earlier_runs)
+    if not runs:
+        raise DemoFailure(f'the driver wrote no black box in {blackbox}')
+    report = build_report([str(runs[-1])], progress=False)
+    print(f'demo: black-box report of this run: {report.html_path} (timeline '
+          f'{report.png_path}: {report.counts.get("deployments", 0)} deployment(s), '
+          f'{report.counts.get("reboots", 0)} reboot(s))', flush=True)
+    return report.html_path
+
+
+# -- the handset link ----------------------------------------------------------------------
+
+HANDSET_LINK_TIMEOUT_S = 1.0
+"""Short for the demo (the product's is 5 s, H8): the failsafe shows up at once."""
+
+
+def start_handset(procs: Processes, workdir: Path) -> None:
+    """Start the virtual handset and the handset link driver on it."""
+    link = str(workdir / 'vhandset')
+    procs.start_device('virtual_handset', {}, link)
+    procs.start('handset_link_node', {'port': link, 'link_timeout_s': HANDSET_LINK_TIMEOUT_S})
+
+
+class HandsetView:
+    """What the demo sees of the handset driver: its setpoints and failsafe changes."""
+
+    def __init__(self, m: Mission) -> None:
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+        from uav_serial_drivers.msg import Failsafe, HandsetSetpoint
+        self.m = m
+        self.setpoint: Optional[Any] = None
+        self.failsafes: List[Any] = []
+        latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        m.node.create_subscription(HandsetSetpoint, '/handset_link/setpoint',
+                                   m._set('setpoint', self), 10, callback_group=m.group)
+        m.node.create_subscription(Failsafe, '/handset_link/failsafe',
+                                   m._append('failsafes', self), latched, callback_group=m.group)
+
+    def line(self) -> str:
+        """Return the handset's line of the live view: sticks and the failsafe's action."""
+        with self.m.lock:
+            sp = self.setpoint
+            failsafe = self.failsafes[-1] if self.failsafes else None
+        if sp is None:
+            return 'handset: (no setpoint yet)'
+        action = '' if failsafe is None or failsafe.action == 'NONE' else f' {failsafe.action}!'
+        return (f'handset: yaw {sp.yaw_deg:+4.0f}° pitch {sp.pitch_deg:+3.0f}° roll '
+                f'{sp.roll_deg:+3.0f}° alt {sp.altitude_m:3.0f} m{action}')
+
+
+def run_handset(m: Mission, procs: Processes) -> str:
+    """Move the sticks, lose the radio link, get it back; return the summary."""
+    from std_srvs.srv import SetBool
+    from uav_serial_drivers.msg import HandsetSetpoint
+    view = m.handset
+    m.step(procs, 'handset: moving the sticks (a ground station on /virtual_handset/setpoint_in)')
+    m.wait(lambda: view.setpoint is not None, 15, 'handset setpoints')
+    pub = m.node.create_publisher(HandsetSetpoint, '/virtual_handset/setpoint_in', 10)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 4.0:
+        t = time.monotonic() - t0
+        pub.publish(HandsetSetpoint(yaw_deg=150.0 * math.sin(t * 1.5),
+                                    pitch_deg=20.0 * math.sin(t * 2.5),
+                                    roll_deg=-20.0 * math.sin(t * 2.0), altitude_m=10.0 * t))
+        time.sleep(0.05)
+    m.wait(lambda: view.setpoint.altitude_m > 30.0, 5, 'the sticks to reach the driver')
+    m.say(f'  sticks followed: {view.line()[len("handset: "):]}')
+
+    m.step(procs, 'handset: the radio link is lost (/virtual_handset/set_radio_link false)')
+    n = len(view.failsafes)
+    m.call(SetBool, '/virtual_handset/set_radio_link', SetBool.Request(data=False))
+    lost = m.wait(lambda: next((f for f in view.failsafes[n:] if f.link_lost), None),
+                  10, 'the failsafe after the link loss')
+    m.say(f'  failsafe → {lost.action} ({lost.reason})')
+
+    m.step(procs, 'handset: the radio link is back')
+    n = len(view.failsafes)
+    m.call(SetBool, '/virtual_handset/set_radio_link', SetBool.Request(data=True))
+    back = m.wait(lambda: next((f for f in view.failsafes[n:] if not f.link_lost), None),
+                  10, 'the link regained')
+    m.say(f'  link regained → failsafe {back.action}')
+    return (f'handset sticks followed, radio link lost → {lost.action} → regained '
+            f'({back.action})')
+
+
+# -- the OriginMan expansion board: IMU, a key press, a sweep, the motor timeout's stop ----
 
 BOARD_DRIVER_ARGS = ['-r', 'joint_states:=originman_board/joint_states']
 """The board's servos get a joint_states of their own here, so the servo bus's stays alone."""
 
 
-def start_board(procs: Processes, workdir: Path) -> str:
-    """Start virtual_originman_board and originman_board_node on it; return the link path."""
+def start_board(procs: Processes, workdir: Path) -> None:
+    """Start virtual_originman_board and originman_board_node on it."""
     link = str(workdir / 'voriginman')
-    procs.start('virtual_originman_board', {'link': link, 'bus_servo_ids': [1, 2, 3]})
-    deadline = time.monotonic() + 15
-    while not os.path.exists(link):
-        procs.check_alive()
-        if time.monotonic() > deadline:
-            raise DemoFailure('the virtual OriginMan board did not create its port')
-        time.sleep(0.05)
+    procs.start_device('virtual_originman_board', {'bus_servo_ids': [1, 2, 3]}, link)
     procs.start('originman_board_node', {'port': link, 'bus_servo_ids': [1, 2, 3],
                                          'motor_timeout_s': 0.5}, BOARD_DRIVER_ARGS)
-    return link
 
 
 class BoardView:
     """What the demo sees of the board: its topics and the virtual board's state."""
 
     def __init__(self, m: Mission) -> None:
-        import json
         from sensor_msgs.msg import BatteryState, Imu, JointState
         from std_msgs.msg import String
         from uav_serial_drivers.msg import ButtonEvent
         self.m = m
-        self.json = json
         self.imu: Optional[Any] = None
         self.battery: Optional[Any] = None
         self.joints: Optional[Any] = None
         self.state: Optional[dict] = None
         self.buttons: List[Any] = []
         sub = m.node.create_subscription
-        sub(Imu, '/originman_board/imu', self._set('imu'), 10, callback_group=m.group)
-        sub(BatteryState, '/originman_board/battery', self._set('battery'), 10,
+        sub(Imu, '/originman_board/imu', m._set('imu', self), 10, callback_group=m.group)
+        sub(BatteryState, '/originman_board/battery', m._set('battery', self), 10,
             callback_group=m.group)
-        sub(JointState, '/originman_board/joint_states', self._set('joints'), 10,
+        sub(JointState, '/originman_board/joint_states', m._set('joints', self), 10,
             callback_group=m.group)
-        sub(ButtonEvent, '/originman_board/button', self._button, 20, callback_group=m.group)
+        sub(ButtonEvent, '/originman_board/button', m._append('buttons', self), 20,
+            callback_group=m.group)
         sub(String, '/virtual_originman_board/state', self._state, 10, callback_group=m.group)
 
-    def _set(self, attr: str) -> Callable[[Any], None]:
-        def callback(msg: Any) -> None:
-            with self.m.lock:
-                setattr(self, attr, msg)
-                self.m.lock.notify_all()
-        return callback
-
-    def _button(self, msg: Any) -> None:
-        with self.m.lock:
-            self.buttons.append(msg)
-            self.m.lock.notify_all()
-
     def _state(self, msg: Any) -> None:
-        state = self.json.loads(msg.data)
+        state = json.loads(msg.data)
         with self.m.lock:
             self.state = state
             self.m.lock.notify_all()
 
-    def line(self) -> str:
-        """One line: IMU, battery, last key event, bus servos, motors."""
+    def lines(self) -> List[str]:
+        """Return the board's lines of the live view: IMU, battery, last key; servos, motors."""
         with self.m.lock:
             imu, battery, joints, state = self.imu, self.battery, self.joints, self.state
             key = self.buttons[-1].event_name if self.buttons else '-'
-        parts = ['board:']
-        if imu is not None:
-            a, w = imu.linear_acceleration, imu.angular_velocity
-            parts.append(f'IMU a ({a.x:+5.2f} {a.y:+5.2f} {a.z:+5.2f}) m/s² '
-                         f'ω ({w.x:+4.2f} {w.y:+4.2f} {w.z:+4.2f}) rad/s')
+        if imu is None:
+            return ['OriginMan board: (no IMU yet)']
+        a, w = imu.linear_acceleration, imu.angular_velocity
+        sensors = [f'OriginMan board: IMU a {a.x:+4.1f} {a.y:+4.1f} {a.z:+4.1f} m/s² '
+                   f'ω {w.x:+4.2f} {w.y:+4.2f} {w.z:+4.2f} rad/s']
         if battery is not None:
-            parts.append(f'| {battery.voltage:4.2f} V')
-        parts.append(f'| key {key}')
+            sensors.append(f'{battery.voltage:4.2f} V')
+        sensors.append(f'key {key}')
+        actuators = []
         if joints is not None:
-            parts.append('| servos ' + ' '.join(f'{p:+.2f}' for p in joints.position) + ' rad')
+            actuators.append('bus servos ' + ' '.join(f'{p:+.2f}' for p in joints.position)
+                             + ' rad')
         if state is not None:
-            parts.append('| motors ' + ' '.join(f'{v:+.1f}' for v in state['motor_set_points'])
-                         + ' r/s')
-        return ' '.join(parts)
+            actuators.append('motors ' + ' '.join(f'{v:+.1f}' for v in
+                                                  state['motor_set_points']) + ' r/s')
+        return [' | '.join(sensors), 'OriginMan board: ' + ' | '.join(actuators or ['-'])]
 
 
 def run_board_mission(m: Mission, procs: Processes) -> str:
     """Show the board: IMU in SI units, a key press, a servo sweep, a motor stop."""
     from uav_serial_drivers.msg import BusServoCommand, MotorSpeeds
     from uav_serial_drivers.srv import PressKey, SetImu
-
-    def step(title: str) -> None:
-        procs.check_alive()
-        m.say(f'▶ {title}')
-
-    view = BoardView(m)
-    step('the OriginMan board: waiting for its IMU, battery and bus servos')
+    view = m.board
+    m.step(procs, 'the OriginMan board: waiting for its IMU, battery and bus servos')
     m.wait(lambda: view.imu is not None and view.battery is not None
            and view.joints is not None and len(view.joints.name) == 3, 15,
            'the board online with three bus servos')
-    m.view_override = view.line
-    if not m.view.is_alive():
-        m.view.start()
 
-    step('tilting the board 30° and turning it at 45°/s (the board sends g and deg/s)')
+    m.step(procs, 'board: tilted 30° and turning at 45°/s (the board sends g and deg/s)')
     reply = m.call(SetImu, '/virtual_originman_board/set_imu', SetImu.Request(
         accel_g=[0.0, 0.5, 0.866], gyro_dps=[0.0, 0.0, 45.0], rate_hz=-1.0))
     if not reply.success:
@@ -457,7 +563,7 @@ def run_board_mission(m: Mission, procs: Processes) -> str:
           f'{imu.angular_velocity.z:.3f} rad/s, orientation unknown (covariance[0] = '
           f'{imu.orientation_covariance[0]:.0f})')
 
-    step('pressing key 1 (a click)')
+    m.step(procs, 'board: pressing key 1 (a click)')
     n_buttons = len(view.buttons)
     reply = m.call(PressKey, '/virtual_originman_board/press_key',
                    PressKey.Request(key_id=1, sequence='click'))
@@ -468,7 +574,7 @@ def run_board_mission(m: Mission, procs: Processes) -> str:
     events = ' → '.join(b.event_name for b in view.buttons[n_buttons:])
     m.say(f'  ~/button: key 1: {events}')
 
-    step('sweeping the bus servos (~/bus_servo/command): out, then back to the centre')
+    m.step(procs, 'board: sweeping the bus servos (~/bus_servo/command) out and back to centre')
     pub = m.node.create_publisher(BusServoCommand, '/originman_board/bus_servo/command', 10)
     for positions in ([800, 200, 650], [500, 500, 500]):
         pub.publish(BusServoCommand(ids=[1, 2, 3], positions=positions, duration_s=1.0))
@@ -477,7 +583,8 @@ def run_board_mission(m: Mission, procs: Processes) -> str:
                f'bus servos at {positions}')
         m.say(f'  raw {positions} reached: ' + ', '.join(f'{w:+.3f}' for w in want) + ' rad')
 
-    step('running the motors, then going silent: the driver stops them (the board would not)')
+    m.step(procs, 'board: the motors run, then no command comes: the driver stops them '
+           '(the board would not)')
     motors = m.node.create_publisher(MotorSpeeds, '/originman_board/set_motor_speeds', 10)
     motors.publish(MotorSpeeds(motor_ids=[1, 2, 3, 4], rps=[1.0, 1.0, -1.0, -1.0]))
     m.wait(lambda: view.state and view.state['motor_set_points'] == [1.0, 1.0, -1.0, -1.0], 5,
@@ -502,39 +609,44 @@ def main() -> int:
     start = time.monotonic()
     workdir = Path(tempfile.mkdtemp(prefix='uav-demo-'))
     blackbox = ROOT / 'log' / 'demo-blackbox'
+    earlier_runs = set(blackbox.glob('parachute-*.jsonl'))
     procs = Processes(workdir)
     mission = None
     try:
         chute, bus = str(workdir / 'vparachute'), str(workdir / 'vservobus')
         print(f'uav_serial_drivers demo (ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]}): '
               f'virtual devices at {workdir}', flush=True)
-        procs.start('virtual_parachute', {'link': chute, 'external_power': False})
-        procs.start('virtual_servo_bus', {'link': bus, 'servo_ids': [1, 2, 3]})
-        deadline = time.monotonic() + 15
-        while not (os.path.exists(chute) and os.path.exists(bus)):
-            procs.check_alive()
-            if time.monotonic() > deadline:
-                raise DemoFailure('the virtual devices did not create their ports')
-            time.sleep(0.05)
+        procs.start_device('virtual_parachute', {'external_power': False}, chute)
+        procs.start_device('virtual_servo_bus', {'servo_ids': [1, 2, 3]}, bus)
         procs.start('parachute_node', {'port': chute, 'blackbox_dir': str(blackbox),
                                        'trigger_request_policy': 'confirm'})
         procs.start('servo_bus_node', {'port': bus, 'servo_ids': [1, 2, 3],
                                        'torque_on_start': True})
+        start_handset(procs, workdir)
         start_board(procs, workdir)
         mission = Mission(tty)
         summary = run_mission(mission, procs)
+        summary += '; ' + run_handset(mission, procs)
         summary += '; ' + run_board_mission(mission, procs)
         mission.close()
         mission = None
+        procs.stop_all()  # the driver closes its black box: the report sees the whole run
+        report = write_report(blackbox, earlier_runs)
         print(f'demo: OK in {time.monotonic() - start:.1f} s — {summary}; '
-              f'black box in {blackbox}', flush=True)
+              f'black box in {blackbox}; report {report}', flush=True)
         return 0
     except DemoFailure as exc:
+        if mission is not None:
+            mission.close()  # the live view leaves the terminal before the reason is printed
+            mission = None
         print(f'\ndemo: FAILED — {exc}', file=sys.stderr, flush=True)
         for name, _, _ in procs.items:
             print(f'--- last output of {name} ---\n{procs.tail(name)}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        if mission is not None:
+            mission.close()
+            mission = None
         print('\ndemo: interrupted', file=sys.stderr)
         return 130
     finally:

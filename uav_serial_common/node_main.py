@@ -23,7 +23,9 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 _WAIT_STEP_S = 0.2
-"""The main thread wakes this often, so a signal is seen promptly."""
+"""The main thread wakes this often, so a signal is seen promptly; the executor too."""
+_SPIN_EXIT_S = 2.0
+"""How long the shutdown waits for the executor to leave its wait (one step, normally)."""
 
 
 class _Signals:
@@ -55,6 +57,7 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
     signals = _Signals()
     node = None
     executor = None
+    spinner = None
     code = 0
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -73,6 +76,11 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
         code = 1
     finally:
         signals.stop.set()
+        if spinner is not None:
+            # Out of its wait before anything is destroyed: rclpy's Executor.shutdown does not
+            # wait for the spin thread, and a node destroyed under a waiting executor can hang
+            # the exit, or abort it when the interpreter finalizes under that thread.
+            spinner.join(_SPIN_EXIT_S)
         if executor is not None:
             try:
                 executor.shutdown(timeout_sec=1.0)
@@ -90,12 +98,19 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
             except Exception as exc:  # noqa: BLE001 - shutting down regardless
                 print(f'destroying the node failed: {exc!r}', file=sys.stderr)
         rclpy.try_shutdown()
+        # The shutdown is complete. While the interpreter exits Python restores the default
+        # action of the signals it handled, so a late Ctrl-C would still end the process as
+        # killed by SIGINT; ignored signals stay ignored.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return code
 
 
 def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
     try:
-        executor.spin()
+        # Wait in short steps, so the stop flag ends spinning within one step.
+        while not stop.is_set() and executor.context.ok():
+            executor.spin_once(timeout_sec=_WAIT_STEP_S)
     except ExternalShutdownException:
         pass
     except Exception as exc:  # noqa: BLE001 - the main thread shuts down cleanly after it

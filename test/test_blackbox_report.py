@@ -1,0 +1,569 @@
+"""blackbox_report on black boxes written by parachute_node processes against the virtual module.
+
+One virtual module (the ``virtual_parachute`` executable) serves every scenario; each scenario is
+one run of the ``parachute_node`` executable with a black-box directory of its own, stopped with
+SIGINT at its end, so its file ends as a real one does. The test side notes the wall-clock time
+of what it did, and the report must place the events it shows there. A synthetic black box of
+tens of MB (``bench.report_memory``) checks that memory stays bounded.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+from pathlib import Path
+import re
+import struct
+import subprocess
+import sys
+import time
+import tracemalloc
+
+from diagnostic_msgs.msg import DiagnosticArray
+import pytest
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from std_msgs.msg import String
+from std_srvs.srv import SetBool, Trigger
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.report import analyse, build_report, main as report_main
+from uav_serial_common.process import executable_path, LaunchedProcesses
+from uav_serial_common.ros_client import RosHarness
+from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
+from uav_serial_drivers.srv import Deploy
+
+ROOT = Path(__file__).resolve().parents[1]
+PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
+DESIRED = dict(attitude_threshold_deg=70, freefall_threshold_g=0.4, freefall_time_s=0.3)
+
+
+def _param(name, value):
+    if isinstance(value, bool):
+        pv = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
+    elif isinstance(value, str):
+        pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+    elif isinstance(value, float):
+        pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+    elif isinstance(value, list):
+        pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=value)
+    else:
+        pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
+    return Parameter(name=name, value=pv)
+
+
+class Bench:
+    """The virtual module as a process, a ROS client, and one driver run per scenario."""
+
+    def __init__(self, tmp: Path):
+        self.tmp = tmp
+        self.ros = RosHarness('blackbox_report_test')
+        self.procs = LaunchedProcesses(tmp, 'blackbox_report')
+        self.link = str(tmp / 'vparachute')
+        # Clients made before the servers appear: by the first call, discovery has matched
+        # both ways (a client made just before its first call can miss the response).
+        for name in ('power_cycle', 'free_fall'):
+            self.ros.client(Trigger, f'/virtual_parachute/{name}')
+        self.ros.client(SetBool, '/virtual_parachute/disconnect')
+        for node in ('/virtual_parachute', '/parachute'):
+            self.ros.client(SetParameters, f'{node}/set_parameters')
+        for name in ('arm', 'answer_trigger_request'):
+            self.ros.client(SetBool, f'/parachute/{name}')
+        self.ros.client(Deploy, '/parachute/deploy')
+        self.state = self.ros.subscribe(String, '/virtual_parachute/state')
+        self.procs.start('virtual_parachute', ros=self.ros,
+                         parameters={'link': self.link, 'stream_rate_hz': 20.0,
+                                     'external_power': True, 'free_fall_duration_s': 0.8},
+                         wait_service='/virtual_parachute/power_cycle')
+        self.state.wait(lambda m: True, 15, what='the virtual module state')
+        self.status = self.ros.subscribe(ParachuteStatus, '/parachute/status')
+        self.config = self.ros.subscribe(ParachuteConfig, '/parachute/config', latched=True)
+        self.requests = self.ros.subscribe(TriggerRequest, '/parachute/trigger_request')
+        self.events = self.ros.subscribe(TriggerEvent, '/parachute/trigger_event', latched=True)
+        self.diagnostics = self.ros.subscribe(DiagnosticArray, '/diagnostics')
+        self.marks = {}
+        self.driver = None
+
+    def mark(self, name):
+        """Note the wall-clock time of something the test does."""
+        self.marks[name] = time.time()
+
+    def module(self, service, data=None):
+        if data is None:
+            reply = self.ros.call(Trigger, f'/virtual_parachute/{service}')
+        else:
+            reply = self.ros.call(SetBool, f'/virtual_parachute/{service}',
+                                  SetBool.Request(data=data))
+        assert reply.success, reply.message
+
+    def set_params(self, node, **values):
+        request = SetParameters.Request(parameters=[_param(k, v) for k, v in values.items()])
+        results = self.ros.call(SetParameters, f'{node}/set_parameters', request).results
+        assert all(r.successful for r in results), [r.reason for r in results]
+
+    def call(self, srv, name, request):
+        return self.ros.call(srv, f'/parachute/{name}', request)
+
+    def start_driver(self, name, **params):
+        """Power-cycle the module unseen, start a driver run, wait until it streams."""
+        self.module('power_cycle')
+        box = self.tmp / f'bb-{name}'
+        parameters = dict(port=self.link, blackbox_dir=str(box), aux_poll_period_s=0.5)
+        parameters.update(params)
+        n_status = len(self.status)
+        self.driver = self.procs.start('parachute_node', parameters=parameters, ros=self.ros,
+                                       wait_service='/parachute/deploy')
+        self.status.wait(lambda m: m.online and m.streaming, 15, what='online status',
+                         start=n_status)
+        return box
+
+    def stop_driver(self, box):
+        """Stop the driver with SIGINT (its black box gets its stop record)."""
+        assert self.driver.stop() == 0, self.driver.output()
+        files = sorted(glob.glob(str(box / 'parachute-*.jsonl')))
+        assert len(files) == 1, files
+        return files[0]
+
+    def arm(self):
+        reply = self.call(SetBool, 'arm', SetBool.Request(data=True))
+        assert reply.success, reply.message
+
+    def fresh(self):
+        """Reboot the module under the running driver and wait until it is re-initialized."""
+        boot = self.config.last.boot_count
+        self.mark(f'reboot {len(self.marks)}')
+        self.module('power_cycle')
+        self.config.wait(lambda m: m.boot_count == boot + 1 and m.settings_verified, 10,
+                         what='config after the reboot')
+        n = len(self.status)
+        self.status.wait(lambda m: m.online and m.streaming and not m.triggered, 10,
+                         what='streaming after the reboot', start=n)
+
+    def free_fall(self):
+        """Let the module fall; return the trigger request the driver published."""
+        n = len(self.requests)
+        self.module('free_fall')
+        return self.requests.wait(lambda m: True, 10, what='a trigger request', start=n)
+
+    def close(self):
+        self.procs.stop_all()
+        self.ros.close()
+
+
+@pytest.fixture(scope='module')
+def bench(tmp_path_factory):
+    bench = Bench(tmp_path_factory.mktemp('blackbox_report'))
+    try:
+        yield bench
+    finally:
+        bench.close()
+
+
+@pytest.fixture(scope='module')
+def normal_run(bench):
+    """A run where nothing happens: the driver connects, streams for a second and stops."""
+    box = bench.start_driver('normal')
+    n = len(bench.status)
+    bench.status.wait(lambda m: m.online, 5, what='more status', start=n + 15)
+    return bench.stop_driver(box)
+
+
+@pytest.fixture(scope='module')
+def deployment_run(bench):
+    """Settings, a refused deploy, a deploy call, a reboot, a deferred and a denied request."""
+    box = bench.start_driver('deploy', trigger_request_policy='confirm', **DESIRED)
+    bench.config.wait(lambda m: m.settings_verified and m.attitude_threshold_deg == 70, 10,
+                      what='desired settings applied')
+    bench.mark('refused call')
+    reply = bench.call(Deploy, 'deploy', Deploy.Request(confirm='please', arm_if_locked=True))
+    assert not reply.success
+    bench.arm()
+    bench.mark('deploy call')
+    reply = bench.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+    assert reply.success, reply.message
+    bench.mark('deploy answered')
+    bench.status.wait(lambda m: m.triggered, 5, what='triggered after the deploy call',
+                      start=len(bench.status) - 1)
+    bench.fresh()
+    # A deferred trigger request that someone confirms through ~/answer_trigger_request.
+    bench.set_params('/parachute', trigger_request_policy='defer', defer_timeout_s=0.9)
+    bench.arm()
+    n = len(bench.requests)
+    bench.mark('free fall deferred')
+    bench.module('free_fall')
+    bench.status.wait(lambda m: m.armed, 1, what='armed')
+    # The request comes about 0.3 s (freefall_time_s) into the fall; answer it in time.
+    answered = None
+    deadline = time.monotonic() + 5
+    while answered is None and time.monotonic() < deadline:
+        reply = bench.call(SetBool, 'answer_trigger_request', SetBool.Request(data=True))
+        if reply.success:
+            answered = time.time()
+        else:
+            time.sleep(0.02)
+    assert answered is not None, 'no trigger request to answer'
+    bench.requests.wait(lambda m: m.decision_name == 'confirmed', 5, what='confirmed', start=n)
+    bench.status.wait(lambda m: m.triggered, 5, what='triggered after the confirmation',
+                      start=len(bench.status) - 1)
+    bench.fresh()
+    bench.set_params('/parachute', trigger_request_policy='deny')
+    bench.arm()
+    bench.mark('free fall denied')
+    request = bench.free_fall()
+    assert request.decision_name == 'denied'
+    bench.status.wait(lambda m: m.armed and not m.triggered, 5, what='still armed',
+                      start=len(bench.status) - 1)
+    bench.mark('stop')
+    return bench.stop_driver(box)
+
+
+@pytest.fixture(scope='module')
+def fault_run(bench):
+    """The cable pulled and put back, lost replies, and deploy frames that never arrive."""
+    box = bench.start_driver('fault')
+    bench.mark('unplug')
+    bench.module('disconnect', True)
+    bench.status.wait(lambda m: not m.online, 5, what='offline', start=len(bench.status) - 1)
+    bench.module('disconnect', False)
+    bench.status.wait(lambda m: m.online and m.streaming, 10, what='online again',
+                      start=len(bench.status) - 1)
+    bench.mark('replugged')
+    # The module stops hearing light-level queries: the driver's polls go unanswered.
+    n = len(bench.diagnostics)
+    bench.set_params('/virtual_parachute', lost_commands=[p.CMD_LIGHT_LEVEL])
+    bench.diagnostics.wait(lambda m: link_timeouts(m) >= 2, 10,
+                           what='two timeouts in the link diagnostic', start=n)
+    bench.set_params('/virtual_parachute', lost_commands=[])
+    bench.mark('polls answered again')
+    bench.set_params('/virtual_parachute', lost_commands=[0x11])
+    bench.arm()
+    bench.mark('lost deploy')
+    reply = bench.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+    assert not reply.success and 'NOT acknowledged' in reply.message
+    bench.set_params('/virtual_parachute', lost_commands=[])
+    return bench.stop_driver(box)
+
+
+def link_timeouts(array):
+    for status in array.status:
+        if status.name.endswith(': link'):
+            return next((int(kv.value) for kv in status.values if kv.key == 'timeouts'), 0)
+    return 0
+
+
+@pytest.fixture(scope='module')
+def deployment_report(deployment_run, tmp_path_factory):
+    """The report of the deployment run, made once for the tests that read it."""
+    return report(tmp_path_factory.mktemp('deployment_report'), deployment_run)
+
+
+def report(tmp_path, *paths, name='report'):
+    out = tmp_path / f'{name}.html'
+    summary = build_report([str(p) for p in paths], str(out), progress=False)
+    text = out.read_text(encoding='utf-8')
+    return summary, text
+
+
+def visible(html_text):
+    """The text a reader sees (tags and embedded images removed)."""
+    text = re.sub(r'<style>.*?</style>', ' ', html_text, flags=re.S)
+    text = re.sub(r'<[^>]+>', ' ', text)
+    import html
+    return re.sub(r'\s+', ' ', html.unescape(text))
+
+
+def png_size(path):
+    data = Path(path).read_bytes()
+    assert data[:8] == PNG_MAGIC, 'not a PNG'
+    width, height = struct.unpack('>II', data[16:24])
+    return width, height
+
+
+def events_of(summary, lane, needle=''):
+    return [e for e in summary.events if e[1] == lane and needle in e[3]]
+
+
+def at_wall(summary, seconds):
+    return summary.start + seconds
+
+
+# ---------------------------------------------------------------------------------------------
+
+def test_a_normal_run_is_summarized_with_the_module_facts(normal_run, tmp_path):
+    summary, text = report(tmp_path, normal_run)
+    seen = visible(text)
+    assert summary.counts.get('deployments', 0) == 0
+    assert summary.counts.get('unanswered requests', 0) == 0
+    assert summary.counts['status frames'] == Path(normal_run).read_bytes().count(
+        b'"41 75 32 ') >= 10
+    assert 'No deployment' in seen
+    assert 'ends cleanly with the stop record' in seen
+    for fact in ('Run start', 'Run end', 'Module boot count', 'Attitude threshold',
+                 'Free-fall threshold', 'Auto triggers', 'Baud rate 115200',
+                 'Lost frames (unanswered requests) 0'):
+        assert fact in seen, fact
+    assert summary.facts['Attitude threshold'] != 'not read'
+    # Self-contained: the timeline is embedded, nothing is fetched from anywhere.
+    assert 'src="data:image/png;base64,' in text
+    assert not re.search(r'(src|href)="(https?:)?//', text)
+    assert png_size(summary.png_path)[0] >= 1000
+    assert summary.png_path == str(tmp_path / 'report.png')
+
+
+def test_each_deployment_gets_a_paragraph_with_who_decided_and_the_step_times(
+        deployment_report, bench):
+    summary, text = deployment_report
+    seen = visible(text)
+    marks = bench.marks
+    deps = summary.deployments
+    assert [d.origin for d in deps] == ['call', 'request'], [d.paragraph for d in deps]
+    call, deferred = deps
+    # The deploy call: decided by the service call; frame, acknowledgement and their latencies.
+    assert marks['deploy call'] - 0.05 <= call.t <= marks['deploy answered'] + 0.05
+    assert call.outcome == 'deployed'
+    assert '~/deploy service call' in call.paragraph
+    assert 'deploy frame on the wire' in call.paragraph
+    assert re.search(r'the module acknowledged [\d.]+ ms later', call.paragraph)
+    assert call.source == 'serial'
+    # The deferred request: confirmed by someone answering the service, in time.
+    assert deferred.outcome == 'deployed'
+    assert '~/answer_trigger_request' in deferred.paragraph
+    assert 'free fall' in deferred.paragraph or 'freefall' in deferred.paragraph
+    assert re.search(r'confirmed [\d.]+ m?s later', deferred.paragraph)
+    assert marks['free fall deferred'] < deferred.t < marks['free fall denied']
+    for dep in deps:
+        assert dep.paragraph in seen
+        assert f'Deployment {dep.number} at +' in seen
+    # The denied request and the refused call are counted, not deployments.
+    assert summary.counts['trigger requests denied'] == 1
+    assert summary.counts['deploy calls refused'] == 1
+    refused = events_of(summary, 'calls', '~/deploy refused')
+    assert len(refused) == 1
+    assert abs(at_wall(summary, refused[0][0]) - marks['refused call']) < 1.0
+    denied = events_of(summary, 'request', 'DENIED')
+    assert len(denied) == 1
+    assert marks['free fall denied'] < at_wall(summary, denied[0][0]) < marks['stop']
+    # Settings written and verified; the module's thresholds are in the summary.
+    assert summary.counts['settings written and verified'] >= 3
+    assert summary.facts['Attitude threshold'].startswith('70°')
+    assert summary.facts['Free-fall time'].startswith('0.3 s')
+    assert 'Deployments and attempts 2 (2 deployed)' in seen
+
+
+def test_reboots_are_shown_when_they_happened(deployment_report, bench):
+    summary, text = deployment_report
+    reboots = [at_wall(summary, t) for t in summary.reboots]
+    marks = sorted(t for name, t in bench.marks.items() if name.startswith('reboot'))
+    assert len(reboots) == len(marks) == 2
+    for seen, done in zip(reboots, marks):
+        assert done <= seen <= done + 2.0
+    assert summary.facts['Module boot count'].endswith('(2 changes)')
+    assert len(events_of(summary, 'module', 'module rebooted')) == 2
+
+
+def test_link_faults_lost_frames_and_a_deploy_of_unknown_outcome(fault_run, bench, tmp_path):
+    summary, text = report(tmp_path, fault_run)
+    seen = visible(text)
+    c = summary.counts
+    assert c['port closed'] >= 1 and c['reconnects'] >= 1 and c['offline'] >= 1
+    closed = events_of(summary, 'link', 'port closed')
+    assert bench.marks['unplug'] <= at_wall(summary, closed[0][0]) <= bench.marks['replugged']
+    assert c['unanswered requests'] >= 4  # two or more light-level polls, two deploy frames
+    assert f'Lost frames (unanswered requests) {c["unanswered requests"]}' in seen
+    lost_polls = events_of(summary, 'link', 'no reply to light level')
+    assert len(lost_polls) >= 2
+    for seconds, *_ in lost_polls:
+        assert bench.marks['replugged'] < at_wall(summary, seconds) < \
+            bench.marks['polls answered again']
+    assert len(events_of(summary, 'link', 'no reply to deploy')) == 2
+    (dep,) = summary.deployments
+    assert dep.outcome == 'unknown'
+    assert 'OUTCOME UNKNOWN' in dep.paragraph and '2 deploy frame(s) sent' in dep.paragraph
+    assert 'deploy attempts with an UNKNOWN outcome' in seen
+
+
+def test_a_truncated_file_says_where_it_ends(deployment_run, tmp_path):
+    data = Path(deployment_run).read_bytes()
+    lines = data.split(b'\n')
+    # Cut in the middle of a line shortly after the first deployment's acknowledgement.
+    n = next(i for i, line in enumerate(lines) if b'"deploy acknowledged"' in line) + 5
+    cut = sum(len(line) + 1 for line in lines[:n]) + len(lines[n]) // 2
+    truncated = tmp_path / 'cut.jsonl'
+    truncated.write_bytes(data[:cut])
+    summary, text = report(tmp_path, truncated)
+    seen = visible(text)
+    (info,) = summary.files
+    assert info.truncated and info.last_good_line == n
+    assert summary.truncated
+    assert (f'TRUNCATED: the last complete record is line {n} (byte '
+            f'{cut - len(lines[n]) // 2 - len(lines[n - 1]) - 1})') in seen
+    assert f'from line {n + 1} (byte {cut - len(lines[n]) // 2})' in seen
+    assert 'Everything after that point is missing from this report' in seen
+    assert [d.origin for d in summary.deployments] == ['call']
+    assert summary.deployments[0].outcome == 'deployed'
+
+
+def test_several_files_of_one_flight_are_ordered_and_the_gap_is_shown(
+        normal_run, deployment_run, tmp_path):
+    summary, text = report(tmp_path, deployment_run, normal_run)
+    assert [f.path for f in summary.files] == [normal_run, deployment_run]
+    gap = summary.files[1].first_time - summary.files[0].last_time
+    assert gap > 0
+    assert summary.start == summary.files[0].first_time
+    assert summary.end == summary.files[1].last_time
+    assert len(summary.deployments) == 2
+    assert summary.deployments[0].seconds > summary.files[1].first_time - summary.start
+    seen = visible(text)
+    assert '2 files of one flight' in seen
+    assert re.search(r'No black box \(gaps between files\) [\d.]+ (ms|s) between '
+                     + re.escape(summary.files[0].name), seen)
+
+
+def test_unknown_kinds_fields_and_older_lines_are_listed_not_fatal(normal_run, tmp_path):
+    lines = Path(normal_run).read_text().splitlines()
+    t = json.loads(lines[-1])['t']
+    extra = [
+        # A newer driver: a deploy whose outcome is unknown, a kind nobody knows yet, a new field.
+        {'kind': 'request', 'what': 'deploy', 'token_ok': True, 't': t - 0.5},
+        {'kind': 'decision', 'what': 'deploy', 'outcome': 'unknown', 'reason': 'port closed',
+         't': t - 0.4, 'mono': None},
+        {'kind': 'preflight_v9', 'check': 'igniter', 'ok': True, 't': t - 0.3},
+        {'kind': 'state', 'online': True, 'reason': '', 'quality': 0.9, 't': t - 0.2},
+        # An older driver: no mono, no kind, a frame without dir.
+        {'t': t - 0.1, 'what': 'mystery'},
+        {'kind': 'frame', 'hex': '41 75 32 00 0a 00 01 3d', 't': t - 0.05},
+    ]
+    newer = tmp_path / 'newer.jsonl'
+    newer.write_text('\n'.join(lines[:-1] + [json.dumps(r) for r in extra] + lines[-1:]) + '\n')
+    summary, text = report(tmp_path, newer)
+    seen = visible(text)
+    assert summary.unknown_kinds == {'preflight_v9': 1, '(no kind)': 1}
+    assert summary.unknown_fields == {'state.quality': 1}
+    assert 'Records this report does not know' in seen and 'preflight_v9' in seen
+    assert events_of(summary, 'other', "unknown kind 'preflight_v9'")
+    (dep,) = summary.deployments
+    assert dep.outcome == 'unknown' and 'OUTCOME UNKNOWN' in dep.paragraph
+
+
+def _variant(lines, name):
+    """A black box in one of the states real files are found in."""
+    if name == 'empty':
+        return b''
+    data = ('\n'.join(lines) + '\n').encode()
+    if name == 'zero-filled tail':  # a crash with delayed allocation leaves zero blocks
+        return data[:len(data) - len(lines[-1]) // 2] + b'\0' * 4096
+    if name == 'garbage inside':
+        return data.replace(b'\n', b'\n{"kind":"frame","dir":"rx","hex":\xff\xfe\n', 1)
+    if name == 'no final newline':
+        return data[:-1]
+    if name == 'older, without mono':
+        return ('\n'.join(json.dumps({k: v for k, v in json.loads(line).items() if k != 'mono'})
+                          for line in lines) + '\n').encode()
+    if name == 'a damaged time':
+        record = json.loads(lines[len(lines) // 2])
+        record['mono'] = 1e15
+        lines = lines[:len(lines) // 2] + [json.dumps(record)] + lines[len(lines) // 2 + 1:]
+        return ('\n'.join(lines) + '\n').encode()
+    raise ValueError(name)
+
+
+@pytest.mark.parametrize('name', ['empty', 'zero-filled tail', 'garbage inside',
+                                  'no final newline', 'older, without mono', 'a damaged time'])
+def test_files_in_any_state_still_give_a_report(normal_run, tmp_path, name):
+    path = tmp_path / 'box.jsonl'
+    data = _variant(Path(normal_run).read_text().splitlines(), name)
+    path.write_bytes(data)
+    # Every status frame on a complete line of the variant is counted, no more.
+    complete = data[:data.rfind(b'\n') + 1] if name != 'no final newline' else data
+    status_lines = complete.count(b'"41 75 32 ')
+    summary, text = report(tmp_path, path)
+    seen = visible(text)
+    (info,) = summary.files
+    assert png_size(summary.png_path)[0] >= 1000
+    if name == 'empty':
+        assert info.records == 0 and 'Run start unknown' in seen
+        return
+    assert summary.counts.get('status frames', 0) == status_lines > 0
+    if name == 'zero-filled tail':
+        assert info.truncated and 'zero bytes' in info.tail.reason
+        assert 'TRUNCATED: the last complete record is line' in seen
+    elif name == 'garbage inside':
+        assert not info.truncated and info.bad_lines == 1
+        assert '1 unreadable lines inside the file were skipped' in seen
+        assert info.clean_end
+    elif name == 'a damaged time':
+        assert info.bad_times == 1 and info.clean_end
+        assert summary.duration_s < 60
+        assert '1 records with a damaged time' in seen
+    else:
+        assert info.clean_end and not info.truncated and info.bad_lines == 0
+        assert 'ends cleanly with the stop record' in seen
+
+
+def test_progress_is_reported_up_to_the_whole_size(normal_run, tmp_path):
+    seen = []
+    build_report([normal_run], str(tmp_path / 'r.html'),
+                 progress=lambda done, total: seen.append((done, total)))
+    size = Path(normal_run).stat().st_size
+    assert seen and seen[-1] == (size, size)
+    assert [d for d, _ in seen] == sorted(d for d, _ in seen)
+
+
+def test_the_console_script_writes_the_report_beside_the_file(normal_run, tmp_path):
+    target = tmp_path / 'copy.jsonl'
+    target.write_bytes(Path(normal_run).read_bytes())
+    # The installed executable, as `ros2 run uav_serial_drivers blackbox_report` starts it.
+    result = subprocess.run([executable_path('blackbox_report'), str(target)],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    html_path = tmp_path / 'copy-report.html'
+    assert f'blackbox_report: {html_path}' in result.stdout
+    assert png_size(tmp_path / 'copy-report.png')[0] >= 1000
+    assert report_main([str(tmp_path / 'missing.jsonl')]) == 2
+    # As `ros2 run` / a launch file starts it: the ROS arguments are left alone.
+    assert report_main([str(target), '-o', str(tmp_path / 'ros.html'), '--ros-args', '-r',
+                        '__node:=x']) == 0
+    assert (tmp_path / 'ros.png').is_file()
+
+
+def test_no_ros_is_needed_to_make_a_report(normal_run, tmp_path):
+    # Any import of rclpy or of the generated interfaces fails in this process.
+    code = ('import sys\n'
+            'for name in ("rclpy", "uav_serial_drivers", "std_msgs", "sensor_msgs"):\n'
+            '    sys.modules[name] = None\n'
+            'from dps_parachute_ros.report import main\n'
+            'sys.exit(main(sys.argv[1:]))\n')
+    result = subprocess.run([sys.executable, '-c', code, normal_run, '-o',
+                             str(tmp_path / 'plain.html')], capture_output=True, text=True,
+                            timeout=60, cwd=str(ROOT))
+    assert result.returncode == 0, result.stderr
+    assert 'No deployment' in visible((tmp_path / 'plain.html').read_text(encoding='utf-8'))
+
+
+def test_a_large_file_is_streamed_in_bounded_memory(tmp_path):
+    from bench.report_memory import report_peak_rss, write_synthetic_blackbox
+    small, large = tmp_path / 'small.jsonl', tmp_path / 'large.jsonl'
+    write_synthetic_blackbox(str(small), 1 << 20)
+    made = write_synthetic_blackbox(str(large), 6 << 20)
+    peaks = {}
+    for path in (small, large):
+        tracemalloc.start()
+        try:
+            analysis, flight = analyse([str(path)], progress=False)
+            peaks[path.name] = tracemalloc.get_traced_memory()[1] / 1e6
+        finally:
+            tracemalloc.stop()
+        assert flight.files[0].clean_end and analysis.counts['status frames'] > 1000
+    # Six times the lines (about 50 000 more): anything kept per line would show here.
+    assert peaks['large.jsonl'] - peaks['small.jsonl'] < 2.0, peaks
+    # The whole report (drawing included) in a process of its own: its peak RSS and counts.
+    result = report_peak_rss(str(large), str(tmp_path / 'large.html'))
+    assert result['peak_mb'] < 300, result['peak_mb']
+    counts = result['counts']
+    assert made['deployments'] >= 5 and made['lost'] >= 40 and made['reboots'] >= 5
+    assert counts['deployments'] == made['deployments']
+    assert counts['unanswered requests'] == made['lost']
+    assert counts['reboots'] == made['reboots']
+    assert counts['reconnects'] == made['reconnects']
+    assert sum(n for kind, n in result['unknown_kinds'].items()) == made['unknown']
+    assert result['deployments_listed'] == counts['deployments']

@@ -1,0 +1,684 @@
+"""The parachute's device core (ParachuteSession) against the virtual module: rules, in seconds.
+
+No ROS and no processes: the real simulation (`VirtualParachute`) on a real pty through
+`VirtualDeviceRunner` at baud 0, opened by pyserial through the real link, and a fake clock for
+the time-based rules (the test moves it; the module keeps its own real time). Tests named
+``test_safety_<n>_...`` are the rules of issue 10, item <n>.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.blackbox import BlackBox
+from dps_parachute_ros.session import ParachuteSession
+from dps_parachute_ros.simulation import VirtualParachute
+from dps_parachute_ros.state import Listener, SessionConfig
+from dps_parachute_ros.virtual_node import create_runner
+from parachute_rig import blackbox_records, Wire
+from uav_serial_common.process import wait_for
+
+DEPLOY = p.encode_deploy()
+CONFIRM = p.encode_trigger_confirm()
+TIMEOUT_S = 0.5
+"""Request timeout of the session under test (1 s on the real module, P12): fast tests."""
+
+
+class FakeClock:
+    """Monotonic seconds that move only when the test says so."""
+
+    def __init__(self) -> None:
+        self.t = 1000.0
+        self._lock = threading.Lock()
+
+    def __call__(self) -> float:
+        with self._lock:
+            return self.t
+
+    def advance(self, dt: float) -> None:
+        with self._lock:
+            self.t += dt
+
+
+class Heard(Listener):
+    """Everything the session reported."""
+
+    def __init__(self) -> None:
+        self.events, self.decisions, self.logs, self.triggered = [], [], [], []
+
+    def on_deployment(self, event):
+        self.events.append(event)
+
+    def on_trigger_request(self, decision):
+        self.decisions.append(decision)
+
+    def on_log(self, level, text):
+        self.logs.append((level, text))
+
+    def on_triggered(self, triggered):
+        self.triggered.append(triggered)
+
+
+class Rig:
+    def __init__(self, tmp, blackbox=None, baud=0, **config):
+        self.tmp = tmp
+        self.sim = VirtualParachute(now=time.monotonic() - 1.0)
+        self.sim.step(time.monotonic())  # its power-up heartbeats are in the past
+        # Baud 0: no wire time. (Wire faults that delay replies need a baud: the pty ignores
+        # a start time at baud 0.)
+        self.runner = create_runner(self.sim, str(tmp / 'vpara'), baud=baud).start()
+        self.wire = Wire(self.runner)
+        self.clock = FakeClock()
+        self.heard = Heard()
+        config.setdefault('blackbox_dir', str(tmp / 'bb'))
+        self.config = SessionConfig(port=self.runner.path, request_timeout_s=TIMEOUT_S, **config)
+        self.session = ParachuteSession(self.config, self.heard, self.clock, blackbox=blackbox)
+        self.session.start()
+        self.wait_ready()
+
+    @property
+    def snap(self):
+        return self.session.snapshot
+
+    def model(self):
+        return self.runner.locked()
+
+    def wait_ready(self, boot=None, timeout=5.0):
+        wait_for(lambda: self.snap.online and self.snap.initialized and self.snap.fresh and
+                 (boot is None or self.snap.boot_count == boot), timeout,
+                 what=f'the session initialized (boot {boot})')
+
+    def power_cycle(self):
+        # A power cycle takes time: more than the 0.2 s that group power-up heartbeats (D3).
+        self.clock.advance(0.5)
+        with self.model():
+            self.sim.power_cycle()
+            return self.sim.boot_count
+
+    def fresh(self):
+        self.wait_ready(self.power_cycle())
+
+    def arm(self):
+        result = self.session.arm(True)
+        assert result.ok, result.message
+
+    def records(self):
+        assert self.session.blackbox.sync(2.0)
+        return blackbox_records(self.tmp / 'bb')
+
+    def deploy_outcomes(self):
+        return [r for r in self.records() if r['kind'] == 'decision' and r['what'] == 'deploy']
+
+    def close(self):
+        self.session.stop()
+        self.runner.stop()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    rig = Rig(tmp_path, attitude_threshold_deg=70)
+    yield rig
+    rig.close()
+
+
+def in_thread(fn, *args):
+    """Run fn(*args) in a thread; return a list that receives its result."""
+    out = []
+    thread = threading.Thread(target=lambda: out.append(fn(*args)), daemon=True)
+    thread.start()
+    return out
+
+
+# -- deploy rules -----------------------------------------------------------------------------
+
+def test_deploy_refusals_send_nothing(rig):
+    mark = rig.wire.mark()
+    for token in ('deploy', 'DEPLOY ', ''):
+        result = rig.session.deploy(token, True)
+        assert not result.ok and "'DEPLOY'" in result.message and 'nothing sent' in result.message
+    result = rig.session.deploy('DEPLOY', False)
+    assert not result.ok and 'locked' in result.message and 'nothing sent' in result.message
+    rig.runner.unplug()
+    wait_for(lambda: not rig.snap.online, 3, what='offline')
+    result = rig.session.deploy('DEPLOY', True)
+    assert not result.ok and 'offline' in result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [] and rig.wire.since(mark, p.CMD_ARM) == []
+
+
+def test_deploy_arms_first_when_asked_and_reports_one_event(rig):
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY', True)
+    assert result.ok and 'acknowledged after 1 attempt' in result.message, result.message
+    sent = [raw[2] for raw in rig.wire.since(mark) if raw[2] in (p.CMD_ARM, p.CMD_DEPLOY)]
+    assert sent == [p.CMD_ARM, p.CMD_DEPLOY]
+    wait_for(lambda: rig.heard.events, 3, what='trigger event')
+    assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_SERIAL, 'deploy_ack')]
+    with rig.model():
+        assert rig.sim.triggered and rig.sim.deployments == 1
+    records = rig.records()
+    assert any(r.get('what') == 'deploy acknowledged' for r in records)
+
+
+def test_unacknowledged_deploys_stop_before_a_third_frame_until_a_reboot(rig):
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'NOT acknowledged after 2 attempts' in result.message
+    assert 'did NOT deploy' in result.message  # the module said so, when asked
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and '2 deploy frames in a row went unacknowledged' in result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY] * 2
+    with rig.model():
+        rig.sim.lost_commands = set()
+    rig.fresh()
+    rig.arm()
+    assert rig.session.deploy('DEPLOY').ok
+
+
+# -- online / offline -------------------------------------------------------------------------
+
+def test_online_offline_judgement(rig):
+    assert rig.snap.streaming
+    with rig.model():
+        rig.sim.power_off()
+    rig.session.tick()
+    assert rig.snap.online  # silence shorter than offline_timeout_s is no verdict
+    rig.clock.advance(1.1)
+    rig.session.tick()
+    assert not rig.snap.online and 'no status frame' in rig.snap.offline_reason
+    rig.clock.advance(10.0)
+    rig.session.tick()
+    assert not rig.snap.online  # back only with a frame
+    with rig.model():
+        rig.sim.power_on()
+    rig.wait_ready(boot=2)
+
+
+def test_an_unanswered_request_makes_the_module_offline(tmp_path):
+    rig = Rig(tmp_path, stream_status=False)
+    try:
+        with rig.model():
+            rig.sim.lost_commands = set(range(256))  # hears nothing any more
+        mark = rig.wire.mark()
+        done = in_thread(rig.session.get_config)
+        wait_for(lambda: rig.wire.since(mark), 2, what='a query on the wire')
+        rig.clock.advance(1.1)
+        rig.session.tick()
+        assert not rig.snap.online and 'no reply within 1.0 s' in rig.snap.offline_reason
+        wait_for(lambda: done, 5, what='get_config to give up')
+        assert not done[0].ok
+    finally:
+        rig.close()
+
+
+# -- settings ---------------------------------------------------------------------------------
+
+def test_settings_are_reapplied_after_a_reboot(rig):
+    with rig.model():
+        rig.sim.attitude_threshold_deg = 45
+    rig.fresh()
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 70
+    assert rig.snap.attitude_threshold_raw == 70 and rig.snap.mismatch == ()
+
+
+def test_a_parameter_set_is_written_all_or_nothing(rig):
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_FREEFALL_THRESHOLD}
+    ok, reason = rig.session.commit_desired({'attitude_threshold_deg': 75,
+                                             'freefall_threshold_g': 0.3})
+    assert not ok and 'freefall_threshold_g' in reason and 'put back attitude_threshold_deg' \
+        in reason, reason
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 70 and rig.sim.freefall_threshold_raw == 5
+        rig.sim.lost_commands = set()
+    ok, reason = rig.session.commit_desired({'attitude_threshold_deg': 75,
+                                             'freefall_threshold_g': 0.3})
+    assert ok, reason
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 75 and rig.sim.freefall_threshold_raw == 3
+
+
+# -- trigger-request policy -------------------------------------------------------------------
+
+def ask(rig):
+    """Arm the module on external power and tilt it past its threshold: it asks the host."""
+    rig.arm()
+    with rig.model():
+        asked = rig.sim.requests_sent
+        rig.sim.set_tilt(85)
+        assert rig.sim.requests_sent == asked + 1
+
+
+def policy(rig, name):
+    rig.session.reconfigure(SessionConfig.from_values({**rig.config.__dict__,
+                                                       'trigger_request_policy': name}))
+
+
+@pytest.mark.parametrize('name', ['confirm', 'deny'])
+def test_trigger_request_confirm_and_deny(rig, name):
+    policy(rig, name)
+    mark = rig.wire.mark()
+    ask(rig)
+    wait_for(lambda: rig.heard.decisions, 3, what='a decision')
+    decision = rig.heard.decisions[-1]
+    assert decision.policy == name
+    if name == 'confirm':
+        assert decision.decision == 'confirmed' and decision.latency_ms is not None
+        wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
+        assert CONFIRM in rig.wire.since(mark)
+    else:
+        assert decision.decision == 'denied' and decision.latency_ms is None
+        wait_for(lambda: rig.sim.requests_expired, 3, what='the request to expire')
+        assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+
+
+def test_deferred_request_times_out_by_the_clock(rig):
+    policy(rig, 'defer')
+    mark = rig.wire.mark()
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    rig.clock.advance(0.5)
+    rig.session.tick()
+    assert rig.snap.pending_request and not rig.heard.decisions  # 0.8 s not over yet
+    rig.clock.advance(0.31)
+    rig.session.tick()
+    assert [d.decision for d in rig.heard.decisions] == ['timed_out']
+    assert not rig.session.answer_trigger_request(True).ok  # nothing pending any more
+    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
+    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+
+
+def test_deferred_request_answered_true_deploys(rig):
+    policy(rig, 'defer')
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    result = rig.session.answer_trigger_request(True)
+    assert result.ok and 'armed: it deploys' in result.message, result.message
+    assert rig.heard.decisions[-1].decision == 'confirmed'
+    wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
+    wait_for(lambda: rig.heard.events, 3, what='trigger event')
+    assert rig.heard.events[0].source == p.SOURCE_ATTITUDE
+
+
+# -- safety rules (issue 10) ------------------------------------------------------------------
+
+@pytest.mark.parametrize('fault', ['drop_next', 'corrupt_next'])
+def test_safety_2_a_lost_deploy_ack_is_reported_as_deployed_and_never_retried(rig, fault):
+    rig.arm()
+    mark = rig.wire.mark()
+    setattr(rig.runner.faults, fault, 1)  # the module deploys; its acknowledgement is lost
+    result = rig.session.deploy('DEPLOY')
+    assert result.ok, result.message
+    assert 'reports triggered' in result.message and 'acknowledgement was lost' in \
+        result.message
+    assert 'did NOT deploy' not in result.message
+    # It asked before any retry: one deploy frame, then the triggered query.
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]
+    assert p.encode_triggered_query() in rig.wire.since(mark)
+    with rig.model():
+        assert rig.sim.deployments == 1 and rig.sim.failed_attempts_total == 0
+    wait_for(lambda: rig.heard.events, 3, what='one trigger event')
+    rig.session.get_trigger_records()  # whatever the worker still does with the record
+    assert len(rig.heard.events) == 1 and rig.heard.events[0].record is not None
+    deploys = rig.deploy_outcomes()
+    assert [(r['outcome'], r['success']) for r in deploys] == [('deployed', True)]
+
+
+def unplug_when_deploy_arrives(rig):
+    """Pull the cable the moment the module receives a deploy frame: no reply gets back."""
+    def tap(direction, data, t):
+        if direction == 'rx' and DEPLOY in data:
+            rig.runner.port.unplug()
+    rig.runner.add_tap(tap)
+
+
+def test_safety_3_a_deploy_cut_short_by_the_link_is_unknown_then_resolved(rig):
+    rig.arm()
+    unplug_when_deploy_arrives(rig)
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'UNKNOWN' in result.message and 'link dropped' in result.message
+    assert 'did NOT deploy' not in result.message and 'refused' not in result.message
+    assert rig.snap.deploy_outcome_unknown and rig.snap.unacked_deploys == 1
+    with rig.model():
+        assert rig.sim.triggered  # it did deploy
+    rig.runner.replug()
+    rig.wait_ready()
+    # Once the module answers again the driver reads the triggered state and reports it.
+    wait_for(lambda: rig.heard.events, 3, what='the deployment reported after reconnecting')
+    assert not rig.snap.deploy_outcome_unknown and rig.snap.triggered
+    deploys = rig.deploy_outcomes()
+    assert [r['outcome'] for r in deploys] == ['unknown', 'deployed']
+    assert 'success' not in deploys[0]  # never a refusal for an unknown outcome
+    assert len(rig.heard.events) == 1
+
+
+def test_safety_3_every_deploy_frame_that_left_unacknowledged_counts(rig):
+    rig.arm()
+    unplug_when_deploy_arrives(rig)
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # lost on the way in: no deployment
+    mark = rig.wire.mark()
+    answers = []
+    for _ in range(4):
+        answers.append(rig.session.deploy('DEPLOY'))
+        rig.runner.replug()
+        rig.wait_ready()
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY] * 2
+    assert ['UNKNOWN' in a.message for a in answers] == [True, True, False, False]
+    assert all('2 deploy frames in a row went unacknowledged' in a.message
+               for a in answers[2:])
+    # Read after reconnecting: it did not deploy.
+    assert not rig.snap.deploy_outcome_unknown and not rig.snap.triggered
+    outcomes = [r['outcome'] for r in rig.deploy_outcomes()]
+    assert outcomes == ['unknown', 'not deployed', 'unknown', 'not deployed', 'refused',
+                        'refused']
+
+
+def test_safety_4_a_policy_change_settles_a_pending_request_at_once(rig):
+    policy(rig, 'defer')
+    mark = rig.wire.mark()
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    policy(rig, 'deny')
+    assert [(d.decision, d.policy) for d in rig.heard.decisions] == [('denied', 'deny')]
+    assert 'policy changed to deny' in rig.heard.decisions[0].reason
+    assert not rig.snap.pending_request
+    assert not rig.session.answer_trigger_request(True).ok  # nothing left to answer
+    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
+    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+
+
+def test_safety_4_a_change_to_confirm_confirms_within_the_window(rig):
+    policy(rig, 'defer')
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    policy(rig, 'confirm')
+    assert rig.heard.decisions[-1].decision == 'confirmed'
+    wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
+
+
+def test_safety_4_a_change_to_confirm_after_the_window_confirms_nothing(rig):
+    policy(rig, 'defer')
+    mark = rig.wire.mark()
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    rig.clock.advance(1.0)  # the module's 1 s is over (the defer deadline not yet judged)
+    policy(rig, 'confirm')
+    decision = rig.heard.decisions[-1]
+    assert decision.decision == 'timed_out' and "1 s window has passed" in decision.reason
+    assert CONFIRM not in rig.wire.since(mark)
+
+
+def test_safety_5_answer_true_to_a_locked_module_does_not_claim_a_deployment(rig):
+    policy(rig, 'defer')
+    mark = rig.wire.mark()
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    assert rig.session.arm(False).ok
+    result = rig.session.answer_trigger_request(True)
+    assert not result.ok and 'locked' in result.message and 'deploys' not in result.message
+    decision = rig.heard.decisions[-1]
+    assert decision.decision == 'denied' and 'locked' in decision.reason
+    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
+    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+
+
+def test_safety_6_concurrent_deploys_send_one_frame_and_never_rearm(rig):
+    mark = rig.wire.mark()
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(
+        rig.session.deploy('DEPLOY', True))) for _ in range(10)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(20)
+    assert len(results) == 10 and all(r.ok for r in results), [r.message for r in results]
+    assert sum('already deployed' in r.message for r in results) == 9
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]
+    assert rig.wire.since(mark, p.CMD_ARM) == [p.encode_arm(True)]
+    with rig.model():
+        assert rig.sim.deployments == 1 and not rig.sim.protection
+        assert rig.sim.failed_attempts_total == 0
+    result = rig.session.arm(True)
+    assert not result.ok and 'never re-armed' in result.message
+    assert rig.wire.since(mark, p.CMD_ARM) == [p.encode_arm(True)]
+
+
+def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(tmp_path):
+    rig = Rig(tmp_path, baud=115200)
+    try:
+        check_deploy_after_reboot(rig)
+    finally:
+        rig.close()
+
+
+def check_deploy_after_reboot(rig):
+    rig.arm()
+    assert rig.snap.armed
+    rig.runner.faults.reply_delay_s = 0.15  # the re-read takes a while
+    mark = rig.wire.mark()
+    boot = rig.power_cycle()
+    wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and ('locked' in result.message or 're-read' in result.message), \
+        result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == []
+    # A module that does not answer the re-read within the wait: refused, with the reason.
+    rig.runner.faults.reply_delay_s = 0.0
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_STREAMING, p.CMD_ARMED}
+    rig.power_cycle()
+    wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
+    result = rig.session.deploy('DEPLOY', True)
+    assert not result.ok and 'has not been re-read' in result.message, result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [] and rig.wire.since(mark, p.CMD_ARM) == []
+    with rig.model():
+        rig.sim.lost_commands = set()
+    rig.clock.advance(1.0)  # the failed initialization is tried again a second later
+    rig.wait_ready(boot + 1, timeout=10)
+    assert rig.session.deploy('DEPLOY', True).ok
+
+
+def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # the frame is lost: no acknowledgement
+
+    def reboot_on_deploy(direction, data, t):
+        if direction == 'rx' and DEPLOY in data:
+            rig.clock.advance(0.5)
+            rig.sim.power_cycle()  # runner thread: the model's only user right now
+    rig.runner.add_tap(reboot_on_deploy)
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \
+        result.message, result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]  # no retry to the rebooted module
+    with rig.model():
+        assert rig.sim.failed_attempts_total == 0 and not rig.sim.triggered
+
+
+def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(tmp_path):
+    rig = Rig(tmp_path, baud=115200)
+    try:
+        check_one_event_for_a_late_ack(rig)
+    finally:
+        rig.close()
+
+
+def check_one_event_for_a_late_ack(rig):
+    rig.arm()
+    rig.runner.faults.reply_delay_s = TIMEOUT_S + 0.2  # the ack arrives after the timeout
+    result = rig.session.deploy('DEPLOY')
+    assert result.ok, result.message
+    assert any('late deploy acknowledgement' in text for _, text in rig.heard.logs)
+    wait_for(lambda: rig.heard.events, 3, what='the trigger event')
+    rig.runner.faults.reply_delay_s = 0.0
+    # An offline -> online re-initialization reads the trigger record again.
+    rig.runner.unplug()
+    wait_for(lambda: not rig.snap.online, 3, what='offline')
+    rig.runner.replug()
+    rig.wait_ready()
+    assert rig.session.get_trigger_records().records[-1].serial_trigger
+    assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_SERIAL, 'deploy_ack')]
+
+
+def test_safety_9_a_setting_that_would_deploy_at_once_is_refused_while_armed(rig):
+    assert rig.session.set_auto_triggers(False, True).ok
+    rig.arm()
+    with rig.model():
+        rig.sim.set_tilt(30)
+        asked = rig.sim.requests_sent
+    # Harmless while the attitude trigger is off.
+    assert rig.session.set_thresholds({'attitude_threshold_deg': 20}).ok
+    result = rig.session.set_auto_triggers(True, True)
+    assert not result.ok and 'would deploy now: tilt 30° ≥ attitude threshold 20°' in \
+        result.message and 'lock first' in result.message, result.message
+    assert rig.session.set_thresholds({'attitude_threshold_deg': 60}).ok
+    assert rig.session.set_auto_triggers(True, True).ok
+    for attempt in ({'attitude_threshold_deg': 25}, {'attitude_threshold_deg': 30}):
+        result = rig.session.set_thresholds(attempt)
+        assert not result.ok and 'would deploy now' in result.message
+    ok, reason = rig.session.commit_desired({'attitude_threshold_deg': 30})
+    assert not ok and 'would deploy now' in reason
+    # Free fall: |a| already below the new threshold.
+    with rig.model():
+        rig.sim.set_accel(0.4)
+    result = rig.session.set_thresholds({'freefall_threshold_g': 0.5})
+    assert not result.ok and 'acceleration 0.4 g < free-fall threshold 0.5 g' in result.message
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 60 and rig.sim.freefall_threshold_raw == 5
+        assert rig.sim.requests_sent == asked and not rig.sim.triggered
+    # Locked, nothing can deploy: the same change is fine.
+    assert rig.session.arm(False).ok
+    assert rig.session.set_thresholds({'attitude_threshold_deg': 20}).ok
+
+
+def test_safety_11_a_full_disk_never_stops_a_deploy_and_is_never_silent(tmp_path):
+    # /dev/full: every write fails with ENOSPC, for real.
+    box = BlackBox(str(tmp_path), path='/dev/full')
+    rig = Rig(tmp_path, blackbox=box)
+    try:
+        policy(rig, 'confirm')
+        rig.arm()
+        assert rig.session.deploy('DEPLOY').ok
+        assert not box.sync(1.0)
+        status = box.status()
+        assert not status.writing and status.lost > 0
+        assert status.error == 'No space left on device'
+        problem = rig.session.blackbox_problem()
+        assert problem.startswith('cannot write: No space left on device;') and \
+            problem.endswith('records lost')
+        wait_for(lambda: box.status().lost > status.lost, 3, what='more records lost')
+        said = [text for level, text in rig.heard.logs if 'black box' in text]
+        assert len(said) == 1 and said[0].startswith('black box: cannot write: No space left')
+        check = rig.session.preflight_check()
+        assert not check.ok and 'FAIL black box writable: cannot write: No space left' in \
+            check.message
+    finally:
+        rig.close()
+
+
+def test_safety_11_an_unusable_blackbox_dir_runs_without_it_and_recovers(tmp_path):
+    blocker = tmp_path / 'blocker'
+    blocker.write_text('a regular file where a directory should be')
+    directory = blocker / 'bb'
+    box = BlackBox(str(directory), reopen_period_s=0.1)
+    rig = Rig(tmp_path, blackbox=box, blackbox_dir=str(directory))
+    try:
+        rig.arm()
+        assert rig.session.deploy('DEPLOY').ok
+        problem = rig.session.blackbox_problem()
+        assert f"blackbox_dir '{directory}'" in problem and 'Not a directory' in problem
+        blocker.unlink()
+        wait_for(lambda: box.status().writing, 5, what='the black box writing again')
+        assert box.sync(2.0) and os.path.dirname(box.status().path) == str(directory)
+        assert box.status().lost > 0 and rig.session.blackbox_problem() == ''
+        assert any('writing again' in text for _, text in rig.heard.logs)
+    finally:
+        rig.close()
+
+
+def test_safety_12_the_blackbox_directory_stays_within_its_bound(tmp_path):
+    directory = tmp_path / 'bb'
+    directory.mkdir()
+    old = []
+    for n in range(5):
+        path = directory / f'parachute-2020010{n}T000000Z-{100 + n}.jsonl'
+        path.write_bytes(b'x' * 40_000)
+        os.utime(path, (1e9 + n, 1e9 + n))
+        old.append(path)
+    other = directory / 'notes.txt'
+    other.write_bytes(b'y' * 100_000)
+    box = BlackBox(str(directory), max_bytes=100_000)
+    try:
+        # Oldest first until the runs fit: 5 x 40 kB -> 2 x 40 kB; other files are not ours.
+        assert [p.exists() for p in old] == [False, False, False, True, True]
+        assert other.exists() and box.status().removed_runs == 3
+        for i in range(3000):  # this run alone grows past the bound: kept, and said
+            box.record('frame', dir='rx', hex='41 75 32 07 0a 00 01 44', i=i)
+        assert box.sync(5.0)
+        box.set_max_bytes(100_000)
+        wait_for(lambda: not old[3].exists() and not old[4].exists(), 3,
+                 what='the other runs removed')
+        status = box.status()
+        assert status.over_budget and os.path.exists(status.path)
+        assert status.run_bytes > 100_000
+    finally:
+        box.close()
+
+
+def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
+    rig.arm()
+    mark = rig.wire.mark()
+    result = rig.session.preflight_check()
+    assert result.ok, result.message
+    lines = result.message.splitlines()
+    assert all(line.startswith('OK   ') for line in lines)
+    assert [line.split(':')[0][5:] for line in lines] == [
+        'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
+        'auto triggers as desired', 'battery', 'black box writable']
+    sent = rig.wire.since(mark)
+    assert sent and all(raw[3] == p.CTRL_QUERY for raw in sent), [r.hex(' ') for r in sent]
+    # Behind the driver's back: locked, a setting changed, on a weak battery.
+    with rig.model():
+        rig.sim.armed = False
+        rig.sim.attitude_threshold_deg = 50
+        rig.sim.set_external_power(False)
+        rig.sim.cell_voltage_v = 3.3
+    result = rig.session.preflight_check()
+    assert not result.ok
+    lines = result.message.splitlines()
+    fails = [line for line in lines if line.startswith('FAIL')]
+    assert lines[:len(fails)] == fails  # failures first
+    assert {line.split(':')[0] for line in fails} == {
+        'FAIL armed', 'FAIL settings as desired', 'FAIL battery'}
+    assert 'attitude_threshold_deg: want 70, module 50' in result.message
+    assert '3.30 V on battery, below 3.5 V' in result.message
+    rig.runner.unplug()
+    wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+    result = rig.session.preflight_check()
+    assert not result.ok and result.message.startswith('FAIL')
+    assert 'not checked' in result.message and 'OK   black box writable' in result.message
+
+
+def test_the_core_and_everything_below_it_import_no_ros():
+    code = ('import sys\n'
+            'import dps_parachute_ros.session, dps_parachute_ros.simulation\n'
+            "ros = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('rclpy', 'rcl_interfaces', 'uav_serial_drivers') or m.endswith('_msgs'))\n"
+            'print(ros)\n')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=60, cwd=os.path.dirname(os.path.dirname(__file__)))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == '[]'
