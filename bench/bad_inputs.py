@@ -378,24 +378,6 @@ def originman(observe_s: float = 3.0) -> Dict:
     return {key: services[key] + topics[key] for key in services}
 
 
-def run() -> Dict:
-    """Every driver; return per-driver results and the summary figures."""
-    results = {'servo': servo(), 'parachute': parachute(), 'handset': handset(),
-               'originman': originman()}
-    return {
-        'per_driver': results,
-        'bad_inputs_cases': sum(r['cases'] for r in results.values()),
-        'bad_inputs_refused': sum(r['refused'] for r in results.values()),
-        'bad_inputs_bytes_on_wire': sum(len(r['bytes_on_wire']) for r in results.values()),
-        'bad_inputs_errors': sum(len(r['errors']) for r in results.values()),
-    }
-
-
-if __name__ == '__main__':
-    import pprint
-    pprint.pprint(run())
-
-
 # -- the handset link: bad frames on the wire, bad battery messages, bad parameters --------
 
 def handset_frame_cases() -> List[Tuple[str, bytes, str]]:
@@ -549,3 +531,21 @@ def handset(observe_s: float = 1.0) -> Dict:
     total = len(cases) + len(battery_cases) + len(_refused_params())
     return {'cases': total, 'refused': refused + battery_refused + param_refused,
             'accepted': accepted, 'bytes_on_wire': wire, 'errors': errors}
+
+
+def run() -> Dict:
+    """Every driver; return per-driver results and the summary figures."""
+    results = {'servo': servo(), 'parachute': parachute(), 'handset': handset(),
+               'originman': originman()}
+    return {
+        'per_driver': results,
+        'bad_inputs_cases': sum(r['cases'] for r in results.values()),
+        'bad_inputs_refused': sum(r['refused'] for r in results.values()),
+        'bad_inputs_bytes_on_wire': sum(len(r['bytes_on_wire']) for r in results.values()),
+        'bad_inputs_errors': sum(len(r['errors']) for r in results.values()),
+    }
+
+
+if __name__ == '__main__':
+    import pprint
+    pprint.pprint(run())
