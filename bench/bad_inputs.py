@@ -1,11 +1,14 @@
-"""Every service of the drivers called with malformed and out-of-range requests.
+"""Every service of every driver called with malformed and out-of-range requests.
 
-Each case must be refused (``success`` false) without a byte on the wire. The drivers keep
+Each case must be refused (``success`` false) without a byte on the wire. The OriginMan
+driver's topics get bad messages too: topics have no answer, so a message is refused when the
+driver's ``link`` diagnostics count one more refused command within 5 s. The drivers keep
 polling while the cases run, so "a byte on the wire" means a frame that the driver's own
 background traffic does not contain: first the benchmark records, for a few seconds, every
 distinct frame the idle driver sends (position/telemetry READs, status/aux queries); then any
 other frame that reaches the device between a call and 50 ms after its response counts
-against that case.
+against that case. The handset driver has no services: its bad inputs are frames on the wire,
+battery messages and parameter sets (``handset``), and it must never write to the modem (H11).
 """
 
 from __future__ import annotations
@@ -15,7 +18,8 @@ import threading
 import time
 from typing import Any, Dict, List, Tuple
 
-from bench.common import ParachuteRig, ros_client, ServoRig, workdir
+from bench.common import (HandsetRig, OriginManRig, ParachuteRig, ros_client, ServoRig, wait_for,
+                          workdir)
 
 NAN = math.nan
 INF = math.inf
@@ -102,6 +106,89 @@ def parachute_cases() -> List[Tuple[str, str, Dict[str, Any]]]:
     return cases
 
 
+def originman_cases() -> List[Tuple[str, str, Dict[str, Any]]]:
+    """Return (service, srv type name, request fields) of the OriginMan driver's bad requests."""
+    limits = 'SetBusServoLimits'
+    return [
+        ('bus_servo/get_state', 'GetBusServoState', {'ids': [254]}),
+        ('bus_servo/get_state', 'GetBusServoState', {'ids': [1, 1]}),
+        ('bus_servo/set_torque', 'SetBusServoTorque', {'ids': [], 'enable': True}),
+        ('bus_servo/set_torque', 'SetBusServoTorque', {'ids': [255], 'enable': False}),
+        ('bus_servo/stop', 'BusServoIds', {'ids': []}),
+        ('bus_servo/stop', 'BusServoIds', {'ids': [2, 2]}),
+        ('bus_servo/set_id', 'SetBusServoId', {'id': 1, 'new_id': 254}),
+        ('bus_servo/set_id', 'SetBusServoId', {'id': 254, 'new_id': 5}),
+        ('bus_servo/set_id', 'SetBusServoId', {'id': 1, 'new_id': 1}),
+        ('bus_servo/set_id', 'SetBusServoId', {'id': 1, 'new_id': 2}),  # 2 answers: taken
+        ('bus_servo/set_offset', 'SetBusServoOffset', {'id': 1, 'offset': 126}),
+        ('bus_servo/set_offset', 'SetBusServoOffset', {'id': 1, 'offset': -128}),
+        ('bus_servo/set_limits', limits, {'id': 1, 'min_position': 900, 'max_position': 100}),
+        ('bus_servo/set_limits', limits, {'id': 1, 'min_position': 0, 'max_position': 1001}),
+        ('bus_servo/set_limits', limits, {'id': 1, 'min_voltage_mv': 4000,
+                                          'max_voltage_mv': 8000}),
+        ('bus_servo/set_limits', limits, {'id': 1, 'min_voltage_mv': 9000,
+                                          'max_voltage_mv': 8000}),
+        ('bus_servo/set_limits', limits, {'id': 1, 'max_temperature_c': 101}),
+        ('pwm_servo/get_state', 'GetPwmServoState', {'ids': [0]}),
+        ('pwm_servo/get_state', 'GetPwmServoState', {'ids': [5]}),
+        ('pwm_servo/set_offset', 'SetPwmServoOffset', {'id': 0, 'offset_us': 0}),
+        ('pwm_servo/set_offset', 'SetPwmServoOffset', {'id': 1, 'offset_us': 101}),
+        ('pwm_servo/set_offset', 'SetPwmServoOffset', {'id': 1, 'offset_us': -101}),
+    ]
+
+
+def originman_topic_cases() -> List[Tuple[str, str, Dict[str, Any]]]:
+    """Return (topic, msg type name, fields) of bad messages to the OriginMan driver."""
+    return [
+        ('set_led', 'LedPattern', {'led_id': 0, 'on_s': 0.1, 'off_s': 0.1}),
+        ('set_led', 'LedPattern', {'led_id': 3, 'on_s': 0.1, 'off_s': 0.1}),
+        ('set_led', 'LedPattern', {'led_id': 1, 'on_s': NAN}),
+        ('set_led', 'LedPattern', {'led_id': 1, 'on_s': 65.6}),
+        ('set_led', 'LedPattern', {'led_id': 1, 'off_s': -0.5}),
+        ('set_buzzer', 'BuzzerPattern', {'frequency_hz': 2000, 'on_s': INF}),
+        ('set_buzzer', 'BuzzerPattern', {'frequency_hz': 2000, 'off_s': 100.0}),
+        ('set_rgb', 'RgbPixels', {'indices': [0], 'red': [1], 'green': [1], 'blue': [1]}),
+        ('set_rgb', 'RgbPixels', {'indices': [3], 'red': [1], 'green': [1], 'blue': [1]}),
+        ('set_rgb', 'RgbPixels', {'indices': [1], 'red': [1, 2], 'green': [1], 'blue': [1]}),
+        ('set_rgb', 'RgbPixels', {'indices': [1, 1], 'red': [1, 2], 'green': [1, 2],
+                                  'blue': [1, 2]}),
+        ('set_rgb', 'RgbPixels', {}),
+        ('set_oled', 'OledText', {'line': 0, 'text': 'x'}),
+        ('set_oled', 'OledText', {'line': 3, 'text': 'x'}),
+        ('set_oled', 'OledText', {'line': 1, 'text': 'x' * 24}),
+        ('set_oled', 'OledText', {'line': 2, 'text': 'ü' * 12}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [0], 'rps': [1.0]}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [5], 'rps': [1.0]}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [1], 'rps': [6.01]}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [1], 'rps': [-INF]}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [1], 'rps': [NAN]}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [1, 2], 'rps': [1.0]}),
+        ('set_motor_speeds', 'MotorSpeeds', {'motor_ids': [3, 3], 'rps': [1.0, 1.0]}),
+        ('pwm_servo/command', 'PwmServoCommand', {'ids': [0], 'pulses_us': [1500],
+                                                  'duration_s': 1.0}),
+        ('pwm_servo/command', 'PwmServoCommand', {'ids': [1], 'pulses_us': [499],
+                                                  'duration_s': 1.0}),
+        ('pwm_servo/command', 'PwmServoCommand', {'ids': [1], 'pulses_us': [2501],
+                                                  'duration_s': 1.0}),
+        ('pwm_servo/command', 'PwmServoCommand', {'ids': [1], 'pulses_us': [1500],
+                                                  'duration_s': 0.0}),
+        ('pwm_servo/command', 'PwmServoCommand', {'ids': [1], 'pulses_us': [1500],
+                                                  'duration_s': 31.0}),
+        ('pwm_servo/command', 'PwmServoCommand', {'ids': [], 'pulses_us': [],
+                                                  'duration_s': 1.0}),
+        ('bus_servo/command', 'BusServoCommand', {'ids': [254], 'positions': [500],
+                                                  'duration_s': 1.0}),
+        ('bus_servo/command', 'BusServoCommand', {'ids': [1], 'positions': [1001],
+                                                  'duration_s': 1.0}),
+        ('bus_servo/command', 'BusServoCommand', {'ids': [1], 'positions': [500],
+                                                  'duration_s': NAN}),
+        ('bus_servo/command', 'BusServoCommand', {'ids': [1], 'positions': [500],
+                                                  'duration_s': 65.6}),
+        ('bus_servo/command', 'BusServoCommand', {'ids': [1, 2], 'positions': [500],
+                                                  'duration_s': 1.0}),
+    ]
+
+
 def _srv_type(name: str) -> Any:
     if name.startswith('std_srvs/'):
         import std_srvs.srv
@@ -134,6 +221,78 @@ def _servo_key(req: Any) -> Any:
 
 def _dps_key(frame: Any) -> Any:
     return bytes(frame.raw)
+
+
+def _originman_key(cmd: Any) -> Any:
+    from originman_board_ros import protocol as p
+    if isinstance(cmd, (p.BusRead, p.PwmRead)):
+        return (type(cmd).__name__, cmd.sub, cmd.servo_id)
+    return repr(cmd)
+
+
+class _Refusals:
+    """The ``refused commands`` count of a driver's ``link`` status, as it is published."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.count = -1
+        self.cond = threading.Condition()
+
+    def __call__(self, array: Any) -> None:
+        for status in array.status:
+            if status.name == self.name:
+                values = {kv.key: kv.value for kv in status.values}
+                with self.cond:
+                    self.count = int(values.get('refused commands', -1))
+                    self.cond.notify_all()
+
+    def wait_above(self, count: int, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: self.count > count, timeout)
+
+
+def _run_topic_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float) -> Dict:
+    """Publish each bad message; refused = counted in diagnostics; nothing new on the wire."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    import uav_serial_drivers.msg
+    refusals = _Refusals(f'{namespace}: link')
+    client.subscribe(DiagnosticArray, '/diagnostics', refusals)
+    if not refusals.wait_above(-1, 10.0):
+        return {'cases': len(cases), 'refused': 0, 'accepted': [], 'bytes_on_wire': [],
+                'errors': ['no diagnostics from the driver']}
+    t0 = time.monotonic()
+    time.sleep(observe_s)
+    background = {k for k, _ in log.keys_between(t0, time.monotonic())}
+    publishers: Dict[str, Any] = {}
+    refused = 0
+    wire: List[str] = []
+    accepted: List[str] = []
+    errors: List[str] = []
+    for topic, type_name, fields in cases:
+        msg_type = getattr(uav_serial_drivers.msg, type_name)
+        try:
+            if topic not in publishers:
+                pub = client.node.create_publisher(msg_type, f'{namespace}/{topic}', 10)
+                wait_for(lambda: pub.get_subscription_count() > 0, 10.0, what=topic)
+                publishers[topic] = pub
+            msg = msg_type(**fields)
+        except (TimeoutError, AttributeError, TypeError, ValueError, AssertionError) as exc:
+            errors.append(f'{topic} {fields}: {exc}'[:200])
+            continue
+        with refusals.cond:
+            before = refusals.count
+        t_call = time.monotonic()
+        publishers[topic].publish(msg)
+        if refusals.wait_above(before, 5.0):
+            refused += 1
+        else:
+            accepted.append(f'{topic} {fields}: not counted as refused within 5 s')
+        time.sleep(0.05)
+        extra = [f for k, f in log.keys_between(t_call, time.monotonic()) if k not in background]
+        if extra:
+            wire.append(f'{topic} {fields}: ' + ' | '.join(repr(f) for f in extra[:3]))
+    return {'cases': len(cases), 'refused': refused, 'accepted': accepted,
+            'bytes_on_wire': wire, 'errors': errors}
 
 
 def _run_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float) -> Dict:
@@ -170,8 +329,8 @@ def _run_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float) 
         else:
             refused += 1
         if extra:
-            wire.append(f'{service} {fields}: ' + ' | '.join(bytes(f.raw).hex(' ')
-                                                             for f in extra[:3]))
+            wire.append(f'{service} {fields}: ' + ' | '.join(
+                bytes(f.raw).hex(' ') if hasattr(f, 'raw') else repr(f) for f in extra[:3]))
     return {'cases': len(cases), 'refused': refused, 'accepted': accepted,
             'bytes_on_wire': wire, 'errors': errors}
 
@@ -202,21 +361,21 @@ def parachute(observe_s: float = 3.0) -> Dict:
         return _run_cases(client, '/parachute', parachute_cases(), log, observe_s)
 
 
-def run() -> Dict:
-    """Every driver; return per-driver results and the summary figures."""
-    results = {'servo': servo(), 'parachute': parachute(), 'handset': handset()}
-    return {
-        'per_driver': results,
-        'bad_inputs_cases': sum(r['cases'] for r in results.values()),
-        'bad_inputs_refused': sum(r['refused'] for r in results.values()),
-        'bad_inputs_bytes_on_wire': sum(len(r['bytes_on_wire']) for r in results.values()),
-        'bad_inputs_errors': sum(len(r['errors']) for r in results.values()),
-    }
-
-
-if __name__ == '__main__':
-    import pprint
-    pprint.pprint(run())
+def originman(observe_s: float = 3.0) -> Dict:
+    """Run the OriginMan driver's bad requests and bad messages; return the figures."""
+    with workdir() as directory, OriginManRig(directory) as rig, \
+            ros_client('bench_bad_inputs_originman') as client:
+        log = _FrameLog(_originman_key)
+        from originman_board_ros import protocol as p
+        parser = p.BoardParser()
+        rig.runner.add_tap(lambda d, data, t: [log.add(t, p.decode_host_command(f))
+                                               for f in parser.feed(data)]
+                           if d == 'rx' else None)
+        rig.wait_ready()
+        services = _run_cases(client, '/originman_board', originman_cases(), log, observe_s)
+        topics = _run_topic_cases(client, '/originman_board', originman_topic_cases(), log,
+                                  observe_s)
+    return {key: services[key] + topics[key] for key in services}
 
 
 # -- the handset link: bad frames on the wire, bad battery messages, bad parameters --------
@@ -284,7 +443,6 @@ def _refused_params() -> List[Tuple[str, Any]]:
 
 def handset(observe_s: float = 1.0) -> Dict:
     """Feed the handset driver bad frames, bad battery messages and bad parameters."""
-    from bench.common import HandsetRig, wait_for
     from handset_link_ros import protocol as hp
     from rcl_interfaces.srv import SetParameters
     from rclpy.parameter import Parameter
@@ -373,3 +531,21 @@ def handset(observe_s: float = 1.0) -> Dict:
     total = len(cases) + len(battery_cases) + len(_refused_params())
     return {'cases': total, 'refused': refused + battery_refused + param_refused,
             'accepted': accepted, 'bytes_on_wire': wire, 'errors': errors}
+
+
+def run() -> Dict:
+    """Every driver; return per-driver results and the summary figures."""
+    results = {'servo': servo(), 'parachute': parachute(), 'handset': handset(),
+               'originman': originman()}
+    return {
+        'per_driver': results,
+        'bad_inputs_cases': sum(r['cases'] for r in results.values()),
+        'bad_inputs_refused': sum(r['refused'] for r in results.values()),
+        'bad_inputs_bytes_on_wire': sum(len(r['bytes_on_wire']) for r in results.values()),
+        'bad_inputs_errors': sum(len(r['errors']) for r in results.values()),
+    }
+
+
+if __name__ == '__main__':
+    import pprint
+    pprint.pprint(run())

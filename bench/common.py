@@ -576,3 +576,84 @@ class HandsetRig(_Rig):
         """Wait until the driver has heard the handset (its log says so); raise if it died."""
         self._wait_ready(lambda: 'handset heard' in self.node.output(), timeout,
                          'the driver to hear the handset')
+
+
+# ------------------------------------------------------------------------------------------
+# The OriginMan board: a virtual board in this process, originman_board_node as a process
+# ------------------------------------------------------------------------------------------
+
+class OriginManWireTap:
+    """Decode both directions of the OriginMan board's port into timed messages.
+
+    ``rx``: ``(t, command)`` as the board's parser reads what the driver wrote; ``tx``:
+    ``(t, message)`` of what the board sent, IMU reports aside: they are only counted
+    (``imu_count``), and with ``keep_imu`` their wire times are kept by gyro x in rad
+    (``imu_times``), the value the driver publishes as ``angular_velocity.x``.
+    """
+
+    def __init__(self, keep_imu: bool = False) -> None:
+        from originman_board_ros import protocol as p
+        self._p = p
+        self._parser = p.BoardParser()
+        self._decoder = p.StreamDecoder()
+        self._lock = threading.Lock()
+        self.keep_imu = keep_imu
+        self.rx: List[tuple] = []
+        self.tx: List[tuple] = []
+        self.imu_times: Dict[float, float] = {}
+        self.imu_count = 0
+
+    def __call__(self, direction: str, data: bytes, t: float) -> None:
+        p = self._p
+        with self._lock:
+            if direction == 'rx':
+                self.rx.extend((t, p.decode_host_command(f)) for f in self._parser.feed(data))
+                return
+            for frame in self._decoder.feed(data):
+                if frame.function == p.Function.IMU:
+                    self.imu_count += 1
+                    if self.keep_imu:
+                        report = p.decode_board_frame(frame)
+                        self.imu_times[math.radians(report.gyro_dps[0])] = t
+                else:
+                    self.tx.append((t, p.decode_board_frame(frame)))
+
+    def snapshot(self) -> tuple:
+        """Return copies of (rx, tx)."""
+        with self._lock:
+            return list(self.rx), list(self.tx)
+
+    def bus_replies(self, since: float = 0.0) -> List[tuple]:
+        """Return ``(t, reply)`` of the successful bus-servo replies sent at or after `since`."""
+        p = self._p
+        with self._lock:
+            return [(t, m) for t, m in self.tx
+                    if t >= since and isinstance(m, p.BusServoReply) and m.ok]
+
+
+class OriginManRig(_Rig):
+    """A virtual OriginMan board in this process (taps on its wire) and `originman_board_node`.
+
+    The board is `originman_board_ros.virtual_node.VirtualOriginManBoard`, the core of
+    ``virtual_originman_board``: the firmware model at 1 Mbaud with the wire faults applied to
+    everything it sends. The driver polls bus servos 1..3 unless `parameters` say otherwise.
+    """
+
+    executable = 'originman_board_node'
+
+    def __init__(self, directory: Path, parameters: Optional[Dict[str, Any]] = None,
+                 seed: int = 1, tag: str = 'originman_board_node', keep_imu: bool = False,
+                 **board_kwargs: Any) -> None:
+        from originman_board_ros.virtual_node import VirtualOriginManBoard
+        self.link = str(directory / f'{tag}.pty')
+        params = {'port': self.link, 'bus_servo_ids': [1, 2, 3]}
+        params.update(parameters or {})
+        self.board = VirtualOriginManBoard(self.link, seed=seed, **board_kwargs)
+        self.model = self.board.model
+        super().__init__(directory, self.board.runner, OriginManWireTap(keep_imu), params, tag)
+
+    def wait_ready(self, timeout: float = 40.0) -> None:
+        """Wait until every polled servo's position read was answered; raise if the node died."""
+        ids = set(self.parameters['bus_servo_ids'])
+        self._wait_ready(lambda: {m.servo_id for _, m in self.tap.bus_replies()} >= ids,
+                         timeout, 'bus servo reads of every polled servo')

@@ -5,6 +5,8 @@
 - ``cpu_parachute_pct``: ``parachute_node`` with the module's status stream at 20 Hz.
 - ``cpu_handset_pct``: ``handset_link_node`` with the handset at 50 Hz (four stick frames per
   tick, JSON, auxiliary once a second), 200 ``~/setpoint`` messages/s with one subscriber.
+- ``cpu_originman_pct``: ``originman_board_node`` with the board's IMU at 100 Hz and 3 bus servos
+  polled at 10 Hz (default telemetry period 2 s), 1 Mbaud.
 
 CPU = (utime + stime of every thread, from ``/proc/<pid>/stat``) / wall time of the window,
 after a warm-up. The virtual devices run in this process, so they are not counted.
@@ -15,7 +17,7 @@ from __future__ import annotations
 import time
 from typing import Dict
 
-from bench.common import CpuMeter, ParachuteRig, ServoRig, workdir
+from bench.common import CpuMeter, OriginManRig, ParachuteRig, ServoRig, workdir
 
 
 def servo_cpu(duration_s: float = 10.0, warmup_s: float = 2.0, n_servos: int = 12,
@@ -67,14 +69,36 @@ def handset_cpu(duration_s: float = 10.0, warmup_s: float = 2.0) -> Dict[str, fl
     return {'cpu_pct': pct, 'setpoints_s': rate}
 
 
+def originman_cpu(duration_s: float = 10.0, warmup_s: float = 2.0,
+                  imu_rate_hz: float = 100.0, poll_hz: float = 10.0) -> Dict[str, float]:
+    """Return the OriginMan driver's CPU percent: IMU at `imu_rate_hz`, 3 servos at `poll_hz`."""
+    with workdir() as directory, \
+            OriginManRig(directory, {'bus_servo_poll_hz': poll_hz},
+                         imu_rate_hz=imu_rate_hz) as rig:
+        rig.wait_ready()
+        time.sleep(warmup_s)
+        meter = CpuMeter(rig.node.pid)
+        t0 = time.monotonic()
+        imu0 = rig.tap.imu_count
+        time.sleep(duration_s)
+        pct = meter.percent()
+        elapsed = time.monotonic() - t0
+        reads = len(rig.tap.bus_replies(t0))
+        imu = rig.tap.imu_count - imu0
+    return {'cpu_pct': pct, 'imu_hz': imu / elapsed, 'servo_reads_s': reads / elapsed}
+
+
 def run(duration_s: float = 10.0) -> Dict[str, float]:
     """Measure the drivers one after the other; return the ``cpu_*`` figures."""
     servo = servo_cpu(duration_s)
     parachute = parachute_cpu(duration_s)
     handset = handset_cpu(duration_s)
+    board = originman_cpu(duration_s)
     return {'cpu_servo_pct': servo['cpu_pct'], 'cpu_servo_cycles_s': servo['cycles_s'],
             'cpu_parachute_pct': parachute['cpu_pct'], 'cpu_handset_pct': handset['cpu_pct'],
-            'cpu_handset_setpoints_s': handset['setpoints_s']}
+            'cpu_handset_setpoints_s': handset['setpoints_s'],
+            'cpu_originman_pct': board['cpu_pct'], 'cpu_originman_imu_hz': board['imu_hz'],
+            'cpu_originman_servo_reads_s': board['servo_reads_s']}
 
 
 if __name__ == '__main__':

@@ -1,8 +1,8 @@
-"""Throughput of the two streaming decoders on a mixed stream with 10 % garbage.
+"""Throughput of the streaming decoders on a mixed stream with 10 % garbage.
 
-The stream is what a driver reads: the module's / the servos' frames (a realistic mix of
-lengths) with random noise bursts in between amounting to 10 % of the bytes. It is fed in
-chunks of ``chunk`` bytes (the driver reads whatever the port holds; 64 bytes is a few
+The stream is what a driver reads: the module's / the servos' / the OriginMan board's frames (a
+realistic mix of lengths) with random noise bursts in between amounting to 10 % of the bytes. It
+is fed in chunks of ``chunk`` bytes (the driver reads whatever the port holds; 64 bytes is a few
 milliseconds of a 115200 baud line). Throughput is stream bytes / CPU-bound wall time of the
 ``feed`` calls; the ratio is against a 1 Mbit/s 8N1 wire (100 000 bytes/s).
 """
@@ -62,6 +62,39 @@ def servo_frames(rng: random.Random, count: int) -> List[bytes]:
     return frames
 
 
+def originman_frames(rng: random.Random, count: int) -> List[bytes]:
+    """Return `count` frames an OriginMan board sends: mostly IMU, servo replies, the rest."""
+    from originman_board_ros import protocol as p
+    frames = []
+    subs = sorted(p.BUS_READ_FORMATS)
+    for _ in range(count):
+        r = rng.random()
+        if r < 0.6:
+            frames.append(p.encode_imu_report([rng.uniform(-2, 2) for _ in range(3)],
+                                              [rng.uniform(-500, 500) for _ in range(3)]))
+        elif r < 0.85:
+            sub = rng.choice(subs) if rng.random() < 0.3 else p.BusSub.READ_POSITION
+            sid = rng.randrange(1, 13)
+            if rng.random() < 0.05:
+                frames.append(p.encode_bus_reply(sid, sub, None, p.BUS_FAILURE))
+            elif sub in (p.BusSub.READ_ANGLE_LIMITS, p.BusSub.READ_VOLTAGE_LIMITS):
+                frames.append(p.encode_bus_reply(sid, sub, (rng.randrange(1000),
+                                                            rng.randrange(1000, 14000))))
+            elif sub == p.BusSub.READ_OFFSET:
+                frames.append(p.encode_bus_reply(sid, sub, rng.randrange(-125, 126)))
+            else:
+                frames.append(p.encode_bus_reply(sid, sub, rng.randrange(256)))
+        elif r < 0.9:
+            frames.append(p.encode_sbus_report([rng.randrange(2048) for _ in range(16)]))
+        elif r < 0.95:
+            frames.append(p.encode_battery_report(rng.randrange(6000, 8500)))
+        elif r < 0.98:
+            frames.append(p.encode_key_report(rng.choice(p.KEY_IDS), rng.choice(list(p.KeyEvent))))
+        else:
+            frames.append(p.encode_pwm_pulse_reply(rng.randrange(1, 5), rng.randrange(500, 2501)))
+    return frames
+
+
 def mixed_stream(frames: List[bytes], rng: random.Random,
                  garbage_fraction: float = 0.10) -> Tuple[bytes, int]:
     """Interleave `frames` with random noise bursts; return (stream, garbage bytes)."""
@@ -102,11 +135,13 @@ def run(n_frames: int = 40_000, chunk: int = 64, repeats: int = 3,
     """Measure both decoders; return figures (MB/s = 10^6 bytes/s, best of `repeats`)."""
     from desheng_servo_ros.protocol import StreamDecoder as ServoDecoder
     from dps_parachute_ros.protocol import StreamDecoder as DpsDecoder
+    from originman_board_ros.protocol import StreamDecoder as OriginManDecoder
     rng = random.Random(seed)
     out: Dict[str, float] = {}
     for name, frames, factory in (
             ('dps', dps_frames(rng, n_frames), lambda: DpsDecoder('from_module')),
-            ('servo', servo_frames(rng, n_frames), lambda: ServoDecoder('reply'))):
+            ('servo', servo_frames(rng, n_frames), lambda: ServoDecoder('reply')),
+            ('originman', originman_frames(rng, n_frames), OriginManDecoder)):
         stream, garbage = mixed_stream(frames, rng)
         mb_s, decoded = _throughput(factory, stream, chunk, repeats)
         out[f'decoder_mb_s_{name}'] = round(mb_s, 2)

@@ -19,7 +19,7 @@ import random
 import time
 from typing import Callable, Dict, List, Tuple
 
-from bench.decoders import dps_frames, servo_frames
+from bench.decoders import dps_frames, originman_frames, servo_frames
 
 
 def _dps_host_frames(rng: random.Random, count: int) -> List[bytes]:
@@ -94,6 +94,7 @@ class _HandsetFuzzDecoder:
 def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
     from desheng_servo_ros import protocol as sp
     from dps_parachute_ros import protocol as p
+    from originman_board_ros import protocol as op
     return {
         'dps_from_module': (lambda: p.StreamDecoder('from_module'), dps_frames,
                             [p.MODULE_HEADER, p.HOST_HEADER]),
@@ -103,6 +104,7 @@ def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
         'servo_request': (lambda: sp.StreamDecoder('request'), _servo_requests,
                           [sp.REQUEST_HEADER]),
         'handset': (_HandsetFuzzDecoder, _handset_frames, [b'\xaa']),
+        'originman_from_board': (op.StreamDecoder, originman_frames, [op.HEADER]),
     }
 
 

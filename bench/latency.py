@@ -10,6 +10,11 @@
 
 Both run while ``servo_bus_node`` polls 12 servos at full rate on a virtual bus in another
 process (``bench.device_proc``), so the driver competes for the two cores as on a drone.
+
+The handset's frame-to-``~/setpoint`` latency (``run_handset``) and the OriginMan board's
+report-to-``~/imu`` latency (``imu_run``) are measured the same way, with ``parachute_node``
+and ``virtual_parachute`` (status stream at 20 Hz) running beside the servo bus as well
+(``_background``).
 """
 
 from __future__ import annotations
@@ -21,6 +26,31 @@ from typing import Dict, List
 from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
                           workdir)
 from bench.device_proc import servo_bus_process
+
+
+def _background(stack: contextlib.ExitStack, directory, parachute: bool = True) -> List:
+    """Start the other drivers as processes in `stack`; return their `node_process` handles.
+
+    ``servo_bus_node`` polls 12 servos at full rate on a virtual bus in another process; with
+    `parachute`, ``parachute_node`` runs on ``virtual_parachute`` streaming at 20 Hz.
+    """
+    servo_link = str(directory / 'bg-servo.pty')
+    ids = list(range(1, 13))
+    stack.enter_context(servo_bus_process(servo_link, 115200, ids))
+    nodes = [stack.enter_context(node_process(
+        'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
+                                      'servo_ids': ids, 'publish_rate_hz': 1000.0},
+        tag='bg_servo_bus_node'))]
+    if parachute:
+        chute_link = str(directory / 'bg-parachute.pty')
+        nodes.append(stack.enter_context(node_process(
+            'virtual_parachute', directory, {'link': chute_link, 'stream_rate_hz': 20.0},
+            tag='bg_virtual_parachute')))
+        nodes.append(stack.enter_context(node_process(
+            'parachute_node', directory, {'port': chute_link,
+                                          'blackbox_dir': str(directory / 'bg-blackbox')},
+            tag='bg_parachute_node')))
+    return nodes
 
 
 def _is_confirm(frame) -> bool:
@@ -101,22 +131,14 @@ def deploy_latencies(rig: ParachuteRig, client, count: int, gap_s: float = 0.25)
 def run(confirm_count: int = 200, deploy_count: int = 200, background: bool = True) -> Dict:
     """Measure both latencies with the servo driver as background load; return figures."""
     with workdir() as directory, contextlib.ExitStack() as stack:
-        bg_node = None
-        if background:
-            servo_link = str(directory / 'bg-servo.pty')
-            ids = list(range(1, 13))
-            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
-            bg_node = stack.enter_context(node_process(
-                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
-                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
-                tag='bg_servo_bus_node'))
+        bg = _background(stack, directory, parachute=False) if background else []
         rig = stack.enter_context(ParachuteRig(directory))
         client = stack.enter_context(ros_client('bench_latency'))
         rig.wait_ready()
         time.sleep(1.0)
         confirm = confirm_latencies(rig, confirm_count)
         deploy = deploy_latencies(rig, client, deploy_count)
-        alive = rig.node.alive() and (bg_node is None or bg_node.alive())
+        alive = rig.node.alive() and all(p.alive() for p in bg)
     c, d = confirm['latencies_ms'], deploy['latencies_ms']
     return {
         'confirm_n': len(c), 'confirm_missed': confirm['missed'],
@@ -176,23 +198,7 @@ def run_handset(duration_s: float = 20.0, background: bool = True) -> Dict:
     """Measure the handset's frame-to-setpoint latency with the other drivers running."""
     from bench.common import HandsetRig
     with workdir() as directory, contextlib.ExitStack() as stack:
-        bg = []
-        if background:
-            servo_link = str(directory / 'bg-servo.pty')
-            ids = list(range(1, 13))
-            stack.enter_context(servo_bus_process(servo_link, 115200, ids))
-            bg.append(stack.enter_context(node_process(
-                'servo_bus_node', directory, {'port': servo_link, 'baud': 115200,
-                                              'servo_ids': ids, 'publish_rate_hz': 1000.0},
-                tag='bg_servo_bus_node')))
-            chute_link = str(directory / 'bg-parachute.pty')
-            bg.append(stack.enter_context(node_process(
-                'virtual_parachute', directory, {'link': chute_link, 'stream_rate_hz': 20.0},
-                tag='bg_virtual_parachute')))
-            bg.append(stack.enter_context(node_process(
-                'parachute_node', directory, {'port': chute_link,
-                                              'blackbox_dir': str(directory / 'bg-blackbox')},
-                tag='bg_parachute_node')))
+        bg = _background(stack, directory) if background else []
         rig = stack.enter_context(HandsetRig(directory, numbered=True))
         client = stack.enter_context(ros_client('bench_handset_latency'))
         rig.wait_ready()
@@ -206,3 +212,55 @@ def run_handset(duration_s: float = 20.0, background: bool = True) -> Dict:
         'handset_latency_max_ms': max(lat) if lat else float('nan'),
         'alive': alive,
     }
+
+
+# -- the OriginMan board's IMU: the report's last byte on the wire -> ~/imu received --------------
+
+def imu_latencies(rig, directory, duration_s: float) -> Dict:
+    """Receive ``~/imu`` for `duration_s`; return latencies (ms) of the reports of the window.
+
+    Every report carries its own gyro x (a counter, from the model's IMU source), so a message
+    is matched to the wire time of exactly its report. The receiver is a process of its own
+    (``bench.imu_receiver``): this one runs the board, and its GIL would be in the figure.
+    """
+    import json
+    from bench.imu_receiver import imu_receiver
+    out = directory / 'imu_received.json'
+    with imu_receiver('/originman_board/imu', out) as wall_offset:
+        t0 = time.monotonic() + 0.5
+        time.sleep(duration_s + 0.5)
+        t1 = time.monotonic()
+        time.sleep(0.5)  # the last reports of the window arrive
+    received = {k: (t, stamp - wall_offset) for k, t, stamp in json.loads(out.read_text())}
+    with rig.tap._lock:
+        sent = {k: t for k, t in rig.tap.imu_times.items() if t0 <= t <= t1}
+    latencies = [(received[k][0] - t) * 1000.0 for k, t in sent.items() if k in received]
+    # Information: the driver's share, to its publish (the header stamp, wall clock).
+    driver = [(received[k][1] - t) * 1000.0 for k, t in sent.items() if k in received]
+    return {'latencies_ms': latencies, 'driver_ms': driver, 'sent': len(sent),
+            'missed': len(sent) - len(latencies)}
+
+
+def imu_run(duration_s: float = 30.0, rate_hz: float = 100.0,
+            background: bool = True) -> Dict:
+    """IMU latency of ``originman_board_node`` beside the other drivers; return figures."""
+    import itertools
+    from bench.common import OriginManRig
+    with workdir() as directory, contextlib.ExitStack() as stack:
+        bg = _background(stack, directory) if background else []
+        counter = itertools.count(1)
+
+        def marked(t: float) -> tuple:
+            return (0.0, 0.0, 1.0), (float(next(counter)), 0.0, 0.0)
+        rig = stack.enter_context(OriginManRig(directory, keep_imu=True, imu_rate_hz=rate_hz))
+        with rig.runner.locked():
+            rig.model.set_imu_source(marked)
+        rig.wait_ready()
+        r = imu_latencies(rig, directory, duration_s)
+        alive = rig.node.alive() and all(p.alive() for p in bg)
+    lat = r['latencies_ms']
+    return {'imu_latency_n': len(lat), 'imu_latency_missed': r['missed'],
+            'imu_latency_p50_ms': percentile(lat, 50), 'imu_latency_p99_ms': percentile(lat, 99),
+            'imu_latency_max_ms': max(lat) if lat else float('nan'),
+            'imu_latency_driver_p50_ms': percentile(r['driver_ms'], 50),
+            'imu_latency_driver_p99_ms': percentile(r['driver_ms'], 99), 'alive': alive}

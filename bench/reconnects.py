@@ -5,10 +5,10 @@ vanishes, as a USB adapter does), waits ``unplug_s``, plugs it back at the same 
 the recovery on the device's side of the wire: from the replug to the first complete
 transaction of the driver on the new port (servo: a position READ answered; parachute: a host
 frame answered by the module; handset, whose driver never writes: the first ``~/setpoint`` this
-process receives after the replug). The driver's open file descriptors, pty descriptors
-and threads are sampled after every cycle; a leak is growth in the second half of the cycles
-beyond the high-water mark of the first half (pools that start threads lazily are not leaks);
-``crashes`` counts driver processes that died.
+process receives after the replug; OriginMan board: a bus servo read answered). The driver's
+open file descriptors, pty descriptors and threads are sampled after every cycle; a leak is
+growth in the second half of the cycles beyond the high-water mark of the first half (pools that
+start threads lazily are not leaks); ``crashes`` counts driver processes that died.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from __future__ import annotations
 import time
 from typing import Dict, List
 
-from bench.common import (fd_count, median, ParachuteRig, pty_fds, ServoRig, thread_count,
-                          wait_for, workdir)
+from bench.common import (fd_count, median, OriginManRig, ParachuteRig, pty_fds, ServoRig,
+                          thread_count, wait_for, workdir)
 
 
 def _resources(pid: int) -> Dict[str, int]:
@@ -47,6 +47,11 @@ def _parachute_recovered(rig: ParachuteRig, since: float) -> float:
         if first_rx is None:
             return 0.0
         return next((t for t, f in tap.tx if t >= first_rx and f.from_module), 0.0)
+
+
+def _originman_recovered(rig: OriginManRig, since: float) -> float:
+    replies = rig.tap.bus_replies(since)
+    return replies[0][0] if replies else 0.0
 
 
 def _cycles(rig, recovered, cycles: int, unplug_s: float, timeout_s: float) -> Dict:
@@ -132,10 +137,17 @@ def handset(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0) -
         return _cycles(rig, recovered, cycles, unplug_s, timeout_s)
 
 
+def originman(cycles: int = 100, unplug_s: float = 0.3, timeout_s: float = 10.0) -> Dict:
+    """Unplug/replug the OriginMan board `cycles` times under ``originman_board_node``."""
+    with workdir() as directory, OriginManRig(directory) as rig:
+        rig.wait_ready()
+        return _cycles(rig, _originman_recovered, cycles, unplug_s, timeout_s)
+
+
 def run(cycles: int = 100) -> Dict:
     """Every device; return per-device results and the summary figures."""
     results = {'servo': servo(cycles), 'parachute': parachute(cycles),
-               'handset': handset(cycles)}
+               'handset': handset(cycles), 'originman': originman(cycles)}
     return {
         'per_device': results,
         'reconnect_cycles': min(r['cycles'] for r in results.values()),

@@ -60,7 +60,7 @@ class Results:
 
 def bench_decoders(res: Results, a: argparse.Namespace) -> None:
     r = decoders.run(n_frames=5000 if a.quick else 40000)
-    for kind in ('dps', 'servo'):
+    for kind in ('dps', 'servo', 'originman'):
         x = r[f'decoder_x_1mbit_{kind}']
         res.add(f'decoder_mb_s_{kind}', r[f'decoder_mb_s_{kind}'])
         res.add(f'decoder_x_1mbit_{kind}', x, '>= 10', x >= 10)
@@ -121,14 +121,32 @@ def bench_latency(res: Results, a: argparse.Namespace) -> None:
              f'(the document allows 20 ms)')
 
 
+def bench_imu_latency(res: Results, a: argparse.Namespace) -> None:
+    r = latency.imu_run(duration_s=5.0 if a.quick else 30.0)
+    res.add('imu_latency_p50_ms', r['imu_latency_p50_ms'])
+    res.add('imu_latency_p99_ms', r['imu_latency_p99_ms'], '<= 5',
+            r['imu_latency_p99_ms'] <= 5.0)
+    res.add('imu_latency_n', r['imu_latency_n'], '0 missed', r['imu_latency_missed'] == 0)
+    res.note(f'imu latency (100 Hz, servo_bus_node at full rate and parachute_node beside): '
+             f'max {r["imu_latency_max_ms"]:.2f} ms; the driver\'s share (wire -> its publish, '
+             f'by the header stamp) p50 {r["imu_latency_driver_p50_ms"]:.2f} ms, p99 '
+             f'{r["imu_latency_driver_p99_ms"]:.2f} ms; {r["imu_latency_missed"]} missed'
+             + ('' if r['alive'] else '; A DRIVER DIED'))
+
+
 def bench_cpu(res: Results, a: argparse.Namespace) -> None:
     r = cpu.run(duration_s=5.0 if a.quick else 20.0)
     res.add('cpu_servo_pct', r['cpu_servo_pct'], '<= 25', r['cpu_servo_pct'] <= 25.0)
     res.add('cpu_parachute_pct', r['cpu_parachute_pct'], '<= 5',
             r['cpu_parachute_pct'] <= 5.0)
     res.add('cpu_handset_pct', r['cpu_handset_pct'], '<= 3', r['cpu_handset_pct'] <= 3.0)
+    res.add('cpu_originman_pct', r['cpu_originman_pct'], '<= 5',
+            r['cpu_originman_pct'] <= 5.0)
     res.note(f'cpu_handset: {r["cpu_handset_setpoints_s"]:.0f} setpoints/s published (50 Hz '
              'x 4 stick frames, JSON)')
+    res.note(f'cpu_originman: IMU at {r["cpu_originman_imu_hz"]:.1f} Hz, '
+             f'{r["cpu_originman_servo_reads_s"]:.1f} bus servo reads/s (3 servos at 10 Hz, '
+             'telemetry every 2 s)')
     res.note(f'cpu_servo: 12 servos asked for 50 Hz, got {r["cpu_servo_cycles_s"]:.1f} full-bus '
              'reads/s (115200 baud cannot carry 50 Hz x 12 position reads plus telemetry)')
 
@@ -157,16 +175,17 @@ def bench_soak(res: Results, a: argparse.Namespace) -> None:
     r = soak.run(duration_s=a.soak_s)
     res.add('soak_s', r['soak_s'])
     res.add('soak_crashes', r['soak_crashes'], '0', r['soak_crashes'] == 0)
-    for name in ('servo', 'parachute', 'handset'):
+    for name in ('servo', 'parachute', 'handset', 'originman'):
         v = r[f'soak_rss_growth_mb_{name}']
         res.add(f'soak_rss_growth_mb_{name}', v, '< 5', v < 5.0)
-    for name in ('joint_states', 'status', 'setpoint'):
+    topics = ('joint_states', 'status', 'setpoint', 'imu')
+    for name in topics:
         v = r[f'soak_max_gap_s_{name}']
         res.add(f'soak_max_gap_s_{name}', v, '<= 1', v <= 1.0)
-    res.note(f'soak: gaps as received here {r["soak_rx_gap_s_joint_states"]:.2f} s / '
-             f'{r["soak_rx_gap_s_status"]:.2f} s / {r["soak_rx_gap_s_setpoint"]:.2f} s; '
-             f'{r["soak_joint_states_msgs"]} joint_states, {r["soak_status_msgs"]} status, '
-             f'{r["soak_setpoint_msgs"]} setpoint messages; replies (handset: frames) '
+    res.note('soak: gaps as received here '
+             + ' / '.join(f'{r[f"soak_rx_gap_s_{name}"]:.2f} s' for name in topics) + '; '
+             + ', '.join(f'{r[f"soak_{name}_msgs"]} {name}' for name in topics)
+             + ' messages; replies (handset: frames; OriginMan board: every frame it sends) '
              f'dropped/corrupted by the wire: {r["soak_faults"]}')
     res.note('soak stalls (value s, at s into the window): ' + ', '.join(
         f'{k} {v}' for k, v in r['soak_stalls'].items()))
@@ -218,6 +237,7 @@ FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'fuzz': bench_fuzz,
     'servo_rate': bench_servo_rate,
     'latency': bench_latency,
+    'imu_latency': bench_imu_latency,
     'cpu': bench_cpu,
     'reconnects': bench_reconnects,
     'soak': bench_soak,

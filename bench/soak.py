@@ -1,11 +1,13 @@
 """The drivers for a while on lossy wires: no crash, bounded memory, no stalled topic.
 
 ``servo_bus_node`` (12 servos, 50 Hz, 115200 baud), ``parachute_node`` (status stream at
-20 Hz) and ``handset_link_node`` (the handset at 50 Hz) run side by side against their virtual
-devices in this process; each device drops 1 % and corrupts (checksum) 1 % of its replies at
-random (``WireFaults``; the handset, which only talks, of its frames). A subscriber in a private
-rclpy context records every ``/joint_states``, ``/parachute/status`` and
-``/handset_link/setpoint`` message. Figures:
+20 Hz), ``handset_link_node`` (the handset at 50 Hz) and ``originman_board_node`` (IMU at 50 Hz,
+3 bus servos polled at 10 Hz, 1 Mbaud) run side by side against their virtual devices in this
+process; each device drops 1 % and corrupts (checksum) 1 % of its replies at random
+(``WireFaults``; the handset, which only talks, of its frames; the OriginMan board: of every
+frame it sends, its reports included). A subscriber in a private rclpy context records every
+``/joint_states`` of the servo bus, ``/parachute/status``, ``/handset_link/setpoint`` and
+``/originman_board/imu`` message. Figures:
 crashes, RSS growth of each driver from the end of the warm-up (``min(30 s, 10 %)``) to the
 end, and the longest gap between two consecutive messages of each topic by their header stamps
 (the driver's publish times; the gap as received here is reported too).
@@ -18,7 +20,8 @@ import threading
 import time
 from typing import Dict, List
 
-from bench.common import ParachuteRig, ros_client, rss_bytes, ServoRig, workdir
+from bench.common import (HandsetRig, OriginManRig, ParachuteRig, ros_client, rss_bytes, ServoRig,
+                          workdir)
 
 
 class _DeviceProbe:
@@ -119,9 +122,8 @@ class _Gaps:
 
 def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         sample_s: float = 2.0) -> Dict:
-    """Soak both drivers for `duration_s`; return the figures."""
-    from bench.common import HandsetRig
-    from sensor_msgs.msg import JointState
+    """Soak the drivers for `duration_s`; return the figures."""
+    from sensor_msgs.msg import Imu, JointState
     from uav_serial_drivers.msg import HandsetSetpoint, ParachuteStatus
     warmup = min(30.0, 0.1 * duration_s)
     with workdir() as directory, contextlib.ExitStack() as stack:
@@ -129,19 +131,24 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
                                              {'publish_rate_hz': 50.0}, seed=11))
         chute = stack.enter_context(ParachuteRig(directory, stream_period_s=0.05, seed=12))
         handset = stack.enter_context(HandsetRig(directory, seed=13))
-        rigs = {'servo': servo, 'parachute': chute, 'handset': handset}
+        board = stack.enter_context(OriginManRig(directory, seed=14))
+        rigs = {'servo': servo, 'parachute': chute, 'handset': handset, 'originman': board}
         probes = {name: _DeviceProbe() for name in rigs}
         for name, rig in rigs.items():
             rig.runner.add_tap(probes[name])
         watchdog = _Watchdog()
         stack.callback(watchdog.stop)
         client = stack.enter_context(ros_client('bench_soak'))
-        joints, status, setpoints = _Gaps(), _Gaps(), _Gaps()
-        client.subscribe(JointState, '/joint_states', joints)
+        joints, status, setpoints, imu = _Gaps(), _Gaps(), _Gaps(), _Gaps()
+        # The board's bus servos (bus_servo_<id>) share /joint_states with the servo bus.
+        client.subscribe(JointState, '/joint_states', lambda msg: None if msg.name and
+                         msg.name[0].startswith('bus_servo_') else joints(msg))
         client.subscribe(ParachuteStatus, '/parachute/status', status)
         client.subscribe(HandsetSetpoint, '/handset_link/setpoint', setpoints, depth=100)
+        client.subscribe(Imu, '/originman_board/imu', imu)
         for rig in rigs.values():
             rig.wait_ready()
+        for rig in rigs.values():
             rig.runner.faults.drop_probability = drop
             rig.runner.faults.corrupt_probability = corrupt
         pids = {name: rig.node.pid for name, rig in rigs.items()}
@@ -150,6 +157,7 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
         joints.reset()
         status.reset()
         setpoints.reset()
+        imu.reset()
         for probe in probes.values():
             probe.reset()
         watchdog.max_late = 0.0
@@ -178,15 +186,19 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
             'soak_rss_growth_mb_servo': growth['servo'],
             'soak_rss_growth_mb_parachute': growth['parachute'],
             'soak_rss_growth_mb_handset': growth['handset'],
+            'soak_rss_growth_mb_originman': growth['originman'],
             'soak_max_gap_s_joint_states': joints.final(t_end),
             'soak_max_gap_s_status': status.final(t_end),
             'soak_max_gap_s_setpoint': setpoints.final(t_end),
+            'soak_max_gap_s_imu': imu.final(t_end),
             'soak_rx_gap_s_joint_states': joints.max_rx_gap,
             'soak_rx_gap_s_status': status.max_rx_gap,
             'soak_rx_gap_s_setpoint': setpoints.max_rx_gap,
+            'soak_rx_gap_s_imu': imu.max_rx_gap,
             'soak_joint_states_msgs': joints.count,
             'soak_status_msgs': status.count,
             'soak_setpoint_msgs': setpoints.count,
+            'soak_imu_msgs': imu.count,
             'soak_faults': faults,
             'soak_stalls': {
                 # Times are seconds after the start of the measured window.
@@ -200,6 +212,7 @@ def run(duration_s: float = 300.0, drop: float = 0.01, corrupt: float = 0.01,
                 'joint_states_gap_ended_at': round(joints.max_gap_at - start, 1),
                 'status_gap_ended_at': round(status.max_gap_at - start, 1),
                 'setpoint_gap_ended_at': round(setpoints.max_gap_at - start, 1),
+                'imu_gap_ended_at': round(imu.max_gap_at - start, 1),
             },
             'soak_driver_log': {
                 name: _log_events(rig.node.output()[logs_at_start[name]:])

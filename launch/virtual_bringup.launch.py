@@ -11,11 +11,12 @@ from launch_ros.substitutions import FindPackageShare
 
 
 def generate_launch_description():
-    """Run each virtual device with its driver (parachute, servo bus, handset link)."""
+    """Run each virtual device with its driver (parachute, servo bus, handset, OriginMan board)."""
     share = FindPackageShare('uav_serial_drivers')
     parachute_link = LaunchConfiguration('parachute_link')
     servo_link = LaunchConfiguration('servo_link')
     handset_link = LaunchConfiguration('handset_link')
+    originman_link = LaunchConfiguration('originman_link')
     namespace = LaunchConfiguration('namespace')
     return LaunchDescription([
         DeclareLaunchArgument('namespace', default_value='',
@@ -26,12 +27,18 @@ def generate_launch_description():
                               description='path of the virtual servo bus port'),
         DeclareLaunchArgument('handset_link', default_value='/tmp/vhandset',
                               description='path of the virtual handset modem port'),
+        DeclareLaunchArgument('originman_link', default_value='/tmp/voriginman',
+                              description='path of the virtual OriginMan board port'),
         Node(package='uav_serial_drivers', executable='virtual_parachute',
              name='virtual_parachute', namespace=namespace,
              parameters=[{'link': parachute_link}], output='screen'),
         Node(package='uav_serial_drivers', executable='virtual_servo_bus',
              name='virtual_servo_bus', namespace=namespace,
              parameters=[{'link': servo_link, 'servo_ids': [1, 2, 3]}], output='screen'),
+        Node(package='uav_serial_drivers', executable='virtual_originman_board',
+             name='virtual_originman_board', namespace=namespace,
+             parameters=[{'link': originman_link, 'bus_servo_ids': [1, 2, 3]}],
+             output='screen'),
         Node(package='uav_serial_drivers', executable='parachute_node', name='parachute',
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'parachute.yaml']),
@@ -41,6 +48,11 @@ def generate_launch_description():
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'servo_bus.yaml']),
                          {'port': servo_link, 'servo_ids': [1, 2, 3]}],
+             output='screen'),
+        Node(package='uav_serial_drivers', executable='originman_board_node',
+             name='originman_board', namespace=namespace,
+             parameters=[PathJoinSubstitution([share, 'config', 'originman_board.yaml']),
+                         {'port': originman_link, 'bus_servo_ids': [1, 2, 3]}],
              output='screen'),
         Node(package='uav_serial_drivers', executable='virtual_handset',
              name='virtual_handset', namespace=namespace,

@@ -14,7 +14,8 @@ Threads and state (who owns what):
   ``_battery_mv`` and the report counters under ``_lock``. It never does I/O of its own.
   ``_on_connection`` (also the reader thread) only sets flags under ``_lock`` and wakes the
   worker.
-* the **worker thread** runs :meth:`poll` every ``WORKER_PERIOD_S``: online judgement (and
+* the **worker thread** runs :meth:`poll` when a duty may be due (:meth:`next_wake`: at
+  most ``IDLE_MAX_S`` apart, every ``WORKER_PERIOD_S`` while offline): online judgement (and
   ``on_online_change``), desired settings, the motor watchdog, the settings check and the bus
   servo poll (blocking reads, one at a time) with ``on_bus_servo_states``. It alone writes
   ``_online``, ``_status``, ``_settings_*`` (under ``_lock``, as snapshots read them) and the
@@ -52,6 +53,9 @@ __all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'BusServoStatesResult
            'sbus_normalize']
 
 WORKER_PERIOD_S = 0.01
+"""How often the worker looks for the board's first frames while it is offline."""
+IDLE_MAX_S = 0.1
+"""The longest the worker sleeps while online: the state in snapshots is at most this old."""
 SERVO_OFFLINE_AFTER = 3
 """Consecutive failed reads after which a polled bus servo is offline."""
 SERVO_REPROBE_S = 1.0
@@ -500,15 +504,52 @@ class OriginManCore:
             self._thread.start()
 
     def stop(self, stop_motors: bool = True) -> None:
-        """Stop every motor (if the port is open and ``stop_motors``), the worker, the link."""
+        """Stop every motor (if the port is open and ``stop_motors``), the worker, the link.
+
+        The motors are stopped first (at once), and once more after the worker has ended, so
+        that the last motor frame on the wire is a stop whatever the worker wrote meanwhile
+        (desired settings include the motor type).
+        """
         if stop_motors and self.link.connected:
             self.stop_all_motors()
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
-            self._thread.join(5.0)
+            self._thread.join(3.0)
+            worker_ran = True
             self._thread = None
+        else:
+            worker_ran = False
+        if stop_motors and worker_ran and self.link.connected:
+            self.stop_all_motors()
         self.link.stop()
+
+    def reconfigure(self, config: OriginManConfig) -> None:
+        """Take changed parameters at runtime; ``port`` and ``baud`` need a restart.
+
+        Changed desired settings are written at once when the board is online (else at its
+        next connect); a changed ``bus_servo_ids`` is polled from the next cycle, keeping what
+        is known of the servos that stay. Raises ConfigError naming a bad value.
+        """
+        new = config.validated()
+        old = self.config
+        if (new.port, new.baud) != (old.port, old.baud):
+            raise ConfigError('port and baud are read at start only; restart the node')
+        desired = ('low_battery_mv', 'motor_type', 'pwm_servo_offsets_us')
+        with self._lock:
+            self.config = new
+            if new.bus_servo_ids != old.bus_servo_ids:
+                self._poll_ids = list(new.bus_servo_ids)
+                self._servos = {i: self._servos.get(i, BusServoStatus(i))
+                                for i in self._poll_ids}
+            if any(getattr(new, k) != getattr(old, k) for k in desired):
+                self._expected_offsets = {
+                    i + 1: v for i, v in enumerate(new.pwm_servo_offsets_us)}
+                if self._online:
+                    self._settings_due = self._clock()
+                    self._settings_ok = False
+                    self._settings_message = 'writing'
+        self._wake.set()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -516,8 +557,33 @@ class OriginManCore:
                 self.poll()
             except Exception:  # noqa: BLE001 - a bug in one duty must not stop the others
                 self._log.exception('originman core: poll failed')
-            self._wake.wait(WORKER_PERIOD_S)
+            # Sleep until a duty may be due, not on a fixed tick: a wake-up costs a driver
+            # beside others a share of a core it does not need (bench: cpu_originman_pct).
+            self._wake.wait(self.next_wake())
             self._wake.clear()
+
+    def next_wake(self, now: Optional[float] = None) -> float:
+        """Seconds until one of the worker's duties may be due (0..``IDLE_MAX_S``)."""
+        now = self._clock() if now is None else now
+        cfg = self.config
+        waits = [IDLE_MAX_S]
+        with self._lock:
+            if cfg.motor_timeout_s > 0 and not self._motor_stopped and \
+                    self._motor_command_at is not None:
+                waits.append(self._motor_command_at + cfg.motor_timeout_s - now)
+            online = self._online
+            if self._settings_due is not None:
+                waits.append(self._settings_due - now)
+        last = self.link.last_frame_time
+        if not online or last is None:
+            waits.append(WORKER_PERIOD_S)
+        else:
+            waits.append(last + cfg.offline_timeout_s - now)
+            if self._check_at is not None:
+                waits.append(self._check_at - now)
+            if self._next_poll is not None and self._poll_ids and cfg.bus_servo_poll_hz > 0:
+                waits.append(self._next_poll - now)
+        return max(0.0, min(waits))
 
     # -- the worker's duties --------------------------------------------------------------------
 
@@ -935,7 +1001,9 @@ class OriginManCore:
             # of the motors (O39).
             with self._lock:
                 self._motor_command_at = self._clock()
-                self._motor_stopped = False
+                was_stopped, self._motor_stopped = self._motor_stopped, False
+            if was_stopped:
+                self._wake.set()  # a new motor timeout: the worker may be sleeping past it
             if not ids:
                 return [], 'motor timeout restarted'
             frame = p.encode_motor_speeds([(i - 1, float(v)) for i, v in zip(ids, speeds)])

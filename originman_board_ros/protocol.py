@@ -893,8 +893,8 @@ class StreamDecoder:
     It hunts for ``AA 55``, takes FUNCTION and LENGTH, waits for the rest and checks the CRC.
     A CRC failure, or a LENGTH beyond ``max_length`` (O34), abandons the candidate one byte
     after its start, so a real frame beginning inside a false one is still found. CRC-valid
-    frames with FUNCTION 0..12 are returned (12 = ASR, O2); those with a higher FUNCTION are
-    skipped whole and counted. A trailing 0xAA is kept for the next chunk.
+    frames with FUNCTION 0..12 are returned (12 = ASR, O2); one with a higher FUNCTION is
+    counted and abandoned like a CRC failure (O50). A trailing 0xAA is kept for the next chunk.
     """
 
     def __init__(self, max_length: int = MAX_BOARD_LENGTH) -> None:
@@ -949,10 +949,13 @@ class StreamDecoder:
                 continue
             function = buf[i + 2]
             if function > HOST_FUNCTION_MAX:
+                # O50: the board never sends one; a CRC-valid "frame" of FUNCTION 13+ is noise
+                # that happens to check, so real frames inside it are still looked for.
                 self.unknown_functions += 1
-                discarded += end - i
-            else:
-                out.append(Frame(function, bytes(buf[i + 4:end - 1]), bytes(buf[i:end])))
+                discarded += 1
+                pos = i + 1
+                continue
+            out.append(Frame(function, bytes(buf[i + 4:end - 1]), bytes(buf[i:end])))
             pos = end
         if pos:
             del buf[:pos]

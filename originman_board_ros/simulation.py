@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import heapq
 import math
 import struct
-from typing import Deque, Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Callable, Deque, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from originman_board_ros import protocol as p
 
@@ -69,6 +69,9 @@ SERVO_MAX_SPEED = 1250.0
 SERVO_DEFAULT_TEMPERATURE_C = 30
 SERVO_DEFAULT_TEMPERATURE_LIMIT_C = 85
 COMMAND_LOG_SIZE = 2000
+
+ImuSource = Callable[[float], Tuple[Sequence[float], Sequence[float]]]
+"""A function of the model's time giving ``(accel_g, gyro_dps)`` for the next IMU report."""
 
 
 def _servo_bus_time(nbytes: int) -> float:
@@ -332,6 +335,7 @@ class VirtualOriginManBoardModel:
         self.imu_rate_hz = 0.0
         self.accel_g: Tuple[float, float, float] = (0.0, 0.0, 1.0)
         self.gyro_dps: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.imu_source: Optional[ImuSource] = None
         self.bus_servos: List[SimBusServo] = []
         for servo_id in bus_servo_ids:
             self.add_bus_servo(servo_id)
@@ -405,6 +409,14 @@ class VirtualOriginManBoardModel:
                 raise ValueError(f'rate_hz must be >= 0, got {rate_hz!r}')
             self.imu_rate_hz = float(rate_hz)
             self._imu_at = self._now + 1.0 / rate_hz if rate_hz > 0 else None
+
+    def set_imu_source(self, source: Optional[ImuSource]) -> None:
+        """Let ``source(t)`` give ``(accel_g, gyro_dps)`` for each report at ``t``; None: fixed.
+
+        A scenario that moves the board (a sway, a turn), or one that marks every report with
+        a value of its own to follow it through a driver (the latency benchmark).
+        """
+        self.imu_source = source
 
     def set_battery_period(self, period_s: float) -> None:
         """Change the battery report period (1.05 s on the real board); the next is due then."""
@@ -576,6 +588,9 @@ class VirtualOriginManBoardModel:
             self._handler_free_at = now + self._handle(frame, now)
         if self._imu_at is not None and self._imu_at <= now:
             self._imu_at += 1.0 / self.imu_rate_hz
+            if self.imu_source is not None:
+                self.accel_g, self.gyro_dps = (_triple(v, n) for v, n in zip(
+                    self.imu_source(now), ('accel_g', 'gyro_dps')))
             self._report(now, p.encode_imu_report(self.accel_g, self.gyro_dps))
         if self._battery_at <= now:
             self._battery_at += self.battery_period_s

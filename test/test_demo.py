@@ -16,7 +16,9 @@ def test_the_demo_mission_succeeds_and_leaves_no_process_behind():
     last = result.stdout.strip().splitlines()[-1]
     assert last.startswith('demo: OK'), last
     for step in ['trigger event: source freefall', 'settings re-applied', 'refused:',
-                 'failsafe → RETURN_TO_HOME', 'link regained → failsafe NONE']:
+                 'failsafe → RETURN_TO_HOME', 'link regained → failsafe NONE',
+                 'key 1: pressed → release_from_short_press → click',
+                 'raw [800, 200, 650] reached', 'motors stopped by the motor timeout']:
         assert step in result.stdout, f'{step!r} missing from the demo output'
     # It ends with the black-box report of its own run.
     report = Path(re.search(r'report (\S+\.html)$', last).group(1))

@@ -13,7 +13,7 @@ import pytest
 
 
 @pytest.mark.parametrize('decoder', ['dps_from_module', 'dps_from_host', 'servo_reply',
-                                     'servo_request', 'handset'])
+                                     'servo_request', 'handset', 'originman_from_board'])
 def test_fuzzed_decoder_never_raises_and_recovers_every_clean_frame(decoder):
     r = fuzz.fuzz_one(decoder, 20000, seed=3)
     assert r['exceptions'] == 0
@@ -22,7 +22,7 @@ def test_fuzzed_decoder_never_raises_and_recovers_every_clean_frame(decoder):
     assert r['recovered_pct'] == 100.0
 
 
-@pytest.mark.parametrize('device', ['servo', 'parachute', 'handset'])
+@pytest.mark.parametrize('device', ['servo', 'parachute', 'handset', 'originman'])
 def test_unplug_replug_cycles_recover_without_crash_or_leak(device):
     r = getattr(reconnects, device)(cycles=6, unplug_s=0.2)
     assert r['crashes'] == 0
@@ -32,11 +32,12 @@ def test_unplug_replug_cycles_recover_without_crash_or_leak(device):
     assert r['thread_leak'] <= 0
 
 
-def test_short_soak_on_lossy_wires_keeps_the_drivers_alive_and_publishing():
+def test_short_soak_on_lossy_wires_keeps_every_driver_alive_and_publishing():
     r = soak.run(duration_s=5.0, sample_s=1.0)
     assert r['soak_crashes'] == 0 and r['alive']
     assert r['soak_joint_states_msgs'] > 0 and r['soak_status_msgs'] > 0
-    assert r['soak_setpoint_msgs'] > 0
+    assert r['soak_setpoint_msgs'] > 0 and r['soak_imu_msgs'] > 0
+    assert math.isfinite(r['soak_max_gap_s_imu'])
     assert math.isfinite(r['soak_max_gap_s_joint_states'])
     assert math.isfinite(r['soak_max_gap_s_status'])
     assert math.isfinite(r['soak_max_gap_s_setpoint'])
@@ -48,7 +49,7 @@ def test_sigkill_right_after_deploy_acknowledgement_leaves_the_record_on_disk():
     assert r['kill9_record_on_disk'] == 2
 
 
-@pytest.mark.parametrize('driver', ['servo', 'parachute', 'handset'])
+@pytest.mark.parametrize('driver', ['servo', 'parachute', 'handset', 'originman'])
 def test_malformed_service_requests_are_refused_with_nothing_on_the_wire(driver):
     r = getattr(bad_inputs, driver)(observe_s=2.0)
     assert r['errors'] == []

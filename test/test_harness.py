@@ -22,5 +22,6 @@ def test_messages_flow_inside_the_test_context(ros):
 
 def test_every_executable_is_installed():
     for name in ['parachute_node', 'servo_bus_node', 'handset_link_node', 'virtual_parachute',
-                 'virtual_servo_bus', 'virtual_handset', 'blackbox_report']:
+                 'virtual_servo_bus', 'virtual_handset', 'blackbox_report',
+                 'originman_board_node', 'virtual_originman_board']:
         assert os.access(executable_path(name), os.X_OK), name

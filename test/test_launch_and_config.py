@@ -13,10 +13,11 @@ from uav_serial_common.process import executable_path
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILES = ['parachute.launch.py', 'servo_bus.launch.py', 'handset_link.launch.py',
-                'virtual_bringup.launch.py']
+                'originman_board.launch.py', 'virtual_bringup.launch.py']
 CONFIGS = {'parachute.yaml': ('parachute_node', '/parachute'),
            'servo_bus.yaml': ('servo_bus_node', '/servo_bus'),
-           'handset_link.yaml': ('handset_link_node', '/handset_link')}
+           'handset_link.yaml': ('handset_link_node', '/handset_link'),
+           'originman_board.yaml': ('originman_board_node', '/originman_board')}
 
 
 def _string_args(tree, func_name):
@@ -49,8 +50,9 @@ def test_launch_file_is_installed_compiles_and_names_installed_things(name, tmp_
 def test_virtual_bringup_wires_each_driver_to_its_virtual_device():
     tree = ast.parse((ROOT / 'launch' / 'virtual_bringup.launch.py').read_text())
     executables = sorted(n['executable'] for n in _string_args(tree, 'Node'))
-    assert executables == ['handset_link_node', 'parachute_node', 'servo_bus_node',
-                           'virtual_handset', 'virtual_parachute', 'virtual_servo_bus']
+    assert executables == ['handset_link_node', 'originman_board_node', 'parachute_node',
+                           'servo_bus_node', 'virtual_handset', 'virtual_originman_board',
+                           'virtual_parachute', 'virtual_servo_bus']
 
 
 @pytest.mark.parametrize('config', sorted(CONFIGS))
@@ -75,3 +77,16 @@ def test_config_keys_are_exactly_the_declared_parameters_of_the_node(config, ros
                 and not n.startswith('qos_overrides')}
     assert keys - declared == set(), f'{config} has keys the node does not declare'
     assert declared - keys == set(), f'{config} lacks declared parameters'
+
+
+def test_originman_config_gives_every_parameter_its_default_with_a_comment():
+    from originman_board_ros.node import PARAMS
+    from rclpy.parameter import Parameter
+    path = ROOT / 'config' / 'originman_board.yaml'
+    values = yaml.safe_load(path.read_text())['/**']['ros__parameters']
+    for spec in PARAMS:
+        default = [] if isinstance(spec.default, Parameter.Type) else spec.default
+        assert values[spec.name] == default, spec.name
+    lines = [line for line in path.read_text().splitlines()
+             if line.startswith('    ') and not line.strip().startswith('#')]
+    assert len(lines) == len(PARAMS) and all('  # ' in line for line in lines)

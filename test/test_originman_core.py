@@ -5,12 +5,13 @@ The core is started without its worker thread (``start(worker=False)``) and the 
 deterministic while the bytes still cross a real pty.
 """
 
+from dataclasses import replace
 import math
 import threading
 
 from originman_board_ros import protocol as p
-from originman_board_ros.core import (ConfigError, OriginManConfig, OriginManCore,
-                                      STANDARD_GRAVITY)
+from originman_board_ros.core import (ConfigError, IDLE_MAX_S, OriginManConfig, OriginManCore,
+                                      STANDARD_GRAVITY, WORKER_PERIOD_S)
 from originman_board_ros.protocol import BusSub
 from originman_rig import VirtualBoard
 import pytest
@@ -178,6 +179,44 @@ def test_keep_and_minus_1_write_nothing(rig):
     snap = rig.core.snapshot()
     assert snap.settings_ok and snap.settings_message == 'no desired settings'
     assert rig.frames_out == 0
+
+
+def test_reconfigure_writes_changed_settings_at_once_and_changes_the_poll(make_rig):
+    r = make_rig(bus_servo_ids=(1, 2))
+    r.online()
+    mark = r.mark()
+    r.core.reconfigure(replace(r.core.config, low_battery_mv=6000, motor_type='JGB528',
+                               pwm_servo_offsets_us=(0, 7), bus_servo_ids=(2, 3),
+                               motor_timeout_s=0.0))
+    r.core.poll()
+    wait_for(lambda: r.model.battery_limit_mv == 6000 and r.model.motor_type == 3, 5,
+             what='the changed settings on the board')
+    assert r.model.pwm_servos[2].offset_us == 7 and r.core.snapshot().settings_ok
+    assert p.SetBatteryLimit(6000) in r.wire(mark)
+    assert r.core.bus_servo_ids == [2, 3]
+    assert [s.id for s in r.core.snapshot().bus_servos] == [2, 3]
+    with pytest.raises(ConfigError, match='port and baud'):
+        r.core.reconfigure(replace(r.core.config, baud=115200))
+    with pytest.raises(ConfigError, match='motor_type'):
+        r.core.reconfigure(replace(r.core.config, motor_type='V8'))
+    assert r.core.config.motor_type == 'JGB528'
+
+
+def test_the_worker_sleeps_until_a_duty_is_due(make_rig):
+    r = make_rig(bus_servo_ids=(1,), bus_servo_poll_hz=10.0, motor_timeout_s=0.05)
+    assert r.core.next_wake() == WORKER_PERIOD_S  # offline: looking for the first frames
+    r.online()
+    # O38: the motor timeout runs from the connect; it is the first duty due.
+    assert 0.0 <= r.core.next_wake() <= 0.05
+    r.clock.advance(0.06)
+    r.core.poll()
+    assert r.core.snapshot().watchdog_stops == 1
+    # Motors stopped: the next poll of the servo (10 Hz) is what is due next.
+    assert 0.0 < r.core.next_wake() <= 0.1
+    r.core.set_motor_speeds([1], [0.5])
+    assert r.core.next_wake() <= 0.05
+    r.core.config = replace(r.core.config, bus_servo_poll_hz=0.0, motor_timeout_s=0.0)
+    assert r.core.next_wake() == IDLE_MAX_S
 
 
 def test_o37_a_quick_reset_is_noticed_through_the_offsets(make_rig):

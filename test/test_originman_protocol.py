@@ -336,6 +336,16 @@ def test_o2_host_decoder_takes_function_12_as_asr_and_skips_higher_ones():
     assert dec.unknown_functions == 1 and dec.crc_errors == 0
 
 
+def test_o50_a_crc_valid_function_13_is_noise_and_frames_inside_it_are_found():
+    key = p.encode_key_report(1, 0x20)
+    # FUNCTION 0xE3 with a LENGTH that covers the key report, and a CRC that checks.
+    body = bytes([0xE3, len(key) + 2, 0x00]) + key + b'\x00'
+    noise = p.HEADER + body + bytes([p.crc8(body)])
+    dec = StreamDecoder()
+    assert [f.raw for f in dec.feed(noise)] == [key]
+    assert dec.unknown_functions == 1 and dec.crc_errors == 0
+
+
 def test_decoder_finds_frames_in_garbage_split_anywhere():
     frames = [p.encode_battery_report(7000), p.encode_key_report(2, 0x20),
               p.encode_imu_report((0, 0, 1), (0, 0, 0)), p.encode_bus_reply(1, 5, 500)]

@@ -54,6 +54,17 @@ def test_o8_imu_streams_at_the_set_rate_in_g_and_deg_per_s():
     assert run(sim, 3.0, 0.01) == []
 
 
+def test_an_imu_source_gives_each_report_its_values():
+    sim = VirtualOriginManBoardModel(0.0, imu_rate_hz=100.0, battery_period_s=1000.0)
+    sim.set_imu_source(lambda t: ((0.0, 0.0, 1.0), (round(t * 1000), 0.0, 0.0)))
+    reports = [(t, m) for t, m in run(sim, 0.1, 0.001) if isinstance(m, p.ImuReport)]
+    # Each report carries the source's values at its own time: every 10 ms.
+    assert [m.gyro_dps[0] for _, m in reports] == [10.0 * k for k in range(1, 11)]
+    sim.set_imu_source(None)
+    last = sim.gyro_dps
+    assert all(m.gyro_dps == last for _, m in run(sim, 0.2) if isinstance(m, p.ImuReport))
+
+
 def test_o9_battery_report_every_1_05_s_in_millivolts():
     sim = quiet(battery_period_s=s.BATTERY_PERIOD_S, battery_mv=7800)
     reports = [(t, m) for t, m in run(sim, 4.3, 0.001) if isinstance(m, p.BatteryReport)]

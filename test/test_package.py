@@ -145,8 +145,9 @@ def test_installed_executables_are_the_console_scripts_of_setup_cfg():
     from ament_index_python.packages import get_package_prefix
     scripts = setup_cfg()['options.entry_points']['console_scripts'].split('\n')
     names = sorted(line.split('=')[0].strip() for line in scripts if line.strip())
-    assert names == ['blackbox_report', 'handset_link_node', 'parachute_node', 'servo_bus_node',
-                     'virtual_handset', 'virtual_parachute', 'virtual_servo_bus']
+    assert names == ['blackbox_report', 'handset_link_node', 'originman_board_node',
+                     'parachute_node', 'servo_bus_node', 'virtual_handset',
+                     'virtual_originman_board', 'virtual_parachute', 'virtual_servo_bus']
     lib = Path(get_package_prefix('uav_serial_drivers'), 'lib', 'uav_serial_drivers')
     assert sorted(p.name for p in lib.iterdir()) == names
     for line in scripts:
