@@ -1273,8 +1273,7 @@ def _decision_deploy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
         # Nothing went out: a call answered, not a deployment.
         if known == 'already deployed':
             a.counts['deploy calls answered already deployed'] += 1
-            a.event(t, 'calls', 'info', f'~/deploy: already deployed, nothing sent '
-                    f'({short(reason, 120)})')
+            a.event(t, 'calls', 'info', f'~/deploy: already deployed ({short(reason, 120)})')
         else:
             a.counts['deploy calls refused'] += 1
             a.event(t, 'calls', 'warn', f'~/deploy refused: {short(reason, 140)}')
@@ -1332,8 +1331,9 @@ def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: floa
     a.counts[f'trigger requests {decision}'] += 1
     latency = f', {req.latency_ms:.2f} ms' if req.latency_ms is not None else ''
     level = 'bad' if decision == 'confirmed' else 'warn'
-    a.event(t, 'request', level, f'trigger request {decision.upper()} by policy {req.policy}'
-            f'{latency}: {short(req.reason, 100)}')
+    by = f' by policy {req.policy}' if req.policy else ''
+    a.event(t, 'request', level, f'trigger request {decision.upper()}{by}{latency}: '
+            f'{short(req.reason, 100)}')
     if decision == 'confirmed':
         if req.reason.startswith('policy changed'):
             who = (f'the change of trigger_request_policy to {req.policy!r} while the request '

@@ -654,6 +654,51 @@ def test_an_older_drivers_records_are_still_read(tmp_path):
     assert '1 deploy attempts with an UNKNOWN outcome the driver never resolved' in seen
 
 
+def test_rarer_records_of_the_driver_are_read(tmp_path):
+    # Records session.py writes that the runs above do not provoke, as it writes them: a
+    # deferred request superseded by a newer one (D8), a deploy to a triggered module (D13), a
+    # settings change that would deploy at once (D16), a request still held at the stop.
+    request = p.encode_trigger_request().hex(' ')
+    _jsonl(tmp_path / 'rare.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200,
+                        'config': {'trigger_request_policy': 'defer'}}),
+        ('request', 0.2, {'what': 'set_thresholds', 'values': {'attitude_threshold_deg': 20}}),
+        ('decision', 0.21, {'what': 'settings refused', 'reason': 'would deploy now: tilt 30° '
+                            '≥ attitude threshold 20°; lock first (~/arm false)'}),
+        ('request', 0.5, {'what': 'deploy', 'token_ok': True, 'arm_if_locked': False}),
+        ('decision', 0.5, {'what': 'deploy', 'outcome': 'already deployed', 'success': True,
+                           'reason': 'already deployed: the module reports triggered; '
+                           'nothing sent'}),
+        ('frame', 1.0, {'dir': 'rx', 'hex': request}),
+        ('decision', 1.0, {'what': 'trigger request deferred', 'deadline_s': 0.8}),
+        ('frame', 1.3, {'dir': 'rx', 'hex': request}),
+        ('decision', 1.3, {'what': 'trigger request', 'decision': 'timed_out',
+                           'policy': 'defer', 'reason': 'superseded by a newer trigger request',
+                           'latency_ms': None}),
+        ('decision', 1.3, {'what': 'trigger request deferred', 'deadline_s': 0.8}),
+        ('decision', 1.9, {'what': 'trigger request', 'decision': 'not answered',
+                           'reason': 'driver stopped while the request was deferred'}),
+        ('stop', 1.9, {}),
+    ])
+    summary, text = report(tmp_path, tmp_path / 'rare.jsonl')
+    seen = visible(text)
+    assert not summary.unknown_kinds and not summary.unknown_fields
+    assert not summary.unknown_decisions and not summary.deployments
+    first, second = [e for e in events_of(summary, 'request') if 'TIMED_OUT' in e[3]
+                     or 'NOT ANSWERED' in e[3]]
+    assert 'superseded' in first[3] and 'driver stopped' in second[3]
+    assert 'Trigger requests from the module 2 (1 timed out, 1 not answered)' in seen
+    analysis, _ = analyse([str(tmp_path / 'rare.jsonl')], progress=False)
+    older, newer = analysis.requests  # the superseded one is the older
+    assert abs(older.t - analysis.t0 - 1.0) < 1e-3
+    assert (older.decision, older.deferred) == ('timed_out', True)
+    assert (newer.decision, newer.deferred) == ('not answered', True)
+    (refused,) = events_of(summary, 'settings', 'would deploy now')
+    assert refused[3].startswith('settings change refused, nothing written (D16)')
+    (already,) = events_of(summary, 'calls', '~/deploy: already deployed (the module')
+    assert summary.counts['deploy calls answered already deployed'] == 1
+
+
 def test_a_blackbox_outage_is_shown_with_the_records_it_lost(tmp_path):
     # The driver's core against the simulation (no ROS): its black-box directory cannot be
     # made at first (a regular file in the way), then can.
