@@ -3,10 +3,11 @@
 ``write_synthetic_blackbox`` writes a black box as the parachute driver does (the same record
 kinds and fields, frames built with the protocol's encoders): a 20 Hz status stream with tilt
 and acceleration moving, the driver's 1 s polls, and every few minutes of flight a trigger
-request and its deployment, a deploy call, lost replies, a reboot, a reconnect, records of a kind
-the report does not know. 500 MB is about 30 hours of such a flight. ``report_peak_rss`` runs
-``build_report`` in a child process and reads its peak RSS (``getrusage``), so the figure is the
-report's alone. Figures: ``report_500mb_peak_mb``, ``report_500mb_s``.
+request and its deployment, a deploy call, lost replies, a reboot, a reconnect, the link's
+counters after checksum errors, records of a kind the report does not know. 500 MB is about 30
+hours of such a flight. ``report_peak_rss`` runs ``build_report`` in a child process and reads
+its peak RSS (``getrusage``), so the figure is the report's alone. Figures:
+``report_500mb_peak_mb``, ``report_500mb_s``.
 
 Standalone: ``python bench/report_memory.py [--mb 500]``.
 """
@@ -46,7 +47,8 @@ def write_synthetic_blackbox(path: str, size_bytes: int, seed: int = 1) -> Dict[
     rng = random.Random(seed)
     wall0, mono0 = 1_790_000_000.0, 1000.0
     t = 0.0
-    made = {'deployments': 0, 'lost': 0, 'reboots': 0, 'reconnects': 0, 'unknown': 0}
+    made = {'deployments': 0, 'lost': 0, 'reboots': 0, 'reconnects': 0, 'unknown': 0,
+            'checksum_errors': 0}
     poll = [(p.encode_light_level_query(), 'LightLevel', p.module_frame(p.CMD_LIGHT_LEVEL, 2)),
             (p.encode_charging_query(), 'Charging', p.module_frame(p.CMD_CHARGING, 1)),
             (p.encode_cell_voltage_query(), 'CellVoltage', p.module_frame(0x35, 210))]
@@ -68,8 +70,8 @@ def write_synthetic_blackbox(path: str, size_bytes: int, seed: int = 1) -> Dict[
         frame('tx', data)
 
     with open(path, 'w', encoding='utf-8', buffering=1 << 20) as out:
-        rec('start', '"port":"/dev/parachute","baud":115200,"parameters":{"trigger_request_'
-            'policy":"confirm","attitude_threshold_deg":70},')
+        rec('start', '"port":"/dev/parachute","baud":115200,"config":{"trigger_request_'
+            'policy":"confirm","attitude_threshold_deg":70,"request_timeout_s":1.0},')
         rec('state', '"port_open":true,"reason":"port open",')
         rec('state', '"online":true,"reason":"",')
         for query, expect, reply in (
@@ -105,7 +107,7 @@ def write_synthetic_blackbox(path: str, size_bytes: int, seed: int = 1) -> Dict[
                 t += 0.05
                 frame('rx', p.encode_status_frame(tilt, 0, True, False))
                 rec('state', '"triggered":true,"via":"status",')
-                rec('trigger_event', '"source":"freefall","via":1,"record":null,')
+                rec('trigger_event', '"source":"freefall","via":"status","record":null,')
                 made['deployments'] += 1
             if n % 12000 == 6000:  # a deploy call, acknowledged
                 rec('request', '"what":"deploy","token_ok":true,"arm_if_locked":true,')
@@ -115,7 +117,14 @@ def write_synthetic_blackbox(path: str, size_bytes: int, seed: int = 1) -> Dict[
                 frame('rx', p.module_frame(p.CMD_DEPLOY, 1))
                 rec('decision', '"what":"deploy acknowledged","hex":"41 75 11 01 01 13",'
                     '"latency_ms":2.1,"attempts":1,')
+                rec('decision', '"what":"deploy","outcome":"deployed","success":true,"reason":'
+                    '"deployed: acknowledged after 1 attempt(s), 2.1 ms",')
                 made['deployments'] += 1
+            if n % 12000 == 3000:  # a reply with a bad checksum: the link's counters (D10)
+                made['checksum_errors'] += 1
+                rec('link', f'"frames_in":{n},"frames_out":{n // 7},"checksum_errors":'
+                    f'{made["checksum_errors"]},"bytes_discarded":0,"timeouts":{made["lost"]},'
+                    '"reconnects":0,')
             if n % 12000 in (100, 6100):  # the module reboots (two heartbeats, P5)
                 boot = (boot + 1) & 0xFF
                 frame('rx', p.encode_module_heartbeat())

@@ -10,8 +10,10 @@ A logging problem never takes the parachute away (README, "Safety model of deplo
 constructor never raises, a directory that cannot be used, a full disk or an I/O error only
 make records lost. Lost records are counted, the problem is reported through ``on_problem``
 (the driver logs it, throttled, and keeps its diagnostics ERROR) and writing is retried, so the
-box recovers by itself when the disk does. ``max_bytes`` bounds the directory: the oldest runs
-are removed first, never the current one (decision D14 in ``docs/protocols.md``). No ROS here.
+box recovers by itself when the disk does; the file then says so itself, in a ``blackbox``
+record ``{"event": "writing again", "error", "failed_at", "lost", "lost_in_outage"}`` (D18).
+``max_bytes`` bounds the directory: the oldest runs are removed first, never the current one
+(decision D14 in ``docs/protocols.md``). No ROS here.
 """
 
 from __future__ import annotations
@@ -90,6 +92,8 @@ class BlackBox:
         self._error = ''
         self._open_failed = False
         self._writing = True
+        self._failed_at = 0.0           # wall time the present outage began
+        self._lost_before = 0           # records lost before it
         self.syncs = 0
         self._closed = False
         self._buf: List[bytes] = []
@@ -289,6 +293,9 @@ class BlackBox:
 
     def _failed(self, error: str, lost: int) -> None:
         with self._lock:
+            if self._writing:
+                self._failed_at = time.time()
+                self._lost_before = self._lost
             self._lost += lost
             first = self._writing or error != self._error
             self._writing = False
@@ -302,8 +309,13 @@ class BlackBox:
             if self._writing:
                 return
             self._writing = True
-            self._error = ''
+            error, self._error = self._error, ''
+            lost, outage = self._lost, self._lost - self._lost_before
+            failed_at = self._failed_at
             text = f'writing again to {self.path}; {self._lost} records were lost'
+        # The outage's own records are gone: this one tells the file what happened (D18).
+        self.record('blackbox', event='writing again', error=error, failed_at=failed_at,
+                    lost=lost, lost_in_outage=outage)
         if self.on_problem is not None:
             self.on_problem(text, True)
 

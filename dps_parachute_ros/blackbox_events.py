@@ -13,12 +13,16 @@ keeps only bounded state, so a black box of any size fits in memory:
   acknowledgement or unknown outcome, the module's triggered flag, the trigger event).
 
 What a record means is looked up in tables: ``RULES`` by the record's ``kind``, and below it
-``DECISIONS`` by ``what``, ``STATE_FIELDS`` by field, ``RX_MESSAGES`` by the type
+``DECISIONS`` by ``what``, ``DEPLOY_OUTCOMES`` by a deploy call's ``outcome``, ``STATE_FIELDS``
+by field (``STATE_EVENTS`` by a state's ``event``), ``RX_MESSAGES`` by the type
 ``protocol.decode_module_frame`` gives a received frame and ``TX_COMMANDS`` by the command code
 of a sent one. Adding a kind is one entry in ``RULES`` (``generic_rule`` covers a kind that only
 needs showing). A kind or a field that no table knows is counted and listed, never fatal: the
 black box of a newer driver still gives a report, and so does one of an older driver that lacks
-fields. No ROS here.
+fields or names them differently (the driver before the session core: ``start.parameters``,
+``parameter.name/value``, ``deploy unacknowledged`` decisions, deploy calls ending in
+``success`` false without an ``outcome``, numeric ``trigger_event.via``). The records of the
+present driver are in ``docs/protocols.md`` (D10, D12, D17, D18). No ROS here.
 """
 
 from __future__ import annotations
@@ -44,10 +48,15 @@ ZOOM_BEFORE_S = 4.0
 ZOOM_AFTER_S = 4.0
 ZOOM_MAX_SAMPLES = 4000
 REPLY_TIMEOUT_S = 1.0
-"""P12: a reply later than this after its request is lost; the driver has given up by then."""
-REPLY_WINDOW_S = 1.2
-"""A request with no reply this long after its last frame left is unanswered: P12's 1 s and a
-margin for records of the reply that other threads' records overtook in the queue."""
+"""P12: a reply later than this after its request is lost; the driver has given up by then.
+The driver's ``request_timeout_s`` in its start record replaces it for that run."""
+REPLY_MARGIN_S = 0.2
+"""A request with no reply this long after the timeout since its last frame left is
+unanswered: a margin for records of the reply that other threads' records overtook in the
+queue."""
+REQUEST_STALE_S = 2.0
+"""A trigger request still undecided this long after it came gets no decision any more (the
+module waits 1 s, P10; the driver decides within its defer timeout or at its stop)."""
 DEPLOYMENT_WINDOW_S = 10.0
 """Triggered flags, acknowledgements and trigger events this close belong to one deployment."""
 REBOOT_SAME_S = 0.2
@@ -66,7 +75,10 @@ LANE_TITLES = {
 }
 LEVELS = ('ok', 'info', 'warn', 'bad', 'unknown')
 """How an event is drawn: ok green, info grey-blue, warn orange, bad red, unknown purple."""
-BANDS = ('port', 'online', 'streaming', 'armed', 'triggered')
+BANDS = ('port', 'online', 'streaming', 'armed', 'triggered', 'blackbox')
+LINK_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects', 'frames_in',
+                 'frames_out')
+"""The cumulative counters of a ``link`` record (the driver's decoder and serial link)."""
 SETTING_NAMES = {
     p.CMD_ATTITUDE_THRESHOLD: ('attitude_threshold_deg', 'attitude threshold', '°', 1.0),
     p.CMD_FREEFALL_THRESHOLD: ('freefall_threshold_g', 'free-fall threshold', ' g', 0.1),
@@ -92,7 +104,9 @@ COMMAND_NAMES = {
 SOURCE_BITS = ((p.SOURCE_SERIAL, 'serial'), (p.SOURCE_ATTITUDE, 'attitude'),
                (p.SOURCE_PWM, 'PWM'), (p.SOURCE_FREEFALL, 'free fall'))
 VIA_NAMES = {0: 'the deploy acknowledgement', 1: 'the status (triggered flag)',
-             2: 'a new trigger record'}
+             2: 'a new trigger record', 'deploy_ack': 'the deploy acknowledgement',
+             'status': 'the status (triggered flag)', 'record': 'a new trigger record'}
+"""``trigger_event.via``: a number in older black boxes, a name in the present driver's."""
 COMMON_FIELDS = frozenset({'t', 'mono', 'kind'})
 
 
@@ -470,8 +484,10 @@ class FlightAnalysis:
         self.module_baud: Optional[int] = None
         self.runs: List[Dict[str, Any]] = []
         self.policy_changes: List[Tuple[float, str]] = []
+        self.preflight: Optional[Tuple[float, bool, List[str]]] = None
         self.deployments: List[Deployment] = []
         self.requests: Deque[TriggerRequestSeen] = collections.deque(maxlen=KEEP_EVENTS)
+        self.reply_timeout_s = REPLY_TIMEOUT_S
         self.reboots: List[float] = []
         self.trigger_records: Dict[str, p.TriggerRecord] = {}
         self.cell_voltage: Optional[Tuple[float, float, float]] = None
@@ -489,7 +505,11 @@ class FlightAnalysis:
         self._set_sent: Dict[int, Tuple[float, int]] = {}
         self._call: Optional[Dict[str, Any]] = None
         self._deployment: Optional[Deployment] = None
-        self._open_request: Optional[TriggerRequestSeen] = None
+        self._unknown_dep: Optional[Deployment] = None   # outcome unknown, not resolved yet
+        self._undecided: Deque[TriggerRequestSeen] = collections.deque(maxlen=16)
+        self._link_counters: Dict[str, int] = {}          # the run's last link record
+        self._bb_lost = 0                                 # the run's lost records so far
+        self._reread_why = ''                             # why the next initialization reads
         self._decode_cache: Dict[str, Any] = {}
         self._prev_t: Optional[float] = None
         self._prev_file = -1
@@ -569,29 +589,51 @@ class FlightAnalysis:
     # -- requests and replies ----------------------------------------------------------------
 
     def _expire(self, t: float, reason: str = '', expect: Optional[str] = None) -> None:
-        """Settle requests with no reply: lost after ``REPLY_WINDOW_S``.
+        """Settle requests with no reply: lost after the reply timeout and a margin.
 
         With a ``reason`` (the driver stopped, the port closed, the module rebooted), requests
-        younger than ``REPLY_TIMEOUT_S`` were cut short rather than lost. With ``expect``, the
+        younger than the reply timeout were cut short rather than lost. With ``expect``, the
         requests waiting for that reply type are over now: the link sends one request per reply
         type at a time, so a new one means the one before it has given up.
         """
+        timeout = self.reply_timeout_s
         queues = self._pending.values() if expect is None else [self._pending.get(expect, ())]
         for queue in queues:
             while queue and (reason or expect is not None
-                             or t - queue[0].last_tx > REPLY_WINDOW_S):
+                             or t - queue[0].last_tx > timeout + REPLY_MARGIN_S):
                 req = queue.popleft()
                 self._pending_n -= 1
                 if self._pending_by_hex.get(req.hex) is req:
                     del self._pending_by_hex[req.hex]
                 name = COMMAND_NAMES.get(req.code, hex(req.code))
-                if reason and t - req.last_tx <= REPLY_TIMEOUT_S:
+                sent = self._set_sent.pop(req.code, None) \
+                    if req.control == p.CTRL_SET and req.code in SETTING_NAMES else None
+                if reason and t - req.last_tx <= timeout:
                     # Its reply could still have come: not a lost frame.
                     self.counts['requests cut short'] += 1
                     continue
+                if sent is not None:
+                    # A later read-back would judge a write the module never confirmed.
+                    _, setting, unit, step = SETTING_NAMES[req.code]
+                    self.counts['settings writes not confirmed'] += 1
+                    self.event(req.last_tx, 'settings', 'bad', f'{setting} {sent[1] * step:g}'
+                               f'{unit}: the module did not confirm the write (no reply)')
                 self.counts['unanswered requests'] += 1
                 self.event(req.last_tx, 'link', 'warn', f'no reply to {name} ({req.hex}) within '
-                           f'{REPLY_TIMEOUT_S:.1f} s: request or reply lost')
+                           f'{timeout:.1f} s: request or reply lost')
+                if req.code == p.CMD_DEPLOY:
+                    self._deploy_unanswered(req, min(t, req.last_tx + timeout))
+
+    def _deploy_unanswered(self, req: _Pending, t: float) -> None:
+        """Note a deploy frame whose wait ended without an acknowledgement (P11, D6)."""
+        self.counts['deploy frames unacknowledged'] += 1
+        call = self._call
+        dep = call['dep'] if call is not None and call.get('dep') is not None else \
+            self.current_deployment(t)
+        if dep is not None:
+            dep.step(t, 'noack', f'no acknowledgement of the deploy frame (waited '
+                     f'{self.reply_timeout_s:.1f} s)')
+        self.event(t, 'deploy', 'warn', 'deploy frame not acknowledged')
 
     def finish(self) -> None:
         """Close the flight after its last record: requests still waiting were cut short."""
@@ -717,6 +759,7 @@ class FlightAnalysis:
         if len(self.reboots) > 1000:
             del self.reboots[:500]
         self.counts['reboots'] += 1
+        self._reread_why = 'the reboot'
         self.event(t, 'module', level, f'module rebooted ({evidence})')
         self.band('streaming', t, False)
         self.band('armed', t, False)
@@ -790,6 +833,11 @@ class FlightAnalysis:
         if not self.band('triggered', t, True):
             return
         dep = self.current_deployment(t)
+        unknown = self._unknown_dep
+        if dep is None and before is None and unknown is not None and not unknown.closed:
+            # The driver could not tell whether its deploy went out, and nothing said "not
+            # triggered" since: now the module says (D12).
+            dep = unknown
         if dep is None and before is None:
             dep = self.open_deployment(t, 'module', 'the module was already TRIGGERED when the '
                                        'driver first saw it (deployed before this black box '
@@ -857,8 +905,19 @@ def _rx_trigger_request(a: FlightAnalysis, msg: p.TriggerRequest, t: float,
     a.counts['trigger requests'] += 1
     seen = TriggerRequestSeen(t)
     a.requests.append(seen)
-    a._open_request = seen
+    a._undecided.append(seen)
     a.event(t, 'request', 'warn', 'the module asks to deploy (trigger request 0x39)')
+
+
+def _oldest_undecided(a: FlightAnalysis, t: float) -> Optional[TriggerRequestSeen]:
+    """Return the trigger request the next decision is about.
+
+    Decisions come in the order of the requests: a newer request supersedes a deferred one,
+    which is then decided (timed out) after the newer one was received (D8).
+    """
+    while a._undecided and (a._undecided[0].decision or t - a._undecided[0].t > REQUEST_STALE_S):
+        a._undecided.popleft()
+    return a._undecided[0] if a._undecided else None
 
 
 def _rx_deploy_ack(a: FlightAnalysis, msg: p.DeployAck, t: float,
@@ -944,8 +1003,16 @@ def _rx_triggered(a: FlightAnalysis, msg: p.TriggeredState, t: float,
                   req: Optional[_Pending]) -> None:
     if msg.triggered:
         a.module_triggered(t, 'query')
-    else:
-        a.band('triggered', t, False)
+        return
+    a.band('triggered', t, False)
+    dep = a.current_deployment(t)
+    call = a._call
+    if req is not None and dep is not None and call is not None and call.get('dep') is dep \
+            and dep.first('frame') is not None:
+        # The driver asks before any retry whether the missing acknowledgement hid a
+        # deployment (D6).
+        dep.step(t, 'query', 'the module answers it is NOT triggered (asked after the missing '
+                 'acknowledgement)')
 
 
 def _rx_record(a: FlightAnalysis, msg: p.TriggerRecord, t: float,
@@ -1025,7 +1092,7 @@ def _tx_confirm(a: FlightAnalysis, frame: p.Frame, t: float) -> None:
     if frame.data != p.CONFIRM_PAYLOAD:
         return
     a.counts['confirmations sent'] += 1
-    req = a._open_request
+    req = _oldest_undecided(a, t)
     if req is not None and req.t_confirm is None:
         req.t_confirm = t
         if req.deployment is not None:
@@ -1088,10 +1155,14 @@ def _ms(value: Any) -> Optional[float]:
 
 def _call_deployment(a: FlightAnalysis, t: float) -> Deployment:
     """Return the running ~/deploy call's deployment, opened at its first decision to send."""
-    dep = a.current_deployment(t)
     call = a._call
-    if dep is not None and dep.origin == 'call' and call is not None and call.get('dep') is dep:
-        return dep
+    if call is not None and call.get('dep') is not None:
+        return call['dep']
+    if call is None:
+        # No record of the call (the file begins during it): the call deployment going on.
+        dep = a.current_deployment(t)
+        if dep is not None and dep.origin == 'call':
+            return dep
     t_call = call['t'] if call else t
     who = 'a ~/deploy service call'
     if call and call.get('arm_if_locked'):
@@ -1102,6 +1173,8 @@ def _call_deployment(a: FlightAnalysis, t: float) -> Deployment:
     if call is not None:
         call['dep'] = dep
         dep.step(t_call, 'call', '~/deploy called with the confirmation token')
+        if call.get('armed_at') is not None:
+            dep.step(call['armed_at'], 'arm', 'armed first (arm_if_locked), verified by query')
     return dep
 
 
@@ -1114,13 +1187,15 @@ def _decision_send(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 
 def _decision_unacked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    # The driver has given up on this frame: its request is lost, however soon it stops now.
-    a._expire(t, expect='DeployAck')
+    # An older driver said so itself. Its frame's request is over (lost) however soon it stops.
     dep = _call_deployment(a, t)
-    a.counts['deploy frames unacknowledged'] += 1
-    dep.step(t, 'noack', f'no acknowledgement of attempt {record.get("attempt", "?")}')
-    a.event(t, 'deploy', 'warn', f'deploy attempt {record.get("attempt", "?")} not '
-            'acknowledged')
+    before = a.counts['deploy frames unacknowledged']
+    a._expire(t, expect='DeployAck')
+    if a.counts['deploy frames unacknowledged'] == before:  # no request record of the frame
+        a.counts['deploy frames unacknowledged'] += 1
+        dep.step(t, 'noack', f'no acknowledgement of attempt {record.get("attempt", "?")}')
+        a.event(t, 'deploy', 'warn', f'deploy attempt {record.get("attempt", "?")} not '
+                'acknowledged')
     if dep.outcome in ('requested', 'unknown'):
         dep.outcome, dep.outcome_text = 'unknown', 'no acknowledgement: outcome not known'
 
@@ -1143,60 +1218,112 @@ def _decision_module_refused(a: FlightAnalysis, record: Dict[str, Any], t: float
     dep.outcome, dep.outcome_text = 'refused', 'refused by the module (D4 00)'
 
 
+DEPLOY_OUTCOMES: Dict[str, Tuple[str, str]] = {
+    'deployed': ('deployed', 'bad'),
+    'not deployed': ('not deployed', 'warn'),
+    'unknown': ('unknown', 'unknown'),
+    'refused': ('refused', 'warn'),
+    'already deployed': ('already deployed', 'info'),
+    'failed': ('failed', 'bad'),
+    'acknowledged': ('deployed', 'bad'),
+    'success': ('deployed', 'bad'),
+}
+"""A deploy call's ``outcome`` (D10) -> (the deployment's outcome, how its event is drawn)."""
+_REASON_PREFIXES = ('deploy refused: ', 'deployed: ', 'already deployed: ',
+                    'deploy outcome UNKNOWN: ')
+"""Words the driver's reasons begin with that only repeat the outcome."""
+
+
+def _reason(record: Dict[str, Any]) -> str:
+    text = str(record.get('reason') or record.get('message') or '')
+    for prefix in _REASON_PREFIXES:
+        if text.startswith(prefix):
+            return text[len(prefix):]
+    return text
+
+
 def _decision_deploy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    """Read ``what: deploy``: the end of a call (refused, failed) or an explicit outcome."""
-    outcome = record.get('outcome')
-    reason = str(record.get('reason') or record.get('message') or '')
-    dep = a.current_deployment(t)
-    call = a._call
-    own = dep is not None and call is not None and call.get('dep') is dep
-    if outcome is not None:
-        outcome = str(outcome)
-        if dep is None or not own:
-            dep = _call_deployment(a, t)
-        text = {'unknown': 'the driver could not learn whether the module deployed'}.get(
-            outcome, f'outcome {outcome}')
-        dep.outcome = {'acknowledged': 'deployed', 'success': 'deployed'}.get(outcome, outcome)
-        dep.outcome_text = text + (f' ({reason})' if reason else '')
-        dep.step(t, 'outcome', dep.outcome_text)
-        level = 'unknown' if outcome == 'unknown' else 'warn'
-        if outcome == 'unknown':
-            a.counts['deploys with unknown outcome'] += 1
-        a.event(t, 'deploy', level, f'deploy outcome: {dep.outcome_text}')
-        a._call = None
+    """Read ``what: deploy``: how a ~/deploy call ended (D10), or an unknown one later (D12)."""
+    if 'resolved' in record:
+        _deploy_resolved(a, record, t)
         return
-    if record.get('success') is False:
-        if own:
-            dep.step(t, 'outcome', f'the call ended: {reason}')
-            if dep.outcome in ('requested', 'unknown'):
-                if dep.first('noack') is not None or dep.first('frame') is not None:
-                    # Frames left and nothing came back: the module may have deployed.
-                    dep.outcome = 'unknown'
-                    dep.outcome_text = (f'{dep.attempts} deploy frame(s) sent, none '
-                                        'acknowledged: whether the module deployed is not '
-                                        'known')
-                    a.counts['deploys with unknown outcome'] += 1
-                else:
-                    dep.outcome, dep.outcome_text = 'failed', reason
-            a.event(t, 'deploy', 'unknown' if dep.outcome == 'unknown' else 'bad',
-                    f'deploy call ended: {short(reason, 120)}')
+    call, a._call = a._call, None
+    dep = call.get('dep') if call else None
+    if call is None:
+        current = a.current_deployment(t)
+        if current is not None and current.origin == 'call' and not current.first('outcome'):
+            dep = current
+    reason = _reason(record)
+    outcome = record.get('outcome')
+    if outcome is None:
+        # An older driver: a call that did not succeed, its outcome not named.
+        if record.get('success') is not False:
+            a.event(t, 'deploy', 'info', f'deploy decision: {describe_fields(record)}')
+            return
+        if dep is None:
+            outcome = 'refused'
+        elif dep.outcome == 'refused':
+            outcome = 'refused'  # the module answered D4 00
+        elif dep.first('noack') is not None or dep.first('frame') is not None:
+            outcome = 'unknown'  # frames left, nothing came back, and it never asked
+        else:
+            outcome = 'failed'
+    known, level = DEPLOY_OUTCOMES.get(str(outcome), (str(outcome), 'unknown'))
+    if dep is None and known in ('refused', 'already deployed', 'failed'):
+        # Nothing went out: a call answered, not a deployment.
+        if known == 'already deployed':
+            a.counts['deploy calls answered already deployed'] += 1
+            a.event(t, 'calls', 'info', f'~/deploy: already deployed ({short(reason, 120)})')
         else:
             a.counts['deploy calls refused'] += 1
             a.event(t, 'calls', 'warn', f'~/deploy refused: {short(reason, 140)}')
-        a._call = None
         return
-    a.event(t, 'deploy', 'info', f'deploy decision: {describe_fields(record)}')
+    if dep is None:
+        dep = _call_deployment(a, t)
+    # The call is over: a deploy frame still waiting was not acknowledged (cut short when the
+    # call ended on a dropped link or a stop, whose outcome is unknown).
+    a._expire(t, reason='when the deploy call ended' if known == 'unknown' else '',
+              expect='DeployAck')
+    if dep.outcome == 'refused' and known == 'not deployed':
+        text = f'the module refused the deploy frame; {reason}'
+    else:
+        text = reason or f'outcome {known}'
+    dep.outcome, dep.outcome_text = known, text
+    if record.get('ack') == 'lost':
+        a.counts['deploy acknowledgements lost'] += 1
+    dep.step(t, 'outcome', f'the call ended: {known}')
+    if known == 'unknown':
+        a.counts['deploys with unknown outcome'] += 1
+        a._unknown_dep = dep
+        a.band('triggered', t, None)  # not known until the module is heard again
+    a.event(t, 'deploy', level, f'deploy call ended: {known}: {short(reason, 120)}')
+
+
+def _deploy_resolved(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    """Read what became of a deploy whose outcome was unknown, as the driver learned it (D12)."""
+    known, level = DEPLOY_OUTCOMES.get(str(record.get('outcome')),
+                                       (str(record.get('outcome')), 'unknown'))
+    how = short(record.get('resolved', ''), 80)
+    dep, a._unknown_dep = a._unknown_dep, None
+    a.counts['unknown deploy outcomes resolved'] += 1
+    if dep is not None:
+        ended = dep.first('outcome')
+        later = f', {t - ended.t:.2f} s after the call ended' if ended is not None else ''
+        dep.outcome_text = (f'unknown when the call ended ({dep.outcome_text}); then read: '
+                            f'{known} ({how}{later})')
+        dep.outcome = known
+        dep.step(t, 'resolved', f'the driver read the outcome: {known} ({how})')
+    a.event(t, 'deploy', level, f'the earlier deploy of unknown outcome: {known} ({how})')
 
 
 def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     decision = str(record.get('decision', '?'))
-    req = a._open_request
-    if req is None or req.decision:
+    req = _oldest_undecided(a, t)
+    if req is None:
         # A decision with no request frame before it (an older black box without frames).
         req = TriggerRequestSeen(t)
         a.requests.append(req)
         a.counts['trigger requests'] += 1
-    a._open_request = req
     req.decision, req.policy = decision, str(record.get('policy', ''))
     req.reason = str(record.get('reason', ''))
     req.latency_ms = _ms(record.get('latency_ms'))
@@ -1204,11 +1331,18 @@ def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: floa
     a.counts[f'trigger requests {decision}'] += 1
     latency = f', {req.latency_ms:.2f} ms' if req.latency_ms is not None else ''
     level = 'bad' if decision == 'confirmed' else 'warn'
-    a.event(t, 'request', level, f'trigger request {decision.upper()} by policy {req.policy}'
-            f'{latency}: {short(req.reason, 100)}')
+    by = f' by policy {req.policy}' if req.policy else ''
+    a.event(t, 'request', level, f'trigger request {decision.upper()}{by}{latency}: '
+            f'{short(req.reason, 100)}')
     if decision == 'confirmed':
-        who = (f'policy {req.policy!r}' if req.policy != 'defer'
-               else 'a person or program answering ~/answer_trigger_request (policy defer)')
+        if req.reason.startswith('policy changed'):
+            who = (f'the change of trigger_request_policy to {req.policy!r} while the request '
+                   'was held (D8)')
+        elif req.reason.startswith('answered'):
+            who = ('a person or program answering ~/answer_trigger_request (policy '
+                   f'{req.policy})')
+        else:
+            who = f'policy {req.policy!r} (the driver, at once)'
         dep = a.open_deployment(req.t, 'request', 'the module asked to deploy (trigger request '
                                 '0x39: its crash detection fired on external power)', who)
         dep.outcome = 'requested'
@@ -1224,7 +1358,7 @@ def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: floa
 
 
 def _decision_deferred(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    req = a._open_request
+    req = a._undecided[-1] if a._undecided else None  # the request just received
     if req is not None and not req.decision:
         req.deferred = True
     a.event(t, 'request', 'info', 'trigger request deferred: waiting up to '
@@ -1236,6 +1370,28 @@ def _decision_policy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
     if len(a.policy_changes) < 100:
         a.policy_changes.append((t, policy))
     a.event(t, 'settings', 'warn', f'trigger_request_policy changed to {policy}')
+
+
+def _decision_settings_refused(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    a.counts['settings changes refused (would deploy)'] += 1
+    a.event(t, 'settings', 'warn', 'settings change refused, nothing written (D16): '
+            f'{short(record.get("reason", ""), 140)}')
+
+
+def _decision_preflight(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    ok = record.get('ok') is True
+    checks = record.get('checks')
+    lines = [str(c) for c in checks[:40]] if isinstance(checks, list) else []
+    failed = [line[4:].strip() for line in lines if line.startswith('FAIL')]
+    a.counts['preflight checks'] += 1
+    if not ok:
+        a.counts['preflight checks NO-GO'] += 1
+    a.preflight = (t, ok, lines)
+    if ok:
+        text = f'~/preflight_check: GO ({len(lines)} checks OK)'
+    else:
+        text = '~/preflight_check: NO-GO: ' + '; '.join(failed)
+    a.event(t, 'calls', 'ok' if ok else 'bad', short(text, 200))
 
 
 def _decision_other(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1257,6 +1413,8 @@ DECISIONS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = 
     'trigger request': _decision_trigger_request,
     'trigger request deferred': _decision_deferred,
     'policy': _decision_policy,
+    'settings refused': _decision_settings_refused,
+    'preflight': _decision_preflight,
 }
 """``decision`` records by their ``what``; any other ``what`` is shown as it is."""
 
@@ -1272,6 +1430,8 @@ def _state_port(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a.band('port', t, up)
     if up:
         a.counts['port opened'] += 1
+        a._reread_why = a._reread_why or ('the reconnect' if seen_before else
+                                          'the port opened')
         if seen_before:
             a.counts['reconnects'] += 1
             a.event(t, 'link', 'ok', f'port open again (reconnect): {reason}')
@@ -1287,11 +1447,14 @@ def _state_port(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 def _state_online(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     online = bool(record['online'])
+    was = a.bands['online'].value
     a.band('online', t, online)
     if not online:
         a.counts['offline'] += 1
         a.event(t, 'link', 'bad', f'module OFFLINE: {short(record.get("reason", ""), 140)}')
     else:
+        if was is False:
+            a._reread_why = a._reread_why or 'the module came back online'
         a.event(t, 'link', 'ok', 'module online')
 
 
@@ -1300,11 +1463,16 @@ def _state_armed(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     via = record.get('via', '')
     a.band('armed', t, armed)
     if via in ('arm', 'lock'):
+        call = a._call
+        for_deploy = via == 'arm' and call is not None and call.get('dep') is None
+        if for_deploy:
+            call['armed_at'] = t  # arm_if_locked: a step of the deployment that follows
         a.event(t, 'calls', 'ok' if armed == (via == 'arm') else 'bad',
-                f'{"ARMED" if armed else "locked"} (verified by query after ~/arm)')
-    elif via == 'status':
+                f'{"ARMED" if armed else "locked"} (verified by query after '
+                f'{"~/deploy with arm_if_locked" if for_deploy else "~/arm"})')
+    elif via in ('status', 'poll', 'query'):
         a.event(t, 'deploy', 'info', f'module now {"armed" if armed else "locked"} '
-                '(status frame)')
+                f'({"status frame" if via == "status" else via})')
 
 
 def _state_triggered(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
@@ -1314,12 +1482,9 @@ def _state_triggered(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
         a.band('triggered', t, False)
 
 
-_STATE_EVENTS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = {}
-
-
 def _state_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     text = str(record['event'])
-    handler = _STATE_EVENTS.get(text)
+    handler = STATE_EVENTS.get(text)
     if handler is not None:
         handler(a, record, t)
     elif 'reboot' in text:
@@ -1335,21 +1500,39 @@ def _state_initialized(a: FlightAnalysis, record: Dict[str, Any], t: float) -> N
     mismatch = record.get('mismatch') or []
     a.last_mismatch = list(mismatch) if isinstance(mismatch, list) else [mismatch]
     a.counts['initializations'] += 1
+    why, a._reread_why = a._reread_why, ''
+    # Armed and triggered are not trusted until read again after any of these (D15).
+    head = f'module read afresh after {why}' if why else 'module read afresh'
+    head += f' (boot #{count}): armed, triggered and settings read'
     if mismatch:
-        a.event(t, 'settings', 'bad', f'module initialized (boot #{count}); settings do NOT '
-                f'match: {short("; ".join(map(str, a.last_mismatch)), 140)}')
+        a.event(t, 'module', 'bad', f'{head}; settings do NOT match: '
+                f'{short("; ".join(map(str, a.last_mismatch)), 140)}')
     else:
-        a.event(t, 'settings', 'ok', f'module initialized (boot #{count}), settings verified')
+        a.event(t, 'module', 'ok', f'{head}, settings as desired')
 
 
 def _state_reboot(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a.note_reboot(t, 'the driver saw the power-up heartbeat')
 
 
-_STATE_EVENTS.update({
+def _state_zeroed(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    ok = record.get('success') is not False
+    a.event(t, 'calls', 'ok' if ok else 'bad', 'attitude sensor zeroed at the present mounting '
+            '(~/zero_sensor)' if ok else '~/zero_sensor: the module did not confirm the zeroing')
+
+
+def _state_shut_down(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    a.counts['module shut down by request'] += 1
+    a.event(t, 'module', 'warn', 'module switched off by ~/shutdown_module')
+
+
+STATE_EVENTS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = {
     'initialized': _state_initialized,
     'module reboot (unsolicited heartbeat)': _state_reboot,
-})
+    'sensor zeroed': _state_zeroed,
+    'module shut down by request': _state_shut_down,
+}
+"""``state`` records with an ``event``, by its text; another text is shown as it is."""
 
 STATE_FIELDS: Tuple[Tuple[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]], ...] = (
     ('port_open', _state_port),
@@ -1366,7 +1549,9 @@ STATE_FIELDS: Tuple[Tuple[str, Callable[[FlightAnalysis, Dict[str, Any], float],
 # ---------------------------------------------------------------------------------------------
 
 def _kind_start(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    params = record.get('parameters')
+    params = record.get('config')
+    if not isinstance(params, dict):
+        params = record.get('parameters')  # older drivers
     run = {'t': t, 'port': record.get('port'), 'baud': record.get('baud'),
            'parameters': dict(params) if isinstance(params, dict) else {},
            'file': a.file}
@@ -1374,11 +1559,19 @@ def _kind_start(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
         a.runs.append(run)
     a.counts['driver starts'] += 1
     a._port_seen = False
+    a._link_counters = {}  # a new driver's counters start at zero
+    a._bb_lost = 0
+    a._reread_why = ''
+    a._undecided.clear()
+    timeout = run['parameters'].get('request_timeout_s')
+    a.reply_timeout_s = float(timeout) if isinstance(timeout, (int, float)) and \
+        not isinstance(timeout, bool) and 0.0 < timeout <= 10.0 else REPLY_TIMEOUT_S
     policy = run['parameters'].get('trigger_request_policy')
     if policy and len(a.policy_changes) < 100:
         a.policy_changes.append((t, str(policy)))
     for name in BANDS:
         a.band(name, t, None)  # nothing is known until the driver has learned it
+    a.band('blackbox', t, True)
     a.event(t, 'blackbox', 'info', f'driver started on {run["port"]} at {run["baud"]} baud'
             + (f', policy {policy}' if policy else ''))
 
@@ -1436,25 +1629,42 @@ def _kind_state(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 
 def _kind_parameter(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    """Read a parameter set: all or nothing, module settings written and verified first (D4)."""
     accepted = record.get('accepted')
-    name, value = record.get('name', '?'), record.get('value', '?')
-    reason = short(record.get('reason', ''), 100)
+    reason = str(record.get('reason') or '')
+    changes = record.get('changes')
+    if isinstance(changes, dict):
+        what = ', '.join(f'{k} := {short(v, 30)}' for k, v in changes.items()) or 'nothing'
+    else:  # an older driver: one record per parameter
+        what = f'{record.get("name", "?")} := {short(record.get("value", "?"), 30)}'
     a.counts['parameter changes' if accepted else 'parameter changes refused'] += 1
     a.event(t, 'calls', 'ok' if accepted else 'bad',
-            f'parameter {name} := {short(value, 30)}: '
-            f'{"accepted" if accepted else "REFUSED"}' + (f' ({reason})' if reason else ''))
+            f'parameters {short(what, 100)}: {"accepted" if accepted else "REFUSED"}'
+            + (f' ({short(reason, 140)})' if reason else ''))
+    if '; put back ' in reason:
+        names = reason.split('; put back ', 1)[1].split(';')[0]
+        a.counts['settings put back'] += len(names.split(', '))
+        a.event(t, 'settings', 'warn', f'put back after the refused set: {names}')
+    if 'could NOT put back' in reason:
+        a.counts['settings not put back'] += 1
+        a.event(t, 'settings', 'bad', 'a refused parameter set left the module changed: could '
+                f'NOT put back {short(reason.split("could NOT put back", 1)[1], 120)}')
 
 
 def _kind_trigger_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     source = str(record.get('source', 'unknown'))
     via = record.get('via')
-    via_text = VIA_NAMES.get(via, str(via)) if via is not None else 'unknown'
+    via_text = (VIA_NAMES.get(via, str(via)) if isinstance(via, (int, str)) else
+                'unknown' if via is None else short(via, 40))
     a.counts['trigger events'] += 1
     # The driver publishes one trigger event per deployment, possibly after fetching the record
     # for a while: it belongs to the last deployment even if the module rebooted meanwhile.
     dep = a._deployment
     if dep is not None and (t - dep.last_t > DEPLOYMENT_WINDOW_S or dep.first('event')):
         dep = None
+    unknown = a._unknown_dep
+    if dep is None and unknown is not None and not unknown.first('event'):
+        dep = unknown  # a deploy of unknown outcome did go out (D12)
     if dep is None:
         dep = a.open_deployment(t, 'event', f'the driver learned of a deployment from '
                                 f'{via_text}', 'the module (no host decision seen)')
@@ -1474,38 +1684,81 @@ def _kind_trigger_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> 
             f'{via_text})')
 
 
-def _blackbox_problem(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    lost = 0
-    for name in ('lost', 'lost_records', 'records_lost', 'dropped', 'dropped_records'):
-        value = record.get(name)
-        if isinstance(value, int) and not isinstance(value, bool):
-            lost = max(lost, value)
-    if lost:
-        a.counts['black-box records lost (as the driver counted)'] = max(
-            a.counts['black-box records lost (as the driver counted)'], lost)
-    a.counts['black-box write problems'] += 1
-    a.event(t, 'blackbox', 'bad', f'black-box problem: {describe_fields(record)}')
+def _int_field(record: Dict[str, Any], names: Tuple[str, ...]) -> Optional[int]:
+    values = [record[n] for n in names if isinstance(record.get(n), int)
+              and not isinstance(record.get(n), bool)]
+    return max(values) if values else None
+
+
+def _kind_link(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    """Read the driver's link counters (cumulative for its run), recorded when one changed."""
+    deltas: Dict[str, int] = {}
+    for name in LINK_COUNTERS:
+        value = _int_field(record, (name,))
+        if value is None:
+            continue
+        before = a._link_counters.get(name, 0)
+        deltas[name] = value - before if value >= before else value  # a new run's counters
+        a._link_counters[name] = value
+    checksum, noise = deltas.get('checksum_errors', 0), deltas.get('bytes_discarded', 0)
+    a.counts['checksum errors'] += checksum
+    a.counts['bytes of noise discarded'] += noise
+    a.counts['request timeouts (as the driver counted)'] += deltas.get('timeouts', 0)
+    if checksum or noise:
+        # Such frames never reach the black box: the driver's decoder counted them.
+        parts = ([f'{checksum} frame(s) with a bad checksum'] if checksum else []) + \
+            ([f'{noise} byte(s) of noise'] if noise else [])
+        a.event(t, 'link', 'warn', ' and '.join(parts) + ' discarded (the driver\'s decoder '
+                'counted them)')
+
+
+def _kind_blackbox(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    """Read the black box's own health: an outage it recovered from, the records it lost."""
+    lost = _int_field(record, ('lost', 'lost_records', 'records_lost', 'dropped',
+                               'dropped_records', 'errors'))
+    if lost is not None and lost > a._bb_lost:
+        a.counts['black-box records lost'] += lost - a._bb_lost
+        a._bb_lost = lost
+    error = short(record.get('error') or record.get('reason') or '', 120)
+    a.counts['black-box write failures'] += 1
+    if record.get('event') != 'writing again':
+        a.event(t, 'blackbox', 'bad', f'black-box problem: {describe_fields(record)}')
+        return
+    since = _ms(record.get('failed_at'))
+    since = max(since, a.t0) if since is not None and since <= t else None
+    if since is not None:
+        a.band('blackbox', since, False)
+        a.event(since, 'blackbox', 'bad', f'black box stopped writing: {error}')
+    a.band('blackbox', t, True)
+    outage = _int_field(record, ('lost_in_outage',))
+    a.event(t, 'blackbox', 'warn', 'black box writing again'
+            + (f' after {t - since:.1f} s' if since is not None else '')
+            + (f': {outage} records lost' if outage is not None else '')
+            + (f' ({lost} in this run)' if lost is not None else ''))
 
 
 RULES: Dict[str, Rule] = {rule.kind: rule for rule in (
-    Rule('start', frozenset({'port', 'baud', 'parameters'}), _kind_start),
+    Rule('start', frozenset({'port', 'baud', 'config', 'parameters'}), _kind_start),
     Rule('stop', frozenset(), _kind_stop),
     Rule('frame', frozenset({'dir', 'hex'}), _kind_frame),
     Rule('request', frozenset({'hex', 'expect', 'what', 'token_ok', 'arm_if_locked', 'values',
                                'attitude', 'freefall'}), _kind_request),
     Rule('decision', frozenset({'what', 'decision', 'policy', 'reason', 'latency_ms',
                                 'attempt', 'attempts', 'hex', 'success', 'deadline_s',
-                                'outcome', 'message'}), _kind_decision),
+                                'outcome', 'message', 'resolved', 'ack', 'ok', 'checks'}),
+         _kind_decision),
     Rule('state', frozenset({'port_open', 'reason', 'online', 'armed', 'via', 'triggered',
                              'event', 'boot_count', 'mismatch', 'success'}), _kind_state),
-    Rule('parameter', frozenset({'name', 'value', 'accepted', 'reason'}), _kind_parameter),
+    Rule('parameter', frozenset({'changes', 'accepted', 'reason', 'name', 'value'}),
+         _kind_parameter),
     Rule('trigger_event', frozenset({'source', 'via', 'record'}), _kind_trigger_event),
-    # Kinds of the black box's own health (write failures, records it had to drop).
-    Rule('blackbox', frozenset({'error', 'errors', 'lost', 'lost_records', 'what', 'reason'}),
-         _blackbox_problem),
+    Rule('link', frozenset(LINK_COUNTERS), _kind_link),
+    Rule('blackbox', frozenset({'event', 'error', 'failed_at', 'lost', 'lost_in_outage',
+                                'errors', 'lost_records', 'what', 'reason'}), _kind_blackbox),
+    # Kinds no driver wrote yet, with the names a newer one would likely use.
     Rule('blackbox_error', frozenset({'error', 'errors', 'lost', 'lost_records'}),
-         _blackbox_problem),
-    generic_rule('preflight', 'settings', 'preflight check',
+         _kind_blackbox),
+    generic_rule('preflight', 'calls', 'preflight check',
                  fields=('check', 'ok', 'result', 'message', 'checks')),
     generic_rule('settings', 'settings', 'settings', fields=('written', 'verified', 'values')),
     generic_rule('policy', 'settings', 'policy', 'warn', fields=('policy', 'reason', 'by')),

@@ -37,6 +37,9 @@ from dps_parachute_ros.blackbox_events import (BANDS, Deployment, Event, FlightA
 from dps_parachute_ros.blackbox_read import FileInfo, FlightFiles
 
 ProgressArg = Union[None, bool, Callable[[int, int], None]]
+DESIRED_PARAMETERS = ('attitude_threshold_deg', 'freefall_threshold_g', 'freefall_time_s',
+                      'light_threshold_v', 'attitude_trigger', 'freefall_trigger')
+"""The driver's parameters that say what the module should be set to (-1 / keep: leave it)."""
 MAX_EVENT_ROWS = 600
 """Events listed in the HTML table; the counts above it are complete."""
 MAX_ANNOTATIONS = 24
@@ -50,11 +53,12 @@ LEVEL_COLORS = {'ok': '#2e7d32', 'info': '#607d8b', 'warn': '#ef6c00', 'bad': '#
 LANE_MARKERS = {'calls': 'o', 'request': 'D', 'deploy': '^', 'module': 's', 'settings': 'P',
                 'link': 'X', 'blackbox': 'v', 'other': '*'}
 BAND_COLORS = {'port': '#78909c', 'online': '#43a047', 'streaming': '#1e88e5',
-               'armed': '#fb8c00', 'triggered': '#e53935'}
-BAND_OFF_COLORS = {'port': '#ef9a9a', 'online': '#ef9a9a'}
-"""A closed port and an offline module are problems: drawn in red, not grey."""
+               'armed': '#fb8c00', 'triggered': '#e53935', 'blackbox': '#8d6e63'}
+BAND_OFF_COLORS = {'port': '#ef9a9a', 'online': '#ef9a9a', 'blackbox': '#ef9a9a'}
+"""A closed port, an offline module and a black box that cannot write are problems: drawn in
+red, not grey."""
 BAND_TITLES = {'port': 'port open', 'online': 'online', 'streaming': 'streaming',
-               'armed': 'armed', 'triggered': 'TRIGGERED'}
+               'armed': 'armed', 'triggered': 'TRIGGERED', 'blackbox': 'black box writes'}
 
 
 @dataclass
@@ -87,6 +91,8 @@ class ReportSummary:
     reboots: List[float]
     unknown_kinds: Dict[str, int]
     unknown_fields: Dict[str, int]
+    unknown_decisions: Dict[str, int] = field(default_factory=dict)
+    """``decision.<what>`` of decisions whose ``what`` this version does not know."""
     facts: Dict[str, str] = field(default_factory=dict)
     warnings: List[str] = field(default_factory=list)
     elapsed_s: float = 0.0
@@ -143,7 +149,8 @@ def _e(text: Any) -> str:
 
 OUTCOME_PHRASES = {
     'deployed': 'the parachute DEPLOYED',
-    'refused': 'the module REFUSED to deploy',
+    'not deployed': 'it did NOT deploy',
+    'refused': 'REFUSED: it did not deploy',
     'unknown': 'OUTCOME UNKNOWN',
     'failed': 'the deploy call FAILED before the module answered',
     'requested': 'no answer recorded: OUTCOME UNKNOWN',
@@ -318,7 +325,8 @@ def _plot_bands(ax, a: FlightAnalysis, t0: float, t_end: float) -> None:
     ax.set_yticklabels([BAND_TITLES[n] for n in reversed(BANDS)], fontsize=8)
     ax.set_ylim(0, len(BANDS))
     ax.legend(handles=[Patch(facecolor='#eceff1', label='no / locked / off'),
-                       Patch(facecolor='#ef9a9a', label='port closed / offline'),
+                       Patch(facecolor='#ef9a9a', label='port closed / offline /\n'
+                             'black box not writing'),
                        Patch(facecolor='white', hatch='..', edgecolor='#cfd8dc',
                              label='unknown'),
                        Patch(facecolor='#b0bec5', hatch='////', label='changing faster\nthan '
@@ -624,6 +632,12 @@ def _facts(a: FlightAnalysis, files: List[FileInfo], start: Optional[float],
         facts['Driver'] = 'no start record (the beginning of the black box is missing)'
     if a.policy_changes:
         facts['Trigger-request policy'] = ' → '.join(p for _, p in a.policy_changes[:10])
+    if a.runs and a.runs[0]['parameters']:
+        params = a.runs[0]['parameters']
+        desired = [f'{k} {v}' for k, v in params.items()
+                   if k in DESIRED_PARAMETERS and v not in (-1, -1.0, 'keep')]
+        facts['Desired settings (driver parameters)'] = (
+            ', '.join(desired) if desired else "none: the module's own are kept")
     if a.boot_counts:
         counts = [c for _, c in a.boot_counts]
         changes = len(counts) - 1
@@ -644,6 +658,11 @@ def _facts(a: FlightAnalysis, files: List[FileInfo], start: Optional[float],
         facts['Settings verified'] = ('yes (the last initialization read back every desired '
                                       'setting)' if not a.last_mismatch else
                                       'NO: ' + '; '.join(map(str, a.last_mismatch))[:300])
+    if a.preflight is not None:
+        t, ok, lines = a.preflight
+        failed = [line[4:].strip() for line in lines if line.startswith('FAIL')]
+        verdict = 'GO' if ok else 'NO-GO: ' + '; '.join(failed)
+        facts['Last preflight check'] = f'+{t - a.t0:.1f} s: {verdict}'[:400]
     if a.cell_voltage is not None:
         lo, hi, last = a.cell_voltage
         facts['Cell / charging voltage'] = (f'{last:.2f} V last, {lo:.2f}..{hi:.2f} V; '
@@ -654,11 +673,10 @@ def _facts(a: FlightAnalysis, files: List[FileInfo], start: Optional[float],
 
 def _count_rows(a: FlightAnalysis) -> List[Tuple[str, str]]:
     c = a.counts
+    decisions = ('confirmed', 'denied', 'timed_out', 'not answered')
     decided = ', '.join(f'{c[f"trigger requests {d}"]} {d.replace("_", " ")}'
-                        for d in ('confirmed', 'denied', 'timed_out')
-                        if c[f'trigger requests {d}'])
-    undecided = c['trigger requests'] - sum(c[f'trigger requests {d}']
-                                            for d in ('confirmed', 'denied', 'timed_out'))
+                        for d in decisions if c[f'trigger requests {d}'])
+    undecided = c['trigger requests'] - sum(c[f'trigger requests {d}'] for d in decisions)
     outcomes: Dict[str, int] = {}
     for dep in a.deployments:
         outcomes[dep.outcome] = outcomes.get(dep.outcome, 0) + 1
@@ -670,25 +688,37 @@ def _count_rows(a: FlightAnalysis) -> List[Tuple[str, str]]:
             ' (' + ', '.join(f'{n} {o}' for o, n in sorted(outcomes.items())) + ')'
             if outcomes else '')),
         ('~/deploy calls', f'{c["deploy calls"]} ({c["deploy calls refused"]} refused before '
-         f'anything was sent, {c["deploy frames sent"]} deploy frames sent, '
+         f'anything was sent, {c["deploy calls answered already deployed"]} answered "already '
+         f'deployed", {c["deploy frames sent"]} deploy frames sent, '
          f'{c["deploy frames unacknowledged"]} unacknowledged)'),
+        ('Deploy outcomes unknown', f'{c["deploys with unknown outcome"]} when the call ended, '
+         f'{c["unknown deploy outcomes resolved"]} read later (D12)'),
         ('Refusals', f'{c["deploy calls refused"] + c["deploys refused by the module"]} '
          f'deploy refusals ({c["deploys refused by the module"]} by the module), '
-         f'{c["parameter changes refused"]} parameter changes refused, '
+         f'{c["parameter changes refused"]} parameter sets refused '
+         f'({c["settings put back"]} settings put back, {c["settings not put back"]} could '
+         f'not be), {c["settings changes refused (would deploy)"]} settings changes that would '
+         'deploy at once refused, '
          f'{c["trigger requests denied"] + c["trigger requests timed_out"]} trigger requests '
          'not confirmed'),
+        ('Preflight checks', f'{c["preflight checks"]} ({c["preflight checks NO-GO"]} NO-GO)'),
         ('Requests to the module', f'{c["requests to the module"]} ({c["answered requests"]} '
          f'answered, {c["requests answered after a retry"]} only after a retry, '
          f'{c["requests cut short"]} cut short by a stop, a closed port or a reboot)'),
         ('Lost frames (unanswered requests)', f'{c["unanswered requests"]}'),
         ('Module reboots', f'{c["reboots"]}'),
         ('Link', f'{c["offline"]} times offline, {c["port closed"]} port closed, '
-         f'{c["reconnects"]} reconnects, {c["checksum errors"]} checksum errors'),
+         f'{c["reconnects"]} reconnects, {c["checksum errors"]} checksum errors, '
+         f'{c["bytes of noise discarded"]} bytes of noise, '
+         f'{c["request timeouts (as the driver counted)"]} request timeouts (as the driver '
+         'counted)'),
         ('Settings written and verified', f'{c["settings written and verified"]} '
-         f'({c["settings not verified"]} not verified)'),
+         f'({c["settings not verified"]} read back otherwise, '
+         f'{c["settings writes not confirmed"]} writes not confirmed)'),
         ('Status frames', f'{c["status frames"]}'),
         ('Black box', f'{c["records"]} records; {c["record gaps"]} gaps while streaming; '
-         f'{c["black-box write problems"]} write problems recorded'),
+         f'{c["black-box write failures"]} write failures recorded, '
+         f'{c["black-box records lost"]} records lost (as the driver counted)'),
     ]
     return rows
 
@@ -850,9 +880,14 @@ def _warnings(a: FlightAnalysis, files: List[FileInfo]) -> List[str]:
         out.append(f'{unknown} records of kinds this version does not know '
                    f'({", ".join(list(map(str, a.unknown_kinds))[:6])}); see "Records this '
                    'report does not know".')
-    if a.counts['deploys with unknown outcome']:
-        out.append(f'{a.counts["deploys with unknown outcome"]} deploy attempts with an '
-                   'UNKNOWN outcome: see the deployments.')
+    unknown = a.counts['deploys with unknown outcome']
+    open_ = unknown - a.counts['unknown deploy outcomes resolved']
+    if open_ > 0:
+        out.append(f'{open_} deploy attempts with an UNKNOWN outcome the driver never '
+                   'resolved: see the deployments.')
+    elif unknown:
+        out.append(f'{unknown} deploy calls ended with an unknown outcome; the driver read '
+                   'what became of each later: see the deployments.')
     return out
 
 
@@ -917,7 +952,9 @@ def build_report(paths: Sequence[str], output_html: Optional[str] = None,
                             reboots=[t - t0 for t in a.reboots],
                             unknown_kinds={str(k): v[0] for k, v in a.unknown_kinds.items()},
                             unknown_fields={_field_name(k): v[0]
-                                            for k, v in a.unknown_fields.items()})
+                                            for k, v in a.unknown_fields.items()},
+                            unknown_decisions={_field_name(k): v[0]
+                                               for k, v in a.unknown_whats.items()})
     for dep in a.deployments:
         text, steps = deployment_paragraph(dep, t0)
         summary.deployments.append(DeploymentSummary(dep.number, dep.t, dep.t - t0, dep.origin,

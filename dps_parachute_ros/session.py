@@ -15,7 +15,7 @@ Threads, what each owns, and the lock that guards what they share:
 - worker (``parachute-worker``): (re-)initializes the module, polls light, charging and voltage,
   sends heartbeats, fetches trigger records. Owns its schedule (``next_*`` locals).
 - monitor (``parachute-monitor``): judges online/offline and the defer deadline from the clock
-  (``tick()``); no I/O.
+  (``tick()``), and records the link's error counters in the black box when they change; no I/O.
 - callers (the node's service threads): deploy, arm, settings, queries. ``_actuation``
   serializes deploy and arm (never taken on the reader thread or by a trigger-request answer).
 
@@ -56,6 +56,9 @@ POWER_UP_HEARTBEATS_S = 0.2
 """Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
 SAFETY_SYNC_S = 0.5
 """Longest wait for the black box's fsync on a safety event; none while it is failing."""
+LINK_RECORD_PERIOD_S = 1.0
+"""The link's error counters go to the black box when they change, at most this often (D10)."""
+LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
 DEPLOY_FRAME = p.encode_deploy()
 
 
@@ -145,6 +148,8 @@ class ParachuteSession:
         self._init_retry_at = 0.0
         self._flags_query_answered = False
         self._throttle: Dict[str, float] = {}
+        self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
+        self._link_recorded_at = -1e9
         # -- guarded by _jobs_cond ----------------------------------------------------------
         self._jobs = _Jobs()
         self._jobs_cond = threading.Condition()
@@ -193,6 +198,7 @@ class ParachuteSession:
         # A deploy or arm in flight has just lost its link: let it record its outcome.
         if self._actuation.acquire(timeout=1.0):
             self._actuation.release()
+        self._record_link(final=True)
         self.blackbox.record('stop')
         self.blackbox.close(timeout=1.0)
 
@@ -495,8 +501,23 @@ class ParachuteSession:
         while not self._stopping.wait(0.02):
             try:
                 self.tick()
+                self._record_link()
             except Exception as exc:  # noqa: BLE001 - the monitor must survive a bug
                 self._log('error', f'monitor failed: {exc!r}', key='monitor')
+
+    def _record_link(self, final: bool = False) -> None:
+        """Record the link's error counters when they changed (throttled; `final`: now)."""
+        # Checksum errors and noise never become frames, so without this the black box would
+        # not know of them; the counters are cumulative for the run (D10).
+        info = self.link_info()
+        counters = tuple(info[name] for name in LINK_PROBLEM_COUNTERS)
+        now = self.clock()
+        with self._lock:
+            if counters == self._link_recorded or \
+                    (not final and now - self._link_recorded_at < LINK_RECORD_PERIOD_S):
+                return
+            self._link_recorded, self._link_recorded_at = counters, now
+        self.blackbox.record('link', **info)
 
     def tick(self) -> None:
         """Judge the time-based rules now (the monitor does this every 20 ms)."""

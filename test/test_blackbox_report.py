@@ -3,8 +3,11 @@
 One virtual module (the ``virtual_parachute`` executable) serves every scenario; each scenario is
 one run of the ``parachute_node`` executable with a black-box directory of its own, stopped with
 SIGINT at its end, so its file ends as a real one does. The test side notes the wall-clock time
-of what it did, and the report must place the events it shows there. A synthetic black box of
-tens of MB (``bench.report_memory``) checks that memory stays bounded.
+of what it did, and the report must place the events it shows there; every record the driver
+wrote must be one the report knows. A black box whose disk failed for a while is written by the
+driver's core (no ROS) against the same simulation; lines of the driver before the session core
+are written out here. A synthetic black box of tens of MB (``bench.report_memory``) checks that
+memory stays bounded.
 """
 
 from __future__ import annotations
@@ -22,13 +25,18 @@ import tracemalloc
 from diagnostic_msgs.msg import DiagnosticArray
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.report import analyse, build_report, main as report_main
-from uav_serial_common.process import executable_path, LaunchedProcesses
+from dps_parachute_ros.session import ParachuteSession
+from dps_parachute_ros.simulation import VirtualParachute
+from dps_parachute_ros.state import SessionConfig
+from dps_parachute_ros.virtual_node import create_runner
+from uav_serial_common.process import executable_path, LaunchedProcesses, wait_for
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
 from uav_serial_drivers.srv import Deploy
@@ -62,13 +70,16 @@ class Bench:
         self.link = str(tmp / 'vparachute')
         # Clients made before the servers appear: by the first call, discovery has matched
         # both ways (a client made just before its first call can miss the response).
-        for name in ('power_cycle', 'free_fall'):
+        for name in ('power_cycle', 'free_fall', 'corrupt_next_reply', 'inject_garbage'):
             self.ros.client(Trigger, f'/virtual_parachute/{name}')
         self.ros.client(SetBool, '/virtual_parachute/disconnect')
         for node in ('/virtual_parachute', '/parachute'):
             self.ros.client(SetParameters, f'{node}/set_parameters')
+        self.ros.client(SetParametersAtomically, '/parachute/set_parameters_atomically')
         for name in ('arm', 'answer_trigger_request'):
             self.ros.client(SetBool, f'/parachute/{name}')
+        for name in ('preflight_check', 'zero_sensor'):
+            self.ros.client(Trigger, f'/parachute/{name}')
         self.ros.client(Deploy, '/parachute/deploy')
         self.state = self.ros.subscribe(String, '/virtual_parachute/state')
         self.procs.start('virtual_parachute', ros=self.ros,
@@ -100,6 +111,13 @@ class Bench:
         request = SetParameters.Request(parameters=[_param(k, v) for k, v in values.items()])
         results = self.ros.call(SetParameters, f'{node}/set_parameters', request).results
         assert all(r.successful for r in results), [r.reason for r in results]
+
+    def set_params_at_once(self, node, **values):
+        """Set parameters as one set (all or nothing); return the result."""
+        request = SetParametersAtomically.Request(
+            parameters=[_param(k, v) for k, v in values.items()])
+        return self.ros.call(SetParametersAtomically, f'{node}/set_parameters_atomically',
+                             request).result
 
     def call(self, srv, name, request):
         return self.ros.call(srv, f'/parachute/{name}', request)
@@ -138,6 +156,16 @@ class Bench:
         n = len(self.status)
         self.status.wait(lambda m: m.online and m.streaming and not m.triggered, 10,
                          what='streaming after the reboot', start=n)
+
+    def unplug_and_replug(self):
+        """Pull the cable, wait until the driver says offline, put it back, wait for the stream."""
+        self.mark(f'unplug {len(self.marks)}')
+        self.module('disconnect', True)
+        self.status.wait(lambda m: not m.online, 5, what='offline', start=len(self.status) - 1)
+        self.module('disconnect', False)
+        self.status.wait(lambda m: m.online and m.streaming, 10, what='online again',
+                         start=len(self.status) - 1)
+        self.mark(f'replugged {len(self.marks)}')
 
     def free_fall(self):
         """Let the module fall; return the trigger request the driver published."""
@@ -213,41 +241,75 @@ def deployment_run(bench):
     assert request.decision_name == 'denied'
     bench.status.wait(lambda m: m.armed and not m.triggered, 5, what='still armed',
                       start=len(bench.status) - 1)
+    reply = bench.call(Trigger, 'zero_sensor', Trigger.Request())
+    assert reply.success, reply.message
+    bench.mark('preflight')
+    reply = bench.call(Trigger, 'preflight_check', Trigger.Request())
+    assert reply.success, reply.message
     bench.mark('stop')
     return bench.stop_driver(box)
 
 
 @pytest.fixture(scope='module')
 def fault_run(bench):
-    """The cable pulled and put back, lost replies, and deploy frames that never arrive."""
+    """The cable pulled, lost replies, noise, a refused parameter set, deploys that go wrong.
+
+    One deploy call loses its frames (the module says it is not triggered: not deployed), one
+    loses its frames and the triggered queries too (outcome unknown, read after a reconnect).
+    """
     box = bench.start_driver('fault')
-    bench.mark('unplug')
-    bench.module('disconnect', True)
-    bench.status.wait(lambda m: not m.online, 5, what='offline', start=len(bench.status) - 1)
-    bench.module('disconnect', False)
-    bench.status.wait(lambda m: m.online and m.streaming, 10, what='online again',
-                      start=len(bench.status) - 1)
-    bench.mark('replugged')
+    bench.unplug_and_replug()
     # The module stops hearing light-level queries: the driver's polls go unanswered.
     n = len(bench.diagnostics)
     bench.set_params('/virtual_parachute', lost_commands=[p.CMD_LIGHT_LEVEL])
-    bench.diagnostics.wait(lambda m: link_timeouts(m) >= 2, 10,
+    bench.diagnostics.wait(lambda m: link_counter(m, 'timeouts') >= 2, 10,
                            what='two timeouts in the link diagnostic', start=n)
     bench.set_params('/virtual_parachute', lost_commands=[])
     bench.mark('polls answered again')
-    bench.set_params('/virtual_parachute', lost_commands=[0x11])
+    # A reply with a bad checksum and a burst of noise: frames the black box never sees.
+    n = len(bench.diagnostics)
+    bench.module('corrupt_next_reply')
+    bench.module('inject_garbage')
+    bench.diagnostics.wait(lambda m: link_counter(m, 'checksum_errors') >= 1 and
+                           link_counter(m, 'bytes_discarded') >= 1, 10,
+                           what='a checksum error and noise in the link diagnostic', start=n)
+    bench.mark('noise')
+    # A parameter set the module confirms only half of: the half written is put back (D4).
+    bench.set_params('/virtual_parachute', lost_commands=[p.CMD_FREEFALL_THRESHOLD])
+    bench.mark('parameter set')
+    result = bench.set_params_at_once('/parachute', attitude_threshold_deg=50,
+                                      freefall_threshold_g=0.3)
+    assert not result.successful and 'put back attitude_threshold_deg' in result.reason, \
+        result.reason
+    bench.set_params('/virtual_parachute', lost_commands=[])
+    bench.mark('parameter set refused')
+    bench.set_params('/virtual_parachute', lost_commands=[p.CMD_DEPLOY])
     bench.arm()
     bench.mark('lost deploy')
     reply = bench.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
-    assert not reply.success and 'NOT acknowledged' in reply.message
+    assert not reply.success and 'did NOT deploy' in reply.message, reply.message
     bench.set_params('/virtual_parachute', lost_commands=[])
+    bench.fresh()  # a power-up clears the module's count of unsuccessful attempts (P19)
+    bench.arm()
+    bench.set_params('/virtual_parachute', lost_commands=[p.CMD_DEPLOY, p.CMD_TRIGGERED])
+    bench.mark('unknown deploy')
+    reply = bench.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+    assert not reply.success and 'UNKNOWN' in reply.message, reply.message
+    bench.mark('unknown deploy answered')
+    bench.set_params('/virtual_parachute', lost_commands=[])
+    bench.unplug_and_replug()  # the re-read after the reconnect settles it (D12)
+    (path,) = glob.glob(str(box / 'parachute-*.jsonl'))
+    wait_for(lambda: b'"resolved"' in Path(path).read_bytes(), 5,
+             what='the unknown outcome resolved in the black box')
+    reply = bench.call(Trigger, 'preflight_check', Trigger.Request())
+    assert not reply.success and 'FAIL not in protection' in reply.message, reply.message
     return bench.stop_driver(box)
 
 
-def link_timeouts(array):
+def link_counter(array, key):
     for status in array.status:
         if status.name.endswith(': link'):
-            return next((int(kv.value) for kv in status.values if kv.key == 'timeouts'), 0)
+            return next((int(kv.value) for kv in status.values if kv.key == key), 0)
     return 0
 
 
@@ -347,39 +409,125 @@ def test_each_deployment_gets_a_paragraph_with_who_decided_and_the_step_times(
     assert summary.counts['settings written and verified'] >= 3
     assert summary.facts['Attitude threshold'].startswith('70°')
     assert summary.facts['Free-fall time'].startswith('0.3 s')
+    assert summary.facts['Desired settings (driver parameters)'] == \
+        'attitude_threshold_deg 70, freefall_threshold_g 0.4, freefall_time_s 0.3'
     assert 'Deployments and attempts 2 (2 deployed)' in seen
+    # The policy changes, the sensor zeroed, and the preflight check at the end.
+    assert summary.facts['Trigger-request policy'] == 'confirm → defer → deny'
+    assert len(events_of(summary, 'calls', 'attitude sensor zeroed')) == 1
+    (check,) = events_of(summary, 'calls', '~/preflight_check: GO')
+    assert marks['preflight'] <= at_wall(summary, check[0]) <= marks['stop']
+    assert summary.facts['Last preflight check'].endswith('GO')
 
 
 def test_reboots_are_shown_when_they_happened(deployment_report, bench):
     summary, text = deployment_report
     reboots = [at_wall(summary, t) for t in summary.reboots]
-    marks = sorted(t for name, t in bench.marks.items() if name.startswith('reboot'))
+    marks = sorted(t for name, t in bench.marks.items() if name.startswith('reboot')
+                   and bench.marks['deploy call'] < t < bench.marks['stop'])
     assert len(reboots) == len(marks) == 2
     for seen, done in zip(reboots, marks):
         assert done <= seen <= done + 2.0
     assert summary.facts['Module boot count'].endswith('(2 changes)')
     assert len(events_of(summary, 'module', 'module rebooted')) == 2
+    # Armed and triggered are trusted again only once read afresh (D15).
+    rereads = events_of(summary, 'module', 'read afresh after the reboot')
+    assert len(rereads) == 2
+    for (seconds, *_), reboot in zip(rereads, summary.reboots):
+        assert reboot < seconds < reboot + 2.0
 
 
-def test_link_faults_lost_frames_and_a_deploy_of_unknown_outcome(fault_run, bench, tmp_path):
+def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_path):
     summary, text = report(tmp_path, fault_run)
     seen = visible(text)
     c = summary.counts
-    assert c['port closed'] >= 1 and c['reconnects'] >= 1 and c['offline'] >= 1
+    marks = bench.marks
+
+    def between(first, last, events):
+        return [e for e in events if marks[first] <= at_wall(summary, e[0]) <= marks[last]]
+
+    # The cable pulled twice: each time closed, offline, reconnected and read afresh.
+    assert c['port closed'] == 2 and c['reconnects'] == 2 and c['offline'] >= 2
+    unplugged = sorted(t for name, t in marks.items() if name.startswith('unplug'))
+    replugged = sorted(t for name, t in marks.items() if name.startswith('replugged'))
     closed = events_of(summary, 'link', 'port closed')
-    assert bench.marks['unplug'] <= at_wall(summary, closed[0][0]) <= bench.marks['replugged']
-    assert c['unanswered requests'] >= 4  # two or more light-level polls, two deploy frames
-    assert f'Lost frames (unanswered requests) {c["unanswered requests"]}' in seen
+    assert len(closed) == 2
+    for down, up, event in zip(unplugged, replugged, closed):
+        assert down <= at_wall(summary, event[0]) <= up
+    assert len(events_of(summary, 'module', 'read afresh after the reconnect')) == 2
+    # Lost polls while the module did not hear them.
     lost_polls = events_of(summary, 'link', 'no reply to light level')
-    assert len(lost_polls) >= 2
-    for seconds, *_ in lost_polls:
-        assert bench.marks['replugged'] < at_wall(summary, seconds) < \
-            bench.marks['polls answered again']
-    assert len(events_of(summary, 'link', 'no reply to deploy')) == 2
-    (dep,) = summary.deployments
-    assert dep.outcome == 'unknown'
-    assert 'OUTCOME UNKNOWN' in dep.paragraph and '2 deploy frame(s) sent' in dep.paragraph
-    assert 'deploy attempts with an UNKNOWN outcome' in seen
+    assert len([e for e in lost_polls
+                if at_wall(summary, e[0]) < marks['polls answered again']]) >= 2
+    for seconds, *_ in lost_polls:  # (the corrupted reply below may be one's reply too)
+        assert replugged[0] < at_wall(summary, seconds) < marks['noise']
+    # Noise: frames with a bad checksum never reach the black box; the driver's counters do.
+    noise = events_of(summary, 'link', 'bad checksum')
+    assert between('polls answered again', 'parameter set refused', noise)
+    assert c['checksum errors'] >= 1 and c['bytes of noise discarded'] >= 1
+    assert re.search(r'[1-9]\d* checksum errors, [1-9]\d* bytes of noise', seen)
+    assert c['request timeouts (as the driver counted)'] >= 2 + 4
+    # The parameter set the module confirmed only half of: refused, the half put back (D4).
+    (refused,) = events_of(summary, 'calls', 'REFUSED')
+    assert 'attitude_threshold_deg := 50' in refused[3]
+    (put_back,) = events_of(summary, 'settings', 'put back after the refused set')
+    assert put_back[3].endswith('attitude_threshold_deg')
+    (unconfirmed,) = events_of(summary, 'settings', 'did not confirm the write')
+    assert unconfirmed[3].startswith('free-fall threshold 0.3 g')
+    assert between('parameter set', 'parameter set refused', [refused, put_back, unconfirmed])
+    assert c['settings put back'] == 1 and c.get('settings not verified', 0) == 0
+    # The deploy whose frames were lost: not deployed, as the module said when asked.
+    lost, unknown = summary.deployments
+    assert lost.outcome == 'not deployed'
+    assert marks['lost deploy'] < lost.t < marks['unknown deploy']
+    assert 'it did NOT deploy' in lost.paragraph
+    assert lost.paragraph.count('no acknowledgement of the deploy frame') == 2
+    assert lost.paragraph.count('the module answers it is NOT triggered') == 2
+    assert len(events_of(summary, 'link', 'no reply to deploy')) == 4
+    assert len(events_of(summary, 'link', 'no reply to triggered?')) == 2
+    # The deploy of unknown outcome, read after the reconnect: it did not deploy (D12).
+    assert marks['unknown deploy'] < unknown.t < marks['unknown deploy answered']
+    assert unknown.outcome == 'not deployed'
+    assert 'unknown when the call ended' in unknown.paragraph
+    assert 'then read: not deployed (read after reconnecting' in unknown.paragraph
+    resolved = [s for s, text in unknown.steps if text.startswith('the driver read the outcome')]
+    assert len(resolved) == 1 and at_wall(summary, resolved[0]) > marks['unknown deploy answered']
+    assert c['deploys with unknown outcome'] == 1 and c['unknown deploy outcomes resolved'] == 1
+    assert 'Deploy outcomes unknown 1 when the call ended, 1 read later' in seen
+    assert 'the driver read what became of each later' in seen
+    assert 'Deployments and attempts 2 (2 not deployed)' in seen
+    # The reboot between the two deploys, and the preflight check after them.
+    (reboot,) = summary.reboots
+    assert marks['lost deploy'] < at_wall(summary, reboot) < marks['unknown deploy']
+    (check,) = events_of(summary, 'calls', '~/preflight_check: NO-GO')
+    assert 'not in protection' in check[3]
+    assert summary.facts['Last preflight check'].split(': ', 1)[1].startswith('NO-GO')
+    assert f'Lost frames (unanswered requests) {c["unanswered requests"]}' in seen
+
+
+def test_the_report_knows_every_record_the_driver_writes(normal_run, deployment_run, fault_run):
+    kinds, decisions, outcomes = set(), set(), set()
+    for path in (normal_run, deployment_run, fault_run):
+        analysis, _ = analyse([path], progress=False)
+        assert not analysis.unknown_kinds, analysis.unknown_kinds
+        assert not analysis.unknown_fields, analysis.unknown_fields
+        assert not analysis.unknown_whats, analysis.unknown_whats
+        assert analysis.counts['records not understood'] == 0
+        for line in Path(path).read_text().splitlines():
+            record = json.loads(line)
+            kinds.add(record['kind'])
+            if record['kind'] == 'decision':
+                decisions.add(record['what'])
+                outcomes.add(record.get('outcome'))
+        summary, text = report(Path(path).parent, path, name='known')
+        assert 'None: every record kind and field is known to this version' in visible(text)
+    # The runs went through what the report is for (arm, deployments, reboots, link faults,
+    # an unknown outcome), so the records of all of it were checked above.
+    assert kinds >= {'start', 'stop', 'frame', 'request', 'decision', 'state', 'parameter',
+                     'trigger_event', 'link'}
+    assert decisions >= {'deploy', 'deploy: sending the deploy frame', 'deploy acknowledged',
+                         'trigger request', 'trigger request deferred', 'policy', 'preflight'}
+    assert outcomes >= {'deployed', 'not deployed', 'refused', 'unknown'}
 
 
 def test_a_truncated_file_says_where_it_ends(deployment_run, tmp_path):
@@ -443,6 +591,157 @@ def test_unknown_kinds_fields_and_older_lines_are_listed_not_fatal(normal_run, t
     assert events_of(summary, 'other', "unknown kind 'preflight_v9'")
     (dep,) = summary.deployments
     assert dep.outcome == 'unknown' and 'OUTCOME UNKNOWN' in dep.paragraph
+
+
+def _jsonl(path, t0, records):
+    """Write ``(kind, seconds, fields)`` records as a black box does."""
+    path.write_text(''.join(json.dumps({**fields, 't': t0 + dt, 'mono': 100.0 + dt,
+                                        'kind': kind}) + '\n'
+                            for kind, dt, fields in records))
+
+
+def test_an_older_drivers_records_are_still_read(tmp_path):
+    # As the driver before the session core wrote them: its parameters under `parameters`, one
+    # record per parameter, `deploy unacknowledged` decisions, a call that ends in `success`
+    # false without an outcome, a numeric `via`.
+    deploy = p.encode_deploy().hex(' ')
+    level = p.encode_status_frame(5, 10, False, True).hex(' ')
+    tilted = p.encode_status_frame(80, 10, True, False).hex(' ')
+    t0 = 1_790_000_000.0
+    _jsonl(tmp_path / 'old.jsonl', t0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200,
+                        'parameters': {'trigger_request_policy': 'deny',
+                                       'attitude_threshold_deg': 60}}),
+        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+        ('state', 0.02, {'online': True, 'reason': ''}),
+        ('frame', 0.1, {'dir': 'rx', 'hex': level}),
+        ('parameter', 0.2, {'name': 'freefall_time_s', 'value': 0.5, 'accepted': False,
+                            'reason': 'module did not confirm'}),
+        ('request', 0.5, {'what': 'deploy', 'token_ok': True, 'arm_if_locked': False}),
+        ('decision', 0.5, {'what': 'deploy: sending the deploy frame', 'attempt': 1}),
+        ('request', 0.5, {'hex': deploy, 'expect': 'DeployAck'}),
+        ('frame', 0.501, {'dir': 'tx', 'hex': deploy}),
+        ('decision', 1.5, {'what': 'deploy unacknowledged', 'attempt': 1}),
+        ('decision', 1.5, {'what': 'deploy: sending the deploy frame', 'attempt': 2}),
+        ('request', 1.5, {'hex': deploy, 'expect': 'DeployAck'}),
+        ('frame', 1.501, {'dir': 'tx', 'hex': deploy}),
+        ('decision', 2.5, {'what': 'deploy unacknowledged', 'attempt': 2}),
+        ('decision', 2.5, {'what': 'deploy', 'success': False, 'reason': 'deploy NOT '
+                           'acknowledged after 2 attempts; not retrying'}),
+        ('frame', 3.0, {'dir': 'rx', 'hex': level}),
+        ('frame', 20.0, {'dir': 'rx', 'hex': tilted}),
+        ('state', 20.0, {'triggered': True, 'via': 'status'}),
+        ('trigger_event', 20.1, {'source': 'attitude', 'via': 1, 'record': None}),
+        ('stop', 21.0, {}),
+    ])
+    summary, text = report(tmp_path, tmp_path / 'old.jsonl')
+    seen = visible(text)
+    assert not summary.unknown_kinds and not summary.unknown_fields
+    assert not summary.unknown_decisions
+    call, module = summary.deployments
+    assert call.origin == 'call' and call.outcome == 'unknown'
+    assert 'OUTCOME UNKNOWN' in call.paragraph
+    assert call.paragraph.count('no acknowledgement of the deploy frame') == 2
+    assert summary.counts['deploy frames unacknowledged'] == 2
+    assert len(events_of(summary, 'link', 'no reply to deploy')) == 2
+    assert module.origin == 'module' and module.outcome == 'deployed'
+    assert module.source == 'attitude'
+    assert any('learned from the status (triggered flag)' in text for _, text in module.steps)
+    (refused,) = events_of(summary, 'calls', 'REFUSED')
+    assert 'freefall_time_s := 0.5' in refused[3]
+    assert summary.facts['Trigger-request policy'] == 'deny'
+    assert summary.facts['Desired settings (driver parameters)'] == 'attitude_threshold_deg 60'
+    assert '1 deploy attempts with an UNKNOWN outcome the driver never resolved' in seen
+
+
+def test_rarer_records_of_the_driver_are_read(tmp_path):
+    # Records session.py writes that the runs above do not provoke, as it writes them: a
+    # deferred request superseded by a newer one (D8), a deploy to a triggered module (D13), a
+    # settings change that would deploy at once (D16), a request still held at the stop.
+    request = p.encode_trigger_request().hex(' ')
+    _jsonl(tmp_path / 'rare.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200,
+                        'config': {'trigger_request_policy': 'defer'}}),
+        ('request', 0.2, {'what': 'set_thresholds', 'values': {'attitude_threshold_deg': 20}}),
+        ('decision', 0.21, {'what': 'settings refused', 'reason': 'would deploy now: tilt 30° '
+                            '≥ attitude threshold 20°; lock first (~/arm false)'}),
+        ('request', 0.5, {'what': 'deploy', 'token_ok': True, 'arm_if_locked': False}),
+        ('decision', 0.5, {'what': 'deploy', 'outcome': 'already deployed', 'success': True,
+                           'reason': 'already deployed: the module reports triggered; '
+                           'nothing sent'}),
+        ('frame', 1.0, {'dir': 'rx', 'hex': request}),
+        ('decision', 1.0, {'what': 'trigger request deferred', 'deadline_s': 0.8}),
+        ('frame', 1.3, {'dir': 'rx', 'hex': request}),
+        ('decision', 1.3, {'what': 'trigger request', 'decision': 'timed_out',
+                           'policy': 'defer', 'reason': 'superseded by a newer trigger request',
+                           'latency_ms': None}),
+        ('decision', 1.3, {'what': 'trigger request deferred', 'deadline_s': 0.8}),
+        ('decision', 1.9, {'what': 'trigger request', 'decision': 'not answered',
+                           'reason': 'driver stopped while the request was deferred'}),
+        ('stop', 1.9, {}),
+    ])
+    summary, text = report(tmp_path, tmp_path / 'rare.jsonl')
+    seen = visible(text)
+    assert not summary.unknown_kinds and not summary.unknown_fields
+    assert not summary.unknown_decisions and not summary.deployments
+    first, second = [e for e in events_of(summary, 'request') if 'TIMED_OUT' in e[3]
+                     or 'NOT ANSWERED' in e[3]]
+    assert 'superseded' in first[3] and 'driver stopped' in second[3]
+    assert 'Trigger requests from the module 2 (1 timed out, 1 not answered)' in seen
+    analysis, _ = analyse([str(tmp_path / 'rare.jsonl')], progress=False)
+    older, newer = analysis.requests  # the superseded one is the older
+    assert abs(older.t - analysis.t0 - 1.0) < 1e-3
+    assert (older.decision, older.deferred) == ('timed_out', True)
+    assert (newer.decision, newer.deferred) == ('not answered', True)
+    (refused,) = events_of(summary, 'settings', 'would deploy now')
+    assert refused[3].startswith('settings change refused, nothing written (D16)')
+    (already,) = events_of(summary, 'calls', '~/deploy: already deployed (the module')
+    assert summary.counts['deploy calls answered already deployed'] == 1
+
+
+def test_a_blackbox_outage_is_shown_with_the_records_it_lost(tmp_path):
+    # The driver's core against the simulation (no ROS): its black-box directory cannot be
+    # made at first (a regular file in the way), then can.
+    blocker = tmp_path / 'blocker'
+    blocker.write_text('a regular file where the black-box directory should be')
+    directory = blocker / 'bb'
+    sim = VirtualParachute(now=time.monotonic() - 1.0)
+    sim.step(time.monotonic())
+    runner = create_runner(sim, str(tmp_path / 'vpara'), baud=0).start()
+    box = BlackBox(str(directory), reopen_period_s=0.1)
+    session = ParachuteSession(SessionConfig(port=runner.path, blackbox_dir=str(directory)),
+                               blackbox=box)
+    try:
+        session.start()
+        wait_for(lambda: session.snapshot.initialized and box.status().lost > 0, 5,
+                 what='the session initialized, records lost')
+        fixed = time.time()
+        blocker.unlink()
+        wait_for(lambda: box.status().writing, 5, what='the black box writing again')
+        # Noise on the wire afterwards: a reply with a bad checksum.
+        runner.faults.corrupt_next = 1
+        wait_for(lambda: session.link_info()['checksum_errors'] >= 1, 5,
+                 what='a checksum error')
+        assert session.arm(True).ok
+    finally:
+        session.stop()
+        runner.stop()
+    lost = box.status().lost
+    (path,) = directory.glob('parachute-*.jsonl')
+    summary, text = report(tmp_path, path)
+    seen = visible(text)
+    assert not summary.unknown_kinds and not summary.unknown_fields
+    assert summary.counts['black-box records lost'] == lost > 0
+    assert summary.counts['black-box write failures'] == 1
+    (stopped,) = events_of(summary, 'blackbox', 'black box stopped writing')
+    (again,) = events_of(summary, 'blackbox', 'black box writing again')
+    assert 'Not a directory' in stopped[3] and f'({lost} in this run)' in again[3]
+    assert stopped[0] <= again[0] and at_wall(summary, again[0]) >= fixed
+    assert f'1 write failures recorded, {lost} records lost (as the driver counted)' in seen
+    # The start record went with the outage, and the report says so.
+    assert summary.facts['Driver'].startswith('no start record')
+    assert events_of(summary, 'link', '1 frame(s) with a bad checksum')
+    assert summary.counts['checksum errors'] == 1
 
 
 def _variant(lines, name):
@@ -565,5 +864,6 @@ def test_a_large_file_is_streamed_in_bounded_memory(tmp_path):
     assert counts['unanswered requests'] == made['lost']
     assert counts['reboots'] == made['reboots']
     assert counts['reconnects'] == made['reconnects']
+    assert counts['checksum errors'] == made['checksum_errors']
     assert sum(n for kind, n in result['unknown_kinds'].items()) == made['unknown']
     assert result['deployments_listed'] == counts['deployments']
