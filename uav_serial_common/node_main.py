@@ -65,6 +65,7 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
             return 0
         node = factory()
         executor = MultiThreadedExecutor(num_threads=threads)
+        _start_pool(executor, threads)
         executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, signals.stop),
                                    name='executor', daemon=True)
@@ -104,6 +105,29 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return code
+
+
+def _start_pool(executor: MultiThreadedExecutor, threads: int) -> None:
+    """Start every worker thread of the executor now instead of on its first busy moment.
+
+    The pool (a ThreadPoolExecutor) adds a thread whenever no idle one is there, so a driver's
+    thread count would creep up over its first minutes of concurrent callbacks; fixed from the
+    start, any growth later is a leak a check can see.
+    """
+    pool = getattr(executor, '_executor', None)
+    if pool is None:
+        return
+    gate = threading.Barrier(threads + 1)
+    for _ in range(threads):
+        pool.submit(_pass, gate)
+    _pass(gate)
+
+
+def _pass(gate: threading.Barrier) -> None:
+    try:
+        gate.wait(5.0)
+    except threading.BrokenBarrierError:
+        pass
 
 
 def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
