@@ -142,6 +142,7 @@ class ParachuteSession:
         self._reported_boots: Set[Optional[int]] = set()   # boots whose deployment was reported
         self._known_records: Optional[Set[bytes]] = None
         self._deploy_frame_left = False
+        self._unknown_boot: Optional[int] = None  # boot count when a deploy became unknown
         self._last_boot_heartbeat = -1e9
         self._last_status_time = -1e9
         self._initialized_at = 0.0
@@ -662,7 +663,12 @@ class ParachuteSession:
             triggered = self._req(p.encode_triggered_query(), retries=1).triggered
             if self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True) is None:
                 return  # it rebooted meanwhile: that schedules another initialization
-            self._resolve_unknown_deploy(triggered, 'read after reconnecting')
+            with self._lock:
+                same_boot = self._unknown_boot in (None, self._snap.boot_count)
+            if same_boot:
+                # After a reboot the flag is clear whatever happened before it: the trigger
+                # records settle that deploy (_report_at_init).
+                self._resolve_unknown_deploy(triggered, 'read after reconnecting')
             self._read_config(reinit=False)
             self._apply_desired()
             self._report_at_init(triggered)
@@ -1073,6 +1079,14 @@ class ParachuteSession:
             mine = [r for r in records if r.boot_count == boot]
             record = mine[-1] if mine else None
             self._report(record.source if record else 0, 'status', record, boot)
+        with self._lock:
+            unknown_boot = self._unknown_boot if self._snap.deploy_outcome_unknown else None
+        if unknown_boot is not None and unknown_boot != boot:
+            fired = [r for r in records if r.boot_count == unknown_boot]
+            self._resolve_unknown_deploy(
+                bool(fired), f'the module rebooted since (boot {unknown_boot} -> {boot}); its '
+                f'trigger records {"show" if fired else "show no"} deployment in boot '
+                f'{unknown_boot}')
         if not first:
             # Deployments that happened while nobody watched (unplugged, rebooted).
             for record in records:
@@ -1293,6 +1307,8 @@ class ParachuteSession:
                 'Check the link; a module reboot clears this. Nothing sent')
 
     def _deploy_unknown(self, what: str, t0: float) -> Result:
+        with self._lock:
+            self._unknown_boot = self._snap.boot_count
         self._update(deploy_outcome_unknown=True)
         message = (f'deploy outcome UNKNOWN: {what}. The driver reads the triggered state as '
                    'soon as the module answers again and reports a deployment on '

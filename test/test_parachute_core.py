@@ -682,3 +682,38 @@ def test_the_core_and_everything_below_it_import_no_ros():
                             timeout=60, cwd=os.path.dirname(os.path.dirname(__file__)))
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == '[]'
+
+
+def test_safety_3_an_unknown_deploy_settled_after_a_reboot_by_the_trigger_records(rig):
+    """The module deployed, then rebooted while the link was down: its flag is clear again."""
+    rig.arm()
+    unplug_when_deploy_arrives(rig)
+    assert 'UNKNOWN' in rig.session.deploy('DEPLOY').message
+    with rig.model():
+        assert rig.sim.triggered
+        rig.sim.power_cycle()  # re-packed and switched on again while nobody watched
+        assert not rig.sim.triggered
+    rig.runner.replug()
+    rig.wait_ready()
+    wait_for(lambda: not rig.snap.deploy_outcome_unknown, 5, what='the unknown deploy settled')
+    deploys = rig.deploy_outcomes()
+    assert [r['outcome'] for r in deploys] == ['unknown', 'deployed']
+    assert 'rebooted since' in deploys[1]['resolved']
+    wait_for(lambda: rig.heard.events, 3, what='the deployment reported')
+    assert len(rig.heard.events) == 1
+
+
+def test_safety_3_an_unknown_deploy_that_did_not_fire_stays_not_deployed_across_a_reboot(rig):
+    rig.arm()
+    unplug_when_deploy_arrives(rig)
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # never reached the module
+    assert 'UNKNOWN' in rig.session.deploy('DEPLOY').message
+    with rig.model():
+        rig.sim.lost_commands = set()
+        rig.sim.power_cycle()
+    rig.runner.replug()
+    rig.wait_ready()
+    wait_for(lambda: not rig.snap.deploy_outcome_unknown, 5, what='the unknown deploy settled')
+    assert [r['outcome'] for r in rig.deploy_outcomes()] == ['unknown', 'not deployed']
+    assert not rig.heard.events
