@@ -23,28 +23,13 @@ from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
+from support import FakeClock
 from uav_serial_common.process import wait_for
 
 DEPLOY = p.encode_deploy()
 CONFIRM = p.encode_trigger_confirm()
 TIMEOUT_S = 0.5
 """Request timeout of the session under test (1 s on the real module, P12): fast tests."""
-
-
-class FakeClock:
-    """Monotonic seconds that move only when the test says so."""
-
-    def __init__(self) -> None:
-        self.t = 1000.0
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self.t
-
-    def advance(self, dt: float) -> None:
-        with self._lock:
-            self.t += dt
 
 
 class Heard(Listener):
