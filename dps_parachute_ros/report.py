@@ -515,24 +515,24 @@ def timeline_png(a: FlightAnalysis, files: List[FileInfo], t0: float, t_end: flo
 
 
 def _series_axes(ax_tilt, ax_acc, a: FlightAnalysis, t0: float, t_end: float) -> None:
-    if not _plot_series(ax_tilt, a.tilt, t0, '#1565c0', 'tilt'):
-        ax_tilt.text(0.5, 0.5, 'no status frame in this black box', ha='center',
-                     transform=ax_tilt.transAxes, color='#78909c')
-    _plot_threshold(ax_tilt, a.settings['attitude_threshold_deg'], t0, t_end, '#c62828',
-                    'attitude threshold\n(read from the module)')
-    ax_tilt.set_ylabel('tilt [deg]', fontsize=9)
-    if not _plot_series(ax_acc, a.accel, t0, '#00897b', 'acceleration'):
-        ax_acc.text(0.5, 0.5, 'no status frame in this black box', ha='center',
-                    transform=ax_acc.transAxes, color='#78909c')
-    _plot_threshold(ax_acc, a.settings['freefall_threshold_g'], t0, t_end, '#c62828',
-                    'free-fall threshold\n(read from the module)')
-    ax_acc.set_ylabel('acceleration [g]', fontsize=9)
-    for ax in (ax_tilt, ax_acc):
-        ax.grid(color='#eceff1')
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(loc='upper left', bbox_to_anchor=(1.002, 1.0), fontsize=7,
-                      frameon=False)
-        ax.tick_params(labelsize=8)
+    _series_axis(ax_tilt, a.tilt, '#1565c0', 'tilt', 'tilt [deg]', t0, t_end,
+                 a.settings['attitude_threshold_deg'], 'attitude threshold')
+    _series_axis(ax_acc, a.accel, '#00897b', 'acceleration', 'acceleration [g]', t0, t_end,
+                 a.settings['freefall_threshold_g'], 'free-fall threshold')
+
+
+def _series_axis(ax, series: Any, color: str, label: str, ylabel: str, t0: float, t_end: float,
+                 threshold: List[Tuple[float, float]], threshold_label: str) -> None:
+    if not _plot_series(ax, series, t0, color, label):
+        ax.text(0.5, 0.5, 'no status frame in this black box', ha='center',
+                transform=ax.transAxes, color='#78909c')
+    _plot_threshold(ax, threshold, t0, t_end, '#c62828',
+                    f'{threshold_label}\n(read from the module)')
+    ax.set_ylabel(ylabel, fontsize=9)
+    ax.grid(color='#eceff1')
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc='upper left', bbox_to_anchor=(1.002, 1.0), fontsize=7, frameon=False)
+    ax.tick_params(labelsize=8)
 
 
 def zoom_png(a: FlightAnalysis, zoom: Any, files: List[FileInfo], t_end: float) -> bytes:

@@ -9,10 +9,10 @@ the decisions in ``docs/protocols.md`` (P13 onwards).
 from __future__ import annotations
 
 from collections import deque
-import heapq
 import math
 
 from dps_parachute_ros import protocol as p
+from uav_serial_common.device_model import ClockedModel
 
 POWER_UP_HEARTBEAT_GAP_S = 0.05
 """The module sends its second power-up heartbeat 50 ms after the first (P5)."""
@@ -26,7 +26,7 @@ RECORD_SLOTS = 8
 """Trigger records kept, oldest overwritten first."""
 
 
-class VirtualParachute:
+class VirtualParachute(ClockedModel):
     """Deterministic device model of a DPS-S parachute module.
 
     Drive it with ``receive(data, now)`` for host bytes and ``step(now)`` for the passage of
@@ -62,6 +62,7 @@ class VirtualParachute:
             raise ValueError('voltage_reply_code must be 0x34 or 0x35')
         if not stream_period_s > 0:
             raise ValueError(f'stream_period_s must be positive, got {stream_period_s!r}')
+        super().__init__(now)
         self.flag_layout = flag_layout
         self.trigger_request_header = bytes(trigger_request_header)
         self.voltage_reply_code = voltage_reply_code
@@ -105,35 +106,18 @@ class VirtualParachute:
         self.failed_attempts_total = 0
 
         self.decoder = p.StreamDecoder('from_host')
-        self._now = float(now)
-        self._out: list[tuple[float, int, bytes]] = []
-        self._seq = 0
         self._last_host_frame: float | None = None
         self.powered = False
         self._reset_volatile()
         if powered:
             self._boot()
 
-    # -- clock -----------------------------------------------------------------------------
-
-    @property
-    def now(self) -> float:
-        """The model's current time in seconds."""
-        return self._now
+    # -- wire (step, advance, now and next_event_time are ClockedModel's) -------------------
 
     @property
     def baud(self) -> int:
         """The module's serial rate in bit/s; changes right after the 0x24 reply is queued."""
         return p.BAUD_CODES[self.baud_code]
-
-    def step(self, now: float) -> bytes:
-        """Advance the model to ``now`` and return the bytes it has sent by then."""
-        self._advance_to(now)
-        return self._collect()
-
-    def advance(self, dt: float) -> bytes:
-        """Advance the model by ``dt`` seconds and return the bytes it has sent by then."""
-        return self.step(self._now + dt)
 
     def receive(self, data: bytes, now: float | None = None) -> bytes:
         """Take bytes from the host at ``now`` (default: current time); return bytes sent."""
@@ -148,12 +132,6 @@ class VirtualParachute:
                 self._handle(frame)
                 self._evaluate()
         return self._collect()
-
-    def next_event_time(self) -> float | None:
-        """Earliest future time at which the model will send or change something on its own."""
-        times = [t for t in (self._next_internal_event(),
-                             self._out[0][0] if self._out else None) if t is not None]
-        return min(times) if times else None
 
     # -- scenario --------------------------------------------------------------------------
 
@@ -279,16 +257,8 @@ class VirtualParachute:
     # -- internals: time -------------------------------------------------------------------
 
     def _advance_to(self, now: float) -> None:
-        # An earlier time (two callers racing in a wrapper) means "now": nothing happens twice.
-        now = max(float(now), self._now)
-        while True:
-            t = self._next_internal_event()
-            if t is None or t > now:
-                break
-            self._now = max(self._now, t)
-            self._process_events()
-        self._now = now
-        self._evaluate()
+        super()._advance_to(now)
+        self._evaluate()  # the auto triggers judged at the new time
 
     def _freefall_fire_time(self) -> float | None:
         if (self._below_since is None or self._freefall_latched
@@ -405,18 +375,8 @@ class VirtualParachute:
 
     # -- internals: output -----------------------------------------------------------------
 
-    def _queue(self, due: float, data: bytes) -> None:
-        self._seq += 1
-        heapq.heappush(self._out, (due, self._seq, data))
-
     def _reply(self, *frames: bytes) -> None:
         self._queue(self._now, b''.join(frames))
-
-    def _collect(self) -> bytes:
-        out = bytearray()
-        while self._out and self._out[0][0] <= self._now:
-            out += heapq.heappop(self._out)[2]
-        return bytes(out)
 
     def _status_frame(self) -> bytes:
         accel_raw = min(255, int(self.accel_g * 10 + 0.5))

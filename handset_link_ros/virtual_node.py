@@ -25,8 +25,7 @@ from uav_serial_drivers.srv import SendRaw
 from handset_link_ros import protocol as p
 from handset_link_ros.simulation import VirtualHandset
 from uav_serial_common.node_main import run_node
-from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
-                                      ParamSpec)
+from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 
 GARBAGE = bytes.fromhex('00 ff 55 aa ff 13 7b 22 7d aa 01 55 aa')
@@ -88,10 +87,7 @@ class VirtualHandsetNode(Node):
 
     def __init__(self) -> None:
         super().__init__('virtual_handset')
-        values = declare_parameters(self, SPECS)
-        problems = check_values(SPECS, values)
-        if problems:
-            raise ValueError('; '.join(problems))
+        values = declare_and_check(self, SPECS)
         self.sim = VirtualHandset(now=time.monotonic(), rate_hz=values['rate_hz'],
                                   encoding=values['encoding'])
         self.runner = create_runner(self.sim, values['link'], values['baud'])

@@ -400,6 +400,13 @@ def _to_ms(seconds: float) -> int:
     return 1 if seconds > 0 and ms == 0 else ms
 
 
+def _pattern(on_s: Any, off_s: Any, repeat: Any) -> Tuple[int, int, int]:
+    """On and off times [ms] and repeat count of an LED or buzzer pattern, checked (O31)."""
+    return (_to_ms(_seconds('on_s', on_s, 0.0, LED_TIME_MAX_S)),
+            _to_ms(_seconds('off_s', off_s, 0.0, LED_TIME_MAX_S)),
+            _int('repeat', repeat, 0, p.U16_MAX))
+
+
 def _same_length(**lists: Sequence) -> None:
     lengths = {name: len(values) for name, values in lists.items()}
     if len(set(lengths.values())) > 1:
@@ -931,9 +938,7 @@ class OriginManCore:
         """Blink LED 1 or 2 (on 0 = off, off 0 = steady, repeat 0 = forever, O31)."""
         def build() -> Tuple[List[bytes], str]:
             led = _int('led_id', led_id, p.LED_IDS[0], p.LED_IDS[-1])
-            on = _to_ms(_seconds('on_s', on_s, 0.0, LED_TIME_MAX_S))
-            off = _to_ms(_seconds('off_s', off_s, 0.0, LED_TIME_MAX_S))
-            count = _int('repeat', repeat, 0, p.U16_MAX)
+            on, off, count = _pattern(on_s, off_s, repeat)
             return [p.encode_led(led, on, off, count)], \
                 f'LED {led}: on {on} ms, off {off} ms, repeat {count}'
         return self._command(build)
@@ -943,9 +948,7 @@ class OriginManCore:
         """Beep (frequency 0 or on 0 = silent, off 0 = continuous, repeat 0 = forever)."""
         def build() -> Tuple[List[bytes], str]:
             freq = _int('frequency_hz', frequency_hz, 0, p.U16_MAX)
-            on = _to_ms(_seconds('on_s', on_s, 0.0, LED_TIME_MAX_S))
-            off = _to_ms(_seconds('off_s', off_s, 0.0, LED_TIME_MAX_S))
-            count = _int('repeat', repeat, 0, p.U16_MAX)
+            on, off, count = _pattern(on_s, off_s, repeat)
             return [p.encode_buzzer(freq, on, off, count)], \
                 f'buzzer: {freq} Hz, on {on} ms, off {off} ms, repeat {count}'
         return self._command(build)

@@ -39,8 +39,7 @@ from originman_board_ros.core import (AsrSample, BatterySample, BusServoStatus, 
                                       MOTOR_TYPES, OriginManConfig, OriginManCore, SbusSample)
 from uav_serial_common.diagnostics import DiagnosticsUpdater
 from uav_serial_common.node_main import run_node
-from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
-                                      ParamSpec)
+from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 
 REFUSAL_LOG_PERIOD_S = 5.0
 """A refused topic message is logged at most once per cause in this period (the contract)."""
@@ -106,10 +105,7 @@ class OriginManBoardNode(Node):
 
     def __init__(self) -> None:
         super().__init__('originman_board')
-        values = declare_parameters(self, PARAMS)
-        problems = check_values(PARAMS, values)
-        if problems:
-            raise ValueError('; '.join(problems))
+        values = declare_and_check(self, PARAMS)
         self.frame_id: str = values['frame_id']
         self.imu_frame_id: str = values['imu_frame_id']
         self._log_lock = threading.Lock()

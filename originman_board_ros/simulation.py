@@ -29,12 +29,12 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-import heapq
 import math
 import struct
 from typing import Callable, Deque, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from originman_board_ros import protocol as p
+from uav_serial_common.device_model import ClockedModel
 
 IMU_RATE_HZ = 50.0
 """O8: no rate is documented; 50 Hz is what the 2025 firmware's DRDY + 20 ms loop gives."""
@@ -311,7 +311,7 @@ class _Button:
 # The board
 # ---------------------------------------------------------------------------------------------
 
-class VirtualOriginManBoardModel:
+class VirtualOriginManBoardModel(ClockedModel):
     """Deterministic model of the board firmware, clocked by its caller.
 
     Public state (read it in tests; the scenario methods change it): ``powered``,
@@ -329,7 +329,7 @@ class VirtualOriginManBoardModel:
                  battery_period_s: float = BATTERY_PERIOD_S) -> None:
         if not battery_period_s > 0:
             raise ValueError(f'battery_period_s must be positive, got {battery_period_s!r}')
-        self._now = float(now)
+        super().__init__(now)
         self.battery_period_s = float(battery_period_s)
         self.battery_mv = int(battery_mv)
         self.imu_rate_hz = 0.0
@@ -351,27 +351,11 @@ class VirtualOriginManBoardModel:
         self.reports_sent = 0
         self.low_battery_alarms = 0
         self.boots = 0
-        self._out: List[Tuple[float, int, bytes]] = []
-        self._seq = 0
         self.powered = False
         self._boot()
         self.set_imu(rate_hz=imu_rate_hz)
 
-    # -- clock ----------------------------------------------------------------------------------
-
-    @property
-    def now(self) -> float:
-        """The model's current time in seconds."""
-        return self._now
-
-    def step(self, now: float) -> bytes:
-        """Advance the model to ``now`` and return the bytes it has sent by then."""
-        self._advance_to(now)
-        return self._collect()
-
-    def advance(self, dt: float) -> bytes:
-        """Advance by ``dt`` seconds and return the bytes sent by then."""
-        return self.step(self._now + dt)
+    # -- wire (step, advance, now and next_event_time are ClockedModel's) ----------------------
 
     def receive(self, data: bytes, now: Optional[float] = None) -> bytes:
         """Take host bytes that finished arriving at ``now``; return the bytes sent by then."""
@@ -382,12 +366,6 @@ class VirtualOriginManBoardModel:
                 self._inbox.append((self._now, frame))
             self._advance_to(self._now)
         return self._collect()
-
-    def next_event_time(self) -> Optional[float]:
-        """Earliest time at which the model will send or change something on its own."""
-        times = [t for t in (self._next_internal_event(),
-                             self._out[0][0] if self._out else None) if t is not None]
-        return min(times) if times else None
 
     @property
     def handler_free_at(self) -> float:
@@ -503,7 +481,7 @@ class VirtualOriginManBoardModel:
     def power_off(self) -> None:
         """Switch the board off: silent, deaf, every setting lost."""
         self.powered = False
-        self._out.clear()
+        self._drop_output()
 
     def power_on(self) -> None:
         """Switch the board on again (a reboot): power-up state, reports restart."""
@@ -571,16 +549,6 @@ class VirtualOriginManBoardModel:
         present = [t for t in times if t is not None]
         return min(present) if present else None
 
-    def _advance_to(self, now: float) -> None:
-        now = max(float(now), self._now)
-        while True:
-            t = self._next_internal_event()
-            if t is None or t > now:
-                break
-            self._now = max(self._now, t)
-            self._process_events()
-        self._now = now
-
     def _process_events(self) -> None:
         now = self._now
         if self._inbox and max(self._inbox[0][0], self._handler_free_at) <= now:
@@ -637,15 +605,8 @@ class VirtualOriginManBoardModel:
     def _report(self, due: float, frame: bytes) -> None:
         if not self.powered:
             return
-        self._seq += 1
         self.reports_sent += 1
-        heapq.heappush(self._out, (due, self._seq, frame))
-
-    def _collect(self) -> bytes:
-        out = bytearray()
-        while self._out and self._out[0][0] <= self._now:
-            out += heapq.heappop(self._out)[2]
-        return bytes(out)
+        self._queue(due, frame)
 
     def _beep(self, t: float, frequency_hz: int, on_ms: int, off_ms: int, repeat: int,
               source: str) -> None:

@@ -91,13 +91,17 @@ class CommandRecorder:
 
 
 class VirtualOriginManBoard:
-    """The board model on a pty: ``start()``, ``stop()``, ``path``, ``model``, ``runner``."""
+    """The board model on a pty: ``start()``, ``stop()``, ``path``, ``model``, ``runner``.
+
+    The wire faults hit every frame the board sends (``fault_unsolicited``); with False, only
+    output that answers the driver's bytes at once.
+    """
 
     def __init__(self, link_path: Optional[str], baud: int = p.BAUD, seed: Optional[int] = None,
-                 **model_kwargs: Any) -> None:
+                 fault_unsolicited: bool = True, **model_kwargs: Any) -> None:
         self.runner = VirtualDeviceRunner(link_path, self._on_input, on_tick=self._on_tick,
                                           next_event=self._next_event, baud=baud, seed=seed,
-                                          fault_unsolicited=True)
+                                          fault_unsolicited=fault_unsolicited)
         self.model = VirtualOriginManBoardModel(self.runner.now(), **model_kwargs)
         self.recorder = CommandRecorder()
         self.runner.add_tap(self.recorder.tap)

@@ -1,8 +1,10 @@
 """The OriginMan board model behind a real pty in this process, for link and core tests.
 
-:class:`VirtualBoard` joins :class:`VirtualOriginManBoardModel` to a
-:class:`uav_serial_common.virtual_device.VirtualDeviceRunner` (wire timing at 1 Mbaud, wire
-faults) and taps every byte the driver writes, decoded the way the board's parser sees it.
+:class:`VirtualBoard` is the virtual board of ``virtual_originman_board``
+(:class:`~originman_board_ros.virtual_node.VirtualOriginManBoard`: the model on a
+:class:`uav_serial_common.virtual_device.VirtualDeviceRunner`, wire timing at 1 Mbaud, wire
+faults) with a fixed seed, wire faults on direct answers only, and a tap on every byte of the
+wire, decoded the way the board's parser (or the host's decoder) sees it.
 """
 
 from __future__ import annotations
@@ -11,48 +13,19 @@ import threading
 from typing import List, Optional, Tuple
 
 from originman_board_ros import protocol as p
-from originman_board_ros.simulation import VirtualOriginManBoardModel
-from uav_serial_common.virtual_device import VirtualDeviceRunner
+from originman_board_ros.virtual_node import VirtualOriginManBoard
 
 
-class VirtualBoard:
+class VirtualBoard(VirtualOriginManBoard):
     """A board model on a pty: ``start()``, ``stop()``, ``path``, ``model``, ``runner``."""
 
     def __init__(self, link_path: Optional[str], baud: int = p.BAUD, seed: int = 1,
                  **model_kwargs) -> None:
-        self.runner = VirtualDeviceRunner(link_path, self._on_input, on_tick=self._on_tick,
-                                          next_event=self._next_event, baud=baud, seed=seed)
-        self.model = VirtualOriginManBoardModel(self.runner.now(), **model_kwargs)
+        super().__init__(link_path, baud=baud, seed=seed, fault_unsolicited=False,
+                         **model_kwargs)
         self._chunks: List[Tuple[str, bytes]] = []  # (direction, bytes), in wire order
         self._tap_lock = threading.Lock()
         self.runner.add_tap(self._tap)
-
-    @property
-    def path(self) -> str:
-        """Path the driver opens."""
-        return self.runner.path
-
-    def start(self) -> 'VirtualBoard':
-        """Open the pty and start the device thread."""
-        self.runner.start()
-        return self
-
-    def stop(self) -> None:
-        """Stop the device thread and remove the pty."""
-        self.runner.stop()
-
-    def locked(self):
-        """Hold the model lock (change the model from a test)."""
-        return self.runner.locked()
-
-    def _on_input(self, data: bytes, now: float) -> bytes:
-        return self.model.receive(data, now)
-
-    def _on_tick(self, now: float) -> bytes:
-        return self.model.step(now)
-
-    def _next_event(self) -> Optional[float]:
-        return self.model.next_event_time()
 
     def _tap(self, direction: str, data: bytes, t: float) -> None:
         with self._tap_lock:

@@ -1,11 +1,12 @@
 """The shared parameter table and diagnostics updater, on real rclpy nodes."""
 
 from diagnostic_msgs.msg import DiagnosticArray
+import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from uav_serial_common.diagnostics import DiagnosticsUpdater, ERROR, OK, WARN
-from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
-                                      ParamSpec)
+from uav_serial_common.params import (check_values, declare_and_check, declare_parameters,
+                                      ParameterBinding, ParamSpec)
 
 SPECS = (
     ParamSpec('policy', 'confirm', 'what to answer', choices=('confirm', 'deny', 'defer')),
@@ -33,6 +34,18 @@ def test_declared_with_descriptors_and_arrays_default_to_empty(ros):
     assert check_values(SPECS, {'policy': 'maybe', 'threshold': 5}) == [
         "policy must be one of confirm, deny, defer, got 'maybe'",
         'threshold must be >= 10, got 5']
+
+
+def test_a_node_given_bad_values_refuses_to_start_naming_every_one(ros):
+    node = Node('params_refused', context=ros.context, parameter_overrides=[
+        Parameter('policy', value='maybe'), Parameter('threshold', value=5)])
+    try:
+        with pytest.raises(ValueError) as refused:
+            declare_and_check(node, SPECS)
+        assert str(refused.value) == ("policy must be one of confirm, deny, defer, got 'maybe'; "
+                                      'threshold must be >= 10, got 5')
+    finally:
+        node.destroy_node()
 
 
 def test_a_set_is_checked_whole_before_anything_is_committed_or_applied(ros):

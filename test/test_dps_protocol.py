@@ -5,6 +5,7 @@ from hypothesis import strategies as st
 import pytest
 
 from dps_parachute_ros import protocol as p
+from support import split
 
 
 def h(text: str) -> bytes:
@@ -511,19 +512,13 @@ def test_every_light_threshold_step_round_trips(raw):
 # Stream decoder properties
 # ---------------------------------------------------------------------------------------------
 
-def _split(data: bytes, cuts: list[int]) -> list[bytes]:
-    points = sorted({c % (len(data) + 1) for c in cuts})
-    bounds = [0] + points + [len(data)]
-    return [data[a:b] for a, b in zip(bounds, bounds[1:])]
-
-
 @settings(max_examples=300)
 @given(st.binary(max_size=400), st.lists(st.integers(0, 10_000), max_size=20),
        st.sampled_from(['from_module', 'from_host']))
 def test_random_bytes_never_raise_and_every_byte_is_accounted_for(data, cuts, direction):
     decoder = p.StreamDecoder(direction)
     frames = []
-    for chunk in _split(data, cuts):
+    for chunk in split(data, cuts):
         frames += decoder.feed(chunk)
     in_frames = sum(len(f.raw) for f in frames)
     assert in_frames + decoder.bytes_discarded + decoder.pending == len(data)
@@ -561,7 +556,7 @@ def test_module_frames_in_noise_split_anywhere_are_all_recovered(pieces, tail, c
     data = b''.join(n + f for n, f in pieces) + tail
     decoder = p.StreamDecoder()
     frames = []
-    for chunk in _split(data, cuts):
+    for chunk in split(data, cuts):
         frames += decoder.feed(chunk)
     frames += decoder.flush()
     assert [f.raw for f in frames] == [f for _, f in pieces]
@@ -576,7 +571,7 @@ def test_host_frames_in_noise_split_anywhere_are_all_recovered(pieces, cuts):
     data = b''.join(n + f for n, f in pieces)
     decoder = p.StreamDecoder('from_host')
     frames = []
-    for chunk in _split(data, cuts):
+    for chunk in split(data, cuts):
         frames += decoder.feed(chunk)
     assert [f.raw for f in frames] == [f for _, f in pieces]
     assert decoder.pending == 0 or decoder.flush() == []

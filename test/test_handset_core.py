@@ -12,19 +12,12 @@ from handset_link_ros import protocol as p
 from handset_link_ros.core import (ACTION_NONE, ACTION_RETURN_TO_HOME, HandsetConfig,
                                    HandsetCore)
 from handset_link_ros.simulation import VirtualHandset
+from support import FakeClock
 from uav_serial_common.process import wait_for
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 
 T = p.CommandType
 START = 1000.0
-
-
-class FakeClock:
-    def __init__(self, t: float = START) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
 
 
 class Recorder:
@@ -54,7 +47,7 @@ class Rig:
     """A core without threads, fed by the handset model on one fake clock."""
 
     def __init__(self, **config) -> None:
-        self.clock = FakeClock()
+        self.clock = FakeClock(START)
         self.seen = Recorder()
         config.setdefault('port', 'loop://')
         self.core = HandsetCore(HandsetConfig(**config), clock=self.clock,
@@ -379,7 +372,7 @@ def test_a_callback_that_raises_is_logged_and_the_link_goes_on():
         raise RuntimeError('consumer bug')
 
     logs = []
-    core = HandsetCore(HandsetConfig(port='loop://'), clock=FakeClock(), on_setpoint=broken,
+    core = HandsetCore(HandsetConfig(port='loop://'), clock=FakeClock(START), on_setpoint=broken,
                        on_log=lambda level, text: logs.append((level, text)))
     core.start(run_threads=False)
     core.feed(p.encode_set_yaw(1) + p.encode_set_yaw(2))

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 import pytest
 
 from handset_link_ros import protocol as p
+from support import split
 
 T = p.CommandType
 
@@ -493,12 +494,6 @@ def test_every_type_and_encoding_round_trips(case):
     assert commands(decode_all(frame)) == [(spec.type, result.value, encoding)]
 
 
-def _split(data: bytes, cuts: list) -> list:
-    points = sorted({c % (len(data) + 1) for c in cuts})
-    bounds = [0] + points + [len(data)]
-    return [data[a:b] for a, b in zip(bounds, bounds[1:])]
-
-
 valid_frames = type_encoding.map(lambda c: p.encode_command(c[0].type, c[2], c[1]))
 noise = st.binary(max_size=12).map(lambda b: bytes(x for x in b if x != 0xAA))
 
@@ -510,7 +505,7 @@ def test_frames_in_noise_split_anywhere_are_all_recovered_in_order(pieces, tail,
     data = b''.join(n + f for n, f in pieces) + tail
     decoder = p.StreamDecoder()
     results = []
-    for chunk in _split(data, cuts):
+    for chunk in split(data, cuts):
         results += decoder.feed(chunk)
     results += decoder.flush()
     assert [r.raw for r in results] == [f for _, f in pieces]
@@ -524,7 +519,7 @@ def test_frames_in_noise_split_anywhere_are_all_recovered_in_order(pieces, tail,
 def test_h13_random_bytes_never_raise_and_every_byte_is_accounted_for(data, cuts):
     decoder = p.StreamDecoder()
     results = []
-    for chunk in _split(data, cuts):
+    for chunk in split(data, cuts):
         results += decoder.feed(chunk)
     results += decoder.flush()
     assert decoder.pending == 0

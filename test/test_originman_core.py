@@ -7,7 +7,6 @@ deterministic while the bytes still cross a real pty.
 
 from dataclasses import replace
 import math
-import threading
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core import (ConfigError, IDLE_MAX_S, OriginManConfig, OriginManCore,
@@ -15,22 +14,8 @@ from originman_board_ros.core import (ConfigError, IDLE_MAX_S, OriginManConfig, 
 from originman_board_ros.protocol import BusSub
 from originman_rig import VirtualBoard
 import pytest
+from support import FakeClock
 from uav_serial_common.process import wait_for
-
-
-class FakeClock:
-    def __init__(self, t: float = 1000.0) -> None:
-        self.t = t
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self.t
-
-    def advance(self, dt: float) -> float:
-        with self._lock:
-            self.t += dt
-            return self.t
 
 
 class Rig:

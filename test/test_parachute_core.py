@@ -23,28 +23,13 @@ from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
+from support import FakeClock
 from uav_serial_common.process import wait_for
 
 DEPLOY = p.encode_deploy()
 CONFIRM = p.encode_trigger_confirm()
 TIMEOUT_S = 0.5
 """Request timeout of the session under test (1 s on the real module, P12): fast tests."""
-
-
-class FakeClock:
-    """Monotonic seconds that move only when the test says so."""
-
-    def __init__(self) -> None:
-        self.t = 1000.0
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self.t
-
-    def advance(self, dt: float) -> None:
-        with self._lock:
-            self.t += dt
 
 
 class Heard(Listener):
@@ -124,6 +109,14 @@ class Rig:
 @pytest.fixture
 def rig(tmp_path):
     rig = Rig(tmp_path, attitude_threshold_deg=70)
+    yield rig
+    rig.close()
+
+
+@pytest.fixture
+def timed_rig(tmp_path):
+    """A rig with wire timing (115200 baud), for tests that delay the module's replies."""
+    rig = Rig(tmp_path, baud=115200)
     yield rig
     rig.close()
 
@@ -264,6 +257,21 @@ def policy(rig, name):
                                                        'trigger_request_policy': name}))
 
 
+def held_request(rig):
+    """Make the module ask under the defer policy; return the wire mark from before it asked."""
+    policy(rig, 'defer')
+    mark = rig.wire.mark()
+    ask(rig)
+    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    return mark
+
+
+def assert_never_confirmed(rig, mark):
+    """The module gave up its request: no confirm went out since ``mark``, it did not deploy."""
+    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
+    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+
+
 @pytest.mark.parametrize('name', ['confirm', 'deny'])
 def test_trigger_request_confirm_and_deny(rig, name):
     policy(rig, name)
@@ -278,15 +286,11 @@ def test_trigger_request_confirm_and_deny(rig, name):
         assert CONFIRM in rig.wire.since(mark)
     else:
         assert decision.decision == 'denied' and decision.latency_ms is None
-        wait_for(lambda: rig.sim.requests_expired, 3, what='the request to expire')
-        assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+        assert_never_confirmed(rig, mark)
 
 
 def test_deferred_request_times_out_by_the_clock(rig):
-    policy(rig, 'defer')
-    mark = rig.wire.mark()
-    ask(rig)
-    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    mark = held_request(rig)
     rig.clock.advance(0.5)
     rig.session.tick()
     assert rig.snap.pending_request and not rig.heard.decisions  # 0.8 s not over yet
@@ -294,14 +298,11 @@ def test_deferred_request_times_out_by_the_clock(rig):
     rig.session.tick()
     assert [d.decision for d in rig.heard.decisions] == ['timed_out']
     assert not rig.session.answer_trigger_request(True).ok  # nothing pending any more
-    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
-    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+    assert_never_confirmed(rig, mark)
 
 
 def test_deferred_request_answered_true_deploys(rig):
-    policy(rig, 'defer')
-    ask(rig)
-    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    held_request(rig)
     result = rig.session.answer_trigger_request(True)
     assert result.ok and 'armed: it deploys' in result.message, result.message
     assert rig.heard.decisions[-1].decision == 'confirmed'
@@ -385,33 +386,24 @@ def test_safety_3_every_deploy_frame_that_left_unacknowledged_counts(rig):
 
 
 def test_safety_4_a_policy_change_settles_a_pending_request_at_once(rig):
-    policy(rig, 'defer')
-    mark = rig.wire.mark()
-    ask(rig)
-    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    mark = held_request(rig)
     policy(rig, 'deny')
     assert [(d.decision, d.policy) for d in rig.heard.decisions] == [('denied', 'deny')]
     assert 'policy changed to deny' in rig.heard.decisions[0].reason
     assert not rig.snap.pending_request
     assert not rig.session.answer_trigger_request(True).ok  # nothing left to answer
-    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
-    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+    assert_never_confirmed(rig, mark)
 
 
 def test_safety_4_a_change_to_confirm_confirms_within_the_window(rig):
-    policy(rig, 'defer')
-    ask(rig)
-    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    held_request(rig)
     policy(rig, 'confirm')
     assert rig.heard.decisions[-1].decision == 'confirmed'
     wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
 
 
 def test_safety_4_a_change_to_confirm_after_the_window_confirms_nothing(rig):
-    policy(rig, 'defer')
-    mark = rig.wire.mark()
-    ask(rig)
-    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    mark = held_request(rig)
     rig.clock.advance(1.0)  # the module's 1 s is over (the defer deadline not yet judged)
     policy(rig, 'confirm')
     decision = rig.heard.decisions[-1]
@@ -420,17 +412,13 @@ def test_safety_4_a_change_to_confirm_after_the_window_confirms_nothing(rig):
 
 
 def test_safety_5_answer_true_to_a_locked_module_does_not_claim_a_deployment(rig):
-    policy(rig, 'defer')
-    mark = rig.wire.mark()
-    ask(rig)
-    wait_for(lambda: rig.snap.pending_request, 3, what='the request held')
+    mark = held_request(rig)
     assert rig.session.arm(False).ok
     result = rig.session.answer_trigger_request(True)
     assert not result.ok and 'locked' in result.message and 'deploys' not in result.message
     decision = rig.heard.decisions[-1]
     assert decision.decision == 'denied' and 'locked' in decision.reason
-    wait_for(lambda: rig.sim.requests_expired, 3, what='the module to give up')
-    assert CONFIRM not in rig.wire.since(mark) and not rig.sim.triggered
+    assert_never_confirmed(rig, mark)
 
 
 def test_safety_6_concurrent_deploys_send_one_frame_and_never_rearm(rig):
@@ -454,15 +442,8 @@ def test_safety_6_concurrent_deploys_send_one_frame_and_never_rearm(rig):
     assert rig.wire.since(mark, p.CMD_ARM) == [p.encode_arm(True)]
 
 
-def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(tmp_path):
-    rig = Rig(tmp_path, baud=115200)
-    try:
-        check_deploy_after_reboot(rig)
-    finally:
-        rig.close()
-
-
-def check_deploy_after_reboot(rig):
+def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(timed_rig):
+    rig = timed_rig
     rig.arm()
     assert rig.snap.armed
     rig.runner.faults.reply_delay_s = 0.15  # the re-read takes a while
@@ -508,15 +489,8 @@ def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
         assert rig.sim.failed_attempts_total == 0 and not rig.sim.triggered
 
 
-def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(tmp_path):
-    rig = Rig(tmp_path, baud=115200)
-    try:
-        check_one_event_for_a_late_ack(rig)
-    finally:
-        rig.close()
-
-
-def check_one_event_for_a_late_ack(rig):
+def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(timed_rig):
+    rig = timed_rig
     rig.arm()
     rig.runner.faults.reply_delay_s = TIMEOUT_S + 0.2  # the ack arrives after the timeout
     result = rig.session.deploy('DEPLOY')

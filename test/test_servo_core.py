@@ -16,20 +16,10 @@ from desheng_servo_ros.protocol import Instruction, StreamDecoder
 from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
+from support import FakeClock
 from uav_serial_common.process import wait_for
 
 JOINTS = (Joint(1, 'pan'), Joint(2, 'tilt'), Joint(3, 'roll'))
-
-
-class FakeClock:
-    def __init__(self, t=1000.0):
-        self.t = t
-
-    def __call__(self):
-        return self.t
-
-    def advance(self, dt):
-        self.t += dt
 
 
 class Log:

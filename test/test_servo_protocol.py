@@ -5,6 +5,7 @@ import pytest
 
 from desheng_servo_ros import protocol as p
 from desheng_servo_ros.protocol import Instruction, ProtocolError, StreamDecoder
+from support import split
 
 
 def h(text: str) -> bytes:
@@ -292,12 +293,6 @@ requests = st.one_of(
 noise = st.binary(max_size=30).map(lambda b: b.replace(b'\xff', b'\x00'))
 
 
-def _split(data: bytes, cuts: list[int]) -> list[bytes]:
-    points = sorted({c % (len(data) + 1) for c in cuts})
-    edges = [0] + points + [len(data)]
-    return [data[a:b] for a, b in zip(edges, edges[1:])]
-
-
 @settings(max_examples=300, deadline=None)
 @given(st.data(), st.sampled_from(['reply', 'request']))
 def test_frames_in_noise_split_anywhere_are_all_recovered(data, kind):
@@ -307,7 +302,7 @@ def test_frames_in_noise_split_anywhere_are_all_recovered(data, kind):
     cuts = data.draw(st.lists(st.integers(0, 10_000), max_size=12))
     dec = StreamDecoder(kind)
     got = []
-    for chunk in _split(stream, cuts):
+    for chunk in split(stream, cuts):
         got += dec.feed(chunk)
     assert [f.raw for f in got] == frames
     assert dec.bytes_discarded == sum(len(g) for g in gaps)

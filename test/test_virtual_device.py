@@ -62,14 +62,11 @@ def test_garbage_goes_out_before_the_next_output(device):
 
 def test_a_reply_comes_no_sooner_than_request_and_reply_take_on_the_wire(tmp_path):
     with VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, baud=9600) as runner:
-        driver = serial.serial_for_url(runner.path, baudrate=9600, timeout=0.5)
-        try:
+        with serial.serial_for_url(runner.path, baudrate=9600, timeout=0.5) as driver:
             start = time.monotonic()
             driver.write(bytes(8))
             assert len(read_n(driver, 24)) == 24
             assert time.monotonic() - start >= wire_time(8 + 24, 9600) * 0.95
-        finally:
-            driver.close()
 
 
 def test_unplug_for_a_while_replugs_at_the_same_path(device):
@@ -80,12 +77,9 @@ def test_unplug_for_a_while_replugs_at_the_same_path(device):
             driver.read(1)
     driver.close()
     wait_for(lambda: runner.port.plugged, 3, what='the automatic replug')
-    again = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
-    try:
+    with serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2) as again:
         again.write(b'\x05')
         assert read_n(again, 3) == bytes([0xAA, 5, 0xAF])
-    finally:
-        again.close()
 
 
 def test_safety_20_a_driver_at_another_baud_sends_and_receives_garbage(tmp_path):
@@ -97,8 +91,7 @@ def test_safety_20_a_driver_at_another_baud_sends_and_receives_garbage(tmp_path)
         heard.append(bytes(data))
         return [bytes([0xAA, b, (0xAA + b) & 0xFF]) for b in data]
     with VirtualDeviceRunner(str(tmp_path / 'dev'), model, baud=9600) as runner:
-        driver = serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2)
-        try:
+        with serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2) as driver:
             request = bytes.fromhex('FF FF 01 04 02 38 04 BA')
             driver.write(request)
             wait_for(lambda: heard, 2, what='the device to receive something')
@@ -114,18 +107,13 @@ def test_safety_20_a_driver_at_another_baud_sends_and_receives_garbage(tmp_path)
             heard.clear()
             driver.write(b'\x01')
             assert read_n(driver, 3) == bytes([0xAA, 1, 0xAB]) and heard == [b'\x01']
-        finally:
-            driver.close()
 
 
 def test_a_device_without_wire_timing_ignores_the_drivers_baud(tmp_path):
     with VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, baud=0) as runner:
-        driver = serial.serial_for_url(runner.path, baudrate=9600, timeout=0.2)
-        try:
+        with serial.serial_for_url(runner.path, baudrate=9600, timeout=0.2) as driver:
             driver.write(b'\x07')
             assert read_n(driver, 3) == bytes([0xAA, 7, 0xB1])
-        finally:
-            driver.close()
 
 
 def test_unsolicited_output_is_faulted_when_asked_and_the_checksum_position_is_honoured(

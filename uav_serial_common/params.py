@@ -7,6 +7,7 @@ at runtime. From that table:
 - `declare_parameters()` declares them all with `ParameterDescriptor`s (ranges, read-only,
   ``additional_constraints``) and returns their values, arrays that were not given as ``[]``;
 - `check_values()` is the start-up check (a driver refuses to start with a bad value);
+  `declare_and_check()` does both and raises with every problem;
 - `ParameterBinding` follows the ROS 2 demos' pattern for runtime changes: the on-set callback
   checks *every* parameter of a set before anything happens, then an optional ``commit`` does
   what must succeed for the set to be accepted (a driver writing a setting to its device and
@@ -97,6 +98,19 @@ def check_values(specs: Iterable[ParamSpec], values: Mapping[str, Any]) -> List[
             if problem:
                 problems.append(problem)
     return problems
+
+
+def declare_and_check(node: Node, specs: Sequence[ParamSpec]) -> Dict[str, Any]:
+    """Declare every spec on `node` and return the values; raise ValueError naming every bad one.
+
+    The start-up check of a node that refuses to start with a bad value (``run_node`` prints the
+    reason as one line).
+    """
+    values = declare_parameters(node, specs)
+    problems = check_values(specs, values)
+    if problems:
+        raise ValueError('; '.join(problems))
+    return values
 
 
 Commit = Callable[[Dict[str, Any]], Tuple[bool, str]]
