@@ -85,12 +85,13 @@ class _Guarded(Listener):
     def __init__(self, inner: Listener, log: Callable[..., None]) -> None:
         self._inner = inner
         self._report = log
+        # One wrapper per callback, made once: they run with every frame.
+        for name in dir(inner):
+            if name.startswith('on_') and callable(getattr(inner, name)):
+                setattr(self, name, self._guard(name, getattr(inner, name)))
 
-    def __getattribute__(self, name: str) -> Any:
-        if not name.startswith('on_'):
-            return object.__getattribute__(self, name)
-        method = getattr(object.__getattribute__(self, '_inner'), name)
-        report = object.__getattribute__(self, '_report')
+    def _guard(self, name: str, method: Callable[..., None]) -> Callable[..., None]:
+        report = self._report
 
         def call(*args: Any) -> None:
             try:
@@ -273,7 +274,7 @@ class ParachuteSession:
     def _update(self, **changes: Any) -> Snapshot:
         """Replace fields of the snapshot (caller holds _lock or takes it here)."""
         with self._lock:
-            self._snap = replace(self._snap, **changes)
+            self._snap = self._snap.evolve(**changes)
             self._lock.notify_all()
             return self._snap
 
@@ -282,7 +283,7 @@ class ParachuteSession:
         with self._lock:
             if epoch != self._epoch:
                 return False
-            self._snap = replace(self._snap, **changes)
+            self._snap = self._snap.evolve(**changes)
             self._lock.notify_all()
             return True
 
@@ -1072,7 +1073,7 @@ class ParachuteSession:
             before = self._snap
             if triggered is not None:
                 also['triggered'] = triggered
-            self._snap = replace(before, **also)
+            self._snap = before.evolve(**also)
             reported = self._snap.boot_count in self._reported_boots
             self._lock.notify_all()
         if triggered is None or before.triggered == triggered:
