@@ -558,7 +558,7 @@ class ParachuteSession:
         self.blackbox.record('link', **info)
 
     def tick(self) -> None:
-        """Judge the time-based rules now (the monitor does this every 20 ms)."""
+        """Judge the time-based rules now (the monitor does at each deadline, or IDLE_WAKE_S)."""
         self._judge_online()
         now = self.clock()
         with self._lock:
