@@ -1,10 +1,12 @@
 """Black box: every frame, request, decision and state change of one run as JSON lines.
 
 One file per run (``parachute-<UTC time>-<pid>.jsonl``) in a directory that is created when
-missing. Callers on any thread only put a record on a queue, so neither the serial reader nor a
-deploy ever waits for the disk; one writer thread serializes, writes in batches and, on safety
-events, flushes and fsyncs. ``sync()`` returns whether everything recorded before it reached the
-disk.
+missing. Callers on any thread only append a record to a queue (a frame as its raw bytes), so
+neither the serial reader nor a deploy ever waits for the disk or for JSON; one writer thread
+serializes, writes in batches and, on safety events, flushes and fsyncs. The writer is woken by
+``sync()`` and ``close()``, by a queue that grows long, and otherwise once per
+``FLUSH_PERIOD_S``: not once per record (every thread wake-up costs CPU). ``sync()`` returns
+whether everything recorded before it reached the disk.
 
 A logging problem never takes the parachute away (README, "Safety model of deploy"): the
 constructor never raises, a directory that cannot be used, a full disk or an I/O error only
@@ -19,10 +21,10 @@ record ``{"event": "writing again", "error", "failed_at", "lost", "lost_in_outag
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections import deque
 import errno
 import json
 import os
-import queue
 import threading
 import time
 from typing import Any, Callable, List, Optional
@@ -35,6 +37,8 @@ REOPEN_PERIOD_S = 5.0
 """A black-box file that could not be created is tried again this often."""
 BUDGET_CHECK_BYTES = 1 << 18
 """The size bound is checked again after this much was written (and at start)."""
+WAKE_RECORDS = 512
+"""The writer is woken before its period when this many records wait."""
 
 
 @dataclass(frozen=True)
@@ -102,7 +106,10 @@ class BlackBox:
         self._since_check = 0
         self._open()
         self._enforce_budget()
-        self._queue: 'queue.SimpleQueue[Any]' = queue.SimpleQueue()
+        # Records (dicts), frames (_Frame tuples) and markers, in order; deque appends and pops
+        # are atomic, so producers take no lock.
+        self._queue: 'deque[Any]' = deque()
+        self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name='blackbox', daemon=True)
         self._thread.start()
 
@@ -132,7 +139,7 @@ class BlackBox:
             self._max_bytes = max_bytes
             self._since_check = BUDGET_CHECK_BYTES
         if not self._closed:
-            self._queue.put(_TICK)
+            self._put(_TICK, wake=True)
 
     def status(self) -> BlackBoxStatus:
         """Return the present state, for diagnostics and the preflight check."""
@@ -152,11 +159,19 @@ class BlackBox:
         fields['t'] = time.time()
         fields['mono'] = time.monotonic()
         fields['kind'] = kind
-        self._queue.put(fields)
+        self._put(fields)
 
     def frame(self, direction: str, data: bytes, **fields: Any) -> None:
-        """Record bytes on the wire (``direction`` 'tx' or 'rx') as hex."""
-        self.record('frame', dir=direction, hex=data.hex(' '), **fields)
+        """Record bytes on the wire (``direction`` 'tx' or 'rx') as hex (made by the writer)."""
+        if self._closed:
+            return
+        self._put((direction, bytes(data), fields, time.time(), time.monotonic()))
+
+    def _put(self, item: Any, wake: bool = False) -> None:
+        queue = self._queue
+        queue.append(item)
+        if wake or len(queue) >= WAKE_RECORDS:
+            self._wake.set()
 
     def sync(self, timeout: Optional[float] = 2.0) -> bool:
         """Flush and fsync everything recorded so far.
@@ -168,7 +183,7 @@ class BlackBox:
         if self._closed:
             return False
         item = _Sync()
-        self._queue.put(item)
+        self._put(item, wake=True)
         if timeout is None:
             return True
         return item.event.wait(timeout) and item.ok
@@ -178,37 +193,45 @@ class BlackBox:
         if self._closed:
             return
         self._closed = True
-        self._queue.put(_CLOSE)
+        self._put(_CLOSE, wake=True)
         self._thread.join(timeout)
 
     # -- writer thread ------------------------------------------------------------------------
 
     def _run(self) -> None:
         last_flush = time.monotonic()
+        queue, wake = self._queue, self._wake
         while True:
+            wake.wait(min(max(last_flush + FLUSH_PERIOD_S - time.monotonic(), 0.01),
+                          FLUSH_PERIOD_S))
+            wake.clear()  # before taking the items: a later append sets it again
+            while queue:
+                item = queue.popleft()
+                try:
+                    if item is _CLOSE:
+                        self._flush()
+                        self._fsync()
+                        if self._fd is not None:
+                            os.close(self._fd)
+                            self._fd = None
+                        return
+                    if isinstance(item, _Sync):
+                        item.ok = self._flush() and self._fsync() and self.status().writing
+                        item.event.set()
+                        last_flush = time.monotonic()
+                        continue
+                    if item is not _TICK:
+                        self._serialize(item)
+                    if self._buf_bytes >= BATCH_BYTES:
+                        self._flush()
+                        last_flush = time.monotonic()
+                except Exception as exc:  # noqa: BLE001 - the recorder must outlive any bug
+                    self._failed(f'internal error: {exc!r}', 0)
+                    if isinstance(item, _Sync):
+                        item.event.set()
             try:
-                item = self._queue.get(timeout=FLUSH_PERIOD_S)
-            except queue.Empty:
-                item = _TICK
-            try:
-                if item is _CLOSE:
-                    self._flush()
-                    self._fsync()
-                    if self._fd is not None:
-                        os.close(self._fd)
-                        self._fd = None
-                    return
-                if isinstance(item, _Sync):
-                    item.ok = self._flush() and self._fsync() and self.status().writing
-                    item.event.set()
-                    last_flush = time.monotonic()
-                    continue
-                if item is not _TICK:
-                    line = (json.dumps(item, default=str, separators=(',', ':')) + '\n').encode()
-                    self._buf.append(line)
-                    self._buf_bytes += len(line)
                 now = time.monotonic()
-                if self._buf_bytes >= BATCH_BYTES or now - last_flush >= FLUSH_PERIOD_S:
+                if now - last_flush >= FLUSH_PERIOD_S - 0.005:  # the wait's own jitter
                     self._flush()
                     last_flush = now
                 with self._lock:
@@ -217,8 +240,15 @@ class BlackBox:
                     self._enforce_budget()
             except Exception as exc:  # noqa: BLE001 - the recorder must outlive any bug
                 self._failed(f'internal error: {exc!r}', 0)
-                if isinstance(item, _Sync):
-                    item.event.set()
+
+    def _serialize(self, item: Any) -> None:
+        if isinstance(item, tuple):  # a frame: (dir, bytes, fields, t, mono)
+            direction, data, extra, t, mono = item
+            item = {'dir': direction, 'hex': data.hex(' '), **extra, 't': t, 'mono': mono,
+                    'kind': 'frame'}
+        line = (json.dumps(item, default=str, separators=(',', ':')) + '\n').encode()
+        self._buf.append(line)
+        self._buf_bytes += len(line)
 
     def _open(self) -> bool:
         """Create this run's file (or open the fixed path); False when it cannot be."""

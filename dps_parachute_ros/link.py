@@ -25,6 +25,9 @@ REQUEST_TIMEOUT_S = 1.0
 """P12: no reply within 1 s of a request means the module is offline."""
 RECORDS_QUIET_S = 0.2
 """The trigger-record reply is complete when no further record came for this long."""
+READ_TIMEOUT_S = 0.5
+"""The reader's longest sleep on a quiet line (SerialLink wakes it 5 ms after the last byte when
+the decoder holds a frame that could still grow, P3); every wake-up costs CPU."""
 
 EXPECTED_REPLY: dict[int, Tuple[Type, ...]] = {
     p.CMD_HEARTBEAT: (p.Heartbeat,),
@@ -119,7 +122,8 @@ class ParachuteLink:
         self.timeouts = 0
         self.serial = SerialLink(
             url, baud, self._decoder, on_frame=self._on_frame, on_connection=on_connection,
-            on_tx=self._on_tx, logger=logger, read_timeout_s=0.02, idle_flush_s=0.005)
+            on_tx=self._on_tx, logger=logger, read_timeout_s=READ_TIMEOUT_S,
+            idle_flush_s=0.005)
 
     # -- lifecycle and state --------------------------------------------------------------------
 

@@ -17,6 +17,7 @@ from std_msgs.msg import Bool
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.state import (Deployment, RequestDecision, SETTINGS, Snapshot,
                                      source_name)
+from uav_serial_common import cdr
 from uav_serial_drivers.msg import (ParachuteConfig, ParachuteStatus, TriggerEvent,
                                     TriggerRecord, TriggerRequest)
 
@@ -47,6 +48,35 @@ def status_msg(snap: Snapshot, stamp: Time, frame_id: str) -> ParachuteStatus:
         attitude_trigger_enabled=bool(snap.attitude_trigger_enabled),
         freefall_trigger_enabled=bool(snap.freefall_trigger_enabled))
     return _header(msg, stamp, frame_id)
+
+
+class StatusPacker:
+    """``~/status`` as serialized bytes, the same message as :func:`status_msg` makes.
+
+    The status stream is the one message of every frame (20 Hz by default): the frame id is
+    serialized once, each message is a struct pack (``uav_serial_common.cdr``).
+    """
+
+    def __init__(self, frame_id: str) -> None:
+        self.frame_id = ''
+        self._parts: tuple = ()
+        self.set_frame_id(frame_id)
+
+    def set_frame_id(self, frame_id: str) -> None:
+        """Change ``header.frame_id`` (any thread: the parts change as one)."""
+        frame, offset = cdr.header(frame_id)
+        # online armed triggered tilt accel streaming light bay_open charging voltage att ff
+        self._parts = (frame, cdr.fields('???dd?d??d??', offset)[0].pack)
+        self.frame_id = frame_id
+
+    def pack(self, snap: Snapshot, sec: int, nanosec: int) -> bytes:
+        """Return the serialized ``~/status`` of `snap`, stamped (sec, nanosec)."""
+        frame, body = self._parts
+        return b''.join((cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), frame, body(
+            snap.online, bool(snap.armed), bool(snap.triggered), _f(snap.tilt_deg),
+            _f(snap.accel_g), snap.streaming, _f(snap.light_v), snap.bay_open,
+            bool(snap.charging), _f(snap.voltage_v), bool(snap.attitude_trigger_enabled),
+            bool(snap.freefall_trigger_enabled))))
 
 
 def battery_msg(snap: Snapshot, stamp: Time, frame_id: str, location: str) -> BatteryState:

@@ -16,7 +16,8 @@ from __future__ import annotations
 from dataclasses import asdict
 import math
 import threading
-from typing import Any, Callable, Dict, Optional
+import time
+from typing import Any, Callable, Dict, Optional, Tuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -96,6 +97,7 @@ class ParachuteNode(Node, Listener):
         if problems:
             raise ValueError('; '.join(problems))
         self.frame_id: str = values['frame_id']
+        self._status = m.StatusPacker(self.frame_id)
         config = SessionConfig.from_values(values)
         self._stamp_lock = threading.Lock()  # guards the two below (session threads, services)
         self._config_stamp = None
@@ -157,6 +159,7 @@ class ParachuteNode(Node, Listener):
     def _apply(self, changes: Dict[str, Any]) -> None:
         if 'frame_id' in changes:
             self.frame_id = changes['frame_id']
+            self._status.set_frame_id(self.frame_id)
         if 'blackbox_dir' in changes:
             self.get_logger().info('blackbox_dir takes effect at the next start')
         values = {**asdict(self.session.config), **changes}
@@ -208,9 +211,16 @@ class ParachuteNode(Node, Listener):
     def _now(self) -> Any:
         return self.get_clock().now().to_msg()
 
+    def _now_ns(self) -> Tuple[int, int]:
+        """Return the ROS time now as (sec, nanosec); the wall clock unless on simulated time."""
+        clock = self.get_clock()
+        if clock.ros_time_is_active:
+            return clock.now().seconds_nanoseconds()
+        return divmod(time.time_ns(), 1_000_000_000)
+
     def on_status(self, snap: Snapshot) -> None:
-        """Publish ``~/status``."""
-        self.status_pub.publish(m.status_msg(snap, self._now(), self.frame_id))
+        """Publish ``~/status`` (serialized by `m.StatusPacker`: it goes out with every frame)."""
+        self.status_pub.publish(self._status.pack(snap, *self._now_ns()))
 
     def on_battery(self, snap: Snapshot) -> None:
         """Publish ``~/battery``."""

@@ -16,6 +16,8 @@ Threads, what each owns, and the lock that guards what they share:
   sends heartbeats, fetches trigger records. Owns its schedule (``next_*`` locals).
 - monitor (``parachute-monitor``): judges online/offline and the defer deadline from the clock
   (``tick()``), and records the link's error counters in the black box when they change; no I/O.
+  It sleeps until the next of those deadlines (at most ``IDLE_WAKE_S``); a deferred request
+  wakes it.
 - callers (the node's service threads): deploy, arm, settings, queries. ``_actuation``
   serializes deploy and arm (never taken on the reader thread or by a trigger-request answer).
 
@@ -60,6 +62,9 @@ LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
 DEPLOY_FRAME = p.encode_deploy()
+IDLE_WAKE_S = 0.2
+"""The worker and the monitor sleep until their next deadline, and at most this long (they see
+state changes nobody signals within it). Each wake-up costs CPU: they used to poll at 50 Hz."""
 
 
 @dataclass
@@ -80,12 +85,13 @@ class _Guarded(Listener):
     def __init__(self, inner: Listener, log: Callable[..., None]) -> None:
         self._inner = inner
         self._report = log
+        # One wrapper per callback, made once: they run with every frame.
+        for name in dir(inner):
+            if name.startswith('on_') and callable(getattr(inner, name)):
+                setattr(self, name, self._guard(name, getattr(inner, name)))
 
-    def __getattribute__(self, name: str) -> Any:
-        if not name.startswith('on_'):
-            return object.__getattribute__(self, name)
-        method = getattr(object.__getattribute__(self, '_inner'), name)
-        report = object.__getattribute__(self, '_report')
+    def _guard(self, name: str, method: Callable[..., None]) -> Callable[..., None]:
+        report = self._report
 
         def call(*args: Any) -> None:
             try:
@@ -157,6 +163,7 @@ class ParachuteSession:
         # -- other ----------------------------------------------------------------------------
         self._actuation = threading.Lock()
         self._stopping = threading.Event()
+        self._monitor_wake = threading.Event()
         max_bytes = int(config.blackbox_max_mb * 1e6) if config.blackbox_max_mb > 0 else None
         self.blackbox = blackbox or BlackBox(config.blackbox_dir, max_bytes=max_bytes,
                                              on_problem=self._on_blackbox_problem)
@@ -187,6 +194,9 @@ class ParachuteSession:
     def stop(self) -> None:
         """Stop everything and close the black box; bounded (< 4 s). The module is left as is."""
         self._stopping.set()
+        self._monitor_wake.set()
+        with self._jobs_cond:
+            self._jobs_cond.notify_all()
         with self._lock:
             pending, self._pending = self._pending, None
         if pending is not None:
@@ -264,7 +274,7 @@ class ParachuteSession:
     def _update(self, **changes: Any) -> Snapshot:
         """Replace fields of the snapshot (caller holds _lock or takes it here)."""
         with self._lock:
-            self._snap = replace(self._snap, **changes)
+            self._snap = self._snap.evolve(**changes)
             self._lock.notify_all()
             return self._snap
 
@@ -273,7 +283,7 @@ class ParachuteSession:
         with self._lock:
             if epoch != self._epoch:
                 return False
-            self._snap = replace(self._snap, **changes)
+            self._snap = self._snap.evolve(**changes)
             self._lock.notify_all()
             return True
 
@@ -421,6 +431,7 @@ class ParachuteSession:
                 old = self._pending
                 self._pending = _Pending(t_rx, t_rx + defer_s)
                 self._snap = replace(self._snap, pending_request=True)
+            self._monitor_wake.set()  # its deadline
             if old is not None:
                 self._decide('timed_out', policy, 'superseded by a newer trigger request',
                              old.t_rx, None)
@@ -499,12 +510,38 @@ class ParachuteSession:
     # -- monitor thread: online/offline (D2) and the defer deadline -------------------------------
 
     def _monitor_loop(self) -> None:
-        while not self._stopping.wait(0.02):
+        wake = self._monitor_wake
+        wait = IDLE_WAKE_S
+        while not self._stopping.is_set():
+            wake.wait(wait)
+            wake.clear()
+            if self._stopping.is_set():
+                return
             try:
                 self.tick()
                 self._record_link()
+                wait = self._monitor_wait()
             except Exception as exc:  # noqa: BLE001 - the monitor must survive a bug
                 self._log('error', f'monitor failed: {exc!r}', key='monitor')
+                wait = IDLE_WAKE_S
+
+    def _monitor_wait(self) -> float:
+        """Return how long the monitor may sleep: until the next deadline ``tick()`` judges."""
+        now = self.clock()
+        count, last = self.link.last_frame
+        due = now + IDLE_WAKE_S
+        with self._lock:
+            timeout = self._config.offline_timeout_s
+            if self._pending is not None:
+                due = min(due, self._pending.deadline)
+            snap = self._snap
+            if snap.online:
+                sent = [t for t, c in self._in_flight.values() if c == count]
+                if sent:
+                    due = min(due, min(sent) + timeout)
+                if snap.streaming and last is not None:
+                    due = min(due, last + timeout)
+        return max(due - now, 0.001)
 
     def _record_link(self, final: bool = False) -> None:
         """Record the link's error counters when they changed (throttled; `final`: now)."""
@@ -521,7 +558,7 @@ class ParachuteSession:
         self.blackbox.record('link', **info)
 
     def tick(self) -> None:
-        """Judge the time-based rules now (the monitor does this every 20 ms)."""
+        """Judge the time-based rules now (the monitor does at each deadline, or IDLE_WAKE_S)."""
         self._judge_online()
         now = self.clock()
         with self._lock:
@@ -596,14 +633,18 @@ class ParachuteSession:
     def _work(self) -> None:
         next_aux = -1e9
         next_heartbeat = -1e9
+        wait = 0.0
         while not self._stopping.is_set():
             with self._jobs_cond:
-                if not self._jobs.queue:
-                    self._jobs_cond.wait(0.02)
+                if not self._jobs.queue and wait > 0.0 and not self._stopping.is_set():
+                    self._jobs_cond.wait(wait)
                 job = self._jobs.queue.pop(0) if self._jobs.queue else None
+            # Sleep until the next thing due, at most IDLE_WAKE_S; a job wakes it at once.
+            wait = IDLE_WAKE_S
             try:
                 if job is not None:
                     self._run_job(job)
+                    wait = 0.0
                     continue
                 snap = self.snapshot
                 if not snap.port_open:
@@ -616,9 +657,11 @@ class ParachuteSession:
                 if not snap.initialized:
                     if now >= retry_at:
                         self._schedule('init', force=True)
+                    else:
+                        wait = min(wait, retry_at - now)
                     continue
-                if snap.streaming and snap.online and \
-                        now - max(last_status, init_at) > config.offline_timeout_s:
+                stream_due = max(last_status, init_at) + config.offline_timeout_s
+                if snap.streaming and snap.online and now > stream_due:
                     # The module answers but its stream stopped: it rebooted unnoticed (D3).
                     self._log('warn', 'the status stream stopped; re-initializing')
                     self._schedule('init', force=True)
@@ -629,6 +672,12 @@ class ParachuteSession:
                 if not snap.streaming and now >= next_heartbeat:
                     next_heartbeat = now + config.heartbeat_period_s
                     self._req(p.encode_heartbeat())
+                due = [next_aux]
+                if not snap.streaming:
+                    due.append(next_heartbeat)
+                elif snap.online:
+                    due.append(stream_due + 0.001)  # judged with '>'
+                wait = max(min(wait, min(due) - self.clock()), 0.001)
             except LinkError as exc:
                 if not self._stopping.is_set():
                     self._log('warn', f'{exc}', key='worker-link')
@@ -1024,7 +1073,7 @@ class ParachuteSession:
             before = self._snap
             if triggered is not None:
                 also['triggered'] = triggered
-            self._snap = replace(before, **also)
+            self._snap = before.evolve(**also)
             reported = self._snap.boot_count in self._reported_boots
             self._lock.notify_all()
         if triggered is None or before.triggered == triggered:

@@ -18,8 +18,10 @@ from typing import Any, Callable, Optional
 from handset_link_ros import protocol as p
 from uav_serial_common.serial_link import SerialLink
 
-READ_TIMEOUT_S = 0.02
-"""The reader wakes this often on a quiet line, so the idle rule settles within ~0.12 s."""
+READ_TIMEOUT_S = 0.5
+"""The reader's longest sleep on a quiet line. A held partial frame wakes it once the line has
+been idle for the idle timeout (SerialLink's idle flush), so the idle rule still settles it
+then; a shorter timeout only costs CPU (one wake-up each)."""
 
 
 @dataclass(frozen=True, slots=True)

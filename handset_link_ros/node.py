@@ -78,6 +78,7 @@ class HandsetLinkNode(Node):
         if problems:
             raise ValueError('; '.join(problems))
         self.frame_id: str = values['frame_id']
+        self._setpoint = messages.SetpointPacker(self.frame_id)
         self.battery_topic: str = values['battery_topic']
         config = HandsetConfig(port=values['port'], baud=values['baud'],
                                **{name: values[name] for name in RUNTIME})
@@ -118,8 +119,12 @@ class HandsetLinkNode(Node):
         return messages.ros_stamp(stamp, time.monotonic(), self.get_clock().now().nanoseconds)
 
     def _on_setpoint(self, setpoint: Any) -> None:
-        self._setpoint_pub.publish(
-            messages.setpoint_msg(setpoint, self.frame_id, self._stamp(setpoint.stamp)))
+        # The per-frame path: serialized bytes (SetpointPacker), and the ROS clock read only
+        # on simulated time (else it is the wall clock).
+        clock = self.get_clock()
+        now_ns = clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
+        self._setpoint_pub.publish(self._setpoint.pack(
+            setpoint, *messages.ros_time_ns(setpoint.stamp, time.monotonic(), now_ns)))
 
     def _on_auxiliary(self, auxiliary: Any) -> None:
         self._auxiliary_pub.publish(
@@ -174,6 +179,7 @@ class HandsetLinkNode(Node):
     def _apply(self, changes: Dict[str, Any]) -> None:
         if 'frame_id' in changes:
             self.frame_id = changes['frame_id']
+            self._setpoint.set_frame_id(self.frame_id)
         self.diagnostics.force_update()
 
     # -- diagnostics ---------------------------------------------------------------------------

@@ -102,6 +102,9 @@ class DiagnosticsUpdater:
         with self._lock:
             self._pending = False
             self._last = time.monotonic()
+        # The period counts from this publication: a driver that forces an update about once a
+        # period (the parachute after each poll) publishes once a period, not twice.
+        self._timer.reset()
         hardware_id = self._hardware_id() if callable(self._hardware_id) else self._hardware_id
         prefix = self.prefix
         array = DiagnosticArray()

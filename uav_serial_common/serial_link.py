@@ -430,7 +430,7 @@ class SerialLink:
         # The same as pyserial's read, minus a second select and an ioctl per wake-up: on a
         # half-duplex bus every reply pays for them, so they show in the bus rate.
         abort = port.pipe_abort_read_r
-        ready, _, _ = select.select([fd, abort], [], [], self._read_timeout)
+        ready, _, _ = select.select([fd, abort], [], [], self._select_timeout())
         if not ready:
             return b''
         if abort in ready:
@@ -453,6 +453,18 @@ class SerialLink:
             raise serial.SerialException('device reports readiness to read but returned no data '
                                          '(device disconnected?)')
         return data
+
+    def _select_timeout(self) -> float:
+        # A wake-up costs tens of microseconds of CPU (more on a VM): a quiet line waits the
+        # whole read timeout, and only a decoder holding a partial frame wakes the reader when
+        # the line has been idle for idle_flush_s, to settle it.
+        timeout = self._read_timeout
+        if self._idle_flush_s is not None and getattr(self._decoder, 'pending', 0):
+            last = self.last_rx_time
+            due = self._idle_flush_s if last is None else \
+                last + self._idle_flush_s - time.monotonic()
+            timeout = min(timeout, max(due, 0.0005))
+        return timeout
 
     def _write_port(self, port: serial.SerialBase, data: bytes) -> None:
         fd = self._fast_fd
