@@ -439,20 +439,22 @@ class ServoRig(_Rig):
     """A virtual servo bus in this process (taps on its wire) and `servo_bus_node` on it.
 
     The bus is `desheng_servo_ros.virtual_node.VirtualServoBus` (the core of
-    ``virtual_servo_bus``) with `BENCH_SERVO_RESPONSE_DELAY_S`.
+    ``virtual_servo_bus``) with `BENCH_SERVO_RESPONSE_DELAY_S`, or `bus_class` (a subclass of it)
+    and `response_delay_s` where given.
     """
 
     executable = 'servo_bus_node'
 
     def __init__(self, directory: Path, ids: List[int], baud: int = 115200,
                  parameters: Optional[Dict[str, Any]] = None, seed: int = 1,
-                 tag: str = 'servo_bus_node') -> None:
+                 tag: str = 'servo_bus_node', bus_class: Any = None,
+                 response_delay_s: float = BENCH_SERVO_RESPONSE_DELAY_S) -> None:
         from desheng_servo_ros.virtual_node import VirtualServoBus
         self.ids = list(ids)
         self.baud = baud
         self.link = str(directory / f'{tag}.pty')
-        self.bus = VirtualServoBus(self.link, self.ids, baud=baud,
-                                   response_delay_s=BENCH_SERVO_RESPONSE_DELAY_S, seed=seed)
+        self.bus = (bus_class or VirtualServoBus)(self.link, self.ids, baud=baud,
+                                                  response_delay_s=response_delay_s, seed=seed)
         self.sim = self.bus.sim
         params = {'port': self.link, 'baud': baud, 'servo_ids': self.ids,
                   'joint_names': [f'servo_{i}' for i in self.ids]}

@@ -44,13 +44,15 @@ from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Se
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.link import (BusBusy, LinkDown, LinkError, LinkTimeout, PRIORITY_LOOP,
-                                    PRIORITY_SERVICE, PRIORITY_URGENT, ReadItem, ServoBusLink)
+                                    Posted, PRIORITY_SERVICE, PRIORITY_URGENT, ReadItem,
+                                    ServoBusLink, sync_write_frames)
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
 from desheng_servo_ros.units import (Joint, resolve_targets, select, servo_list, Target,
                                      Units)
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.text import clip, few
+from uav_serial_common.usb_latency import LatencyReport
 
 # Registers, by name from the table (registers.py).
 TORQUE = by_name('torque_enable')
@@ -122,6 +124,7 @@ class ServoBusConfig:
     max_retries: int = 1
     torque_on_start: bool = False
     torque_off_on_shutdown: bool = True
+    adjust_latency_timer: bool = True
 
     RUNTIME = ('publish_rate_hz', 'telemetry_period_s', 'default_move_time_ms',
                'response_timeout_ms', 'max_retries', 'torque_off_on_shutdown')
@@ -158,6 +161,8 @@ class Reading(NamedTuple):
     speed_raw: int
     velocity: float
     status: int
+    at: float
+    """When the reply arrived (the reader thread took it off the port), monotonic [s]."""
 
 
 class Telemetry(NamedTuple):
@@ -185,6 +190,8 @@ class ServoSnapshot(NamedTuple):
     torque_enabled: bool
     error_count: int
     duplicate: bool
+    read_at: float = math.nan
+    """When the position arrived off the wire (monotonic clock) [s]; NaN before the first."""
 
     @property
     def faults(self) -> List[str]:
@@ -210,6 +217,9 @@ class BusSnapshot:
 
     connected: bool
     servos: Tuple[ServoSnapshot, ...] = field(default_factory=tuple)
+    read_at: Optional[float] = None
+    """When the oldest position of an online servo arrived off the wire (monotonic) [s]: the
+    time the messages are stamped with; None when no servo is online."""
 
 
 class _Servo:
@@ -230,7 +240,7 @@ class _Servo:
         self.seen = False
         self.failures = 0
         self.error_count = 0
-        self.reading = Reading(0, math.nan, 0, 0.0, 0)
+        self.reading = Reading(0, math.nan, 0, 0.0, 0, math.nan)
         self.telemetry = Telemetry(math.nan, math.nan, False)
         self.next_telemetry = 0.0
         self.next_probe = 0.0
@@ -405,7 +415,11 @@ class ServoBusCore:
                                 response_timeout_ms=config.response_timeout_ms,
                                 max_retries=config.max_retries,
                                 on_connection=self._on_connection, logger=logger,
-                                backoff_max_s=backoff_max_s)
+                                backoff_max_s=backoff_max_s,
+                                adjust_latency_timer=config.adjust_latency_timer,
+                                on_latency=self._on_latency)
+        self._link = self.bus.link
+        self._latency_logged = ''
         self._cycles = ReadCycles(
             clock=clock, servos=lambda: self._servos,
             period_s=lambda: 1.0 / self.config.publish_rate_hz,
@@ -429,6 +443,7 @@ class ServoBusCore:
         self._cmd_cond = threading.Condition()
         self._pending: Dict[int, Tuple[int, int]] = {}
         self._next_command_at = 0.0
+        self._last_post: Optional[Posted] = None
         self.commands_received = 0
         self.commands_superseded = 0
         self.command_frames_sent = 0
@@ -494,14 +509,18 @@ class ServoBusCore:
         """Return every servo as last read (callable from any thread)."""
         now = self.clock()
         out = []
+        oldest = math.inf
         for s in self._servos:
             r, t = s.reading, s.telemetry
+            if s.online and r.at < oldest:
+                oldest = r.at
             # The fields of ServoSnapshot, in order.
             out.append(_new(ServoSnapshot, (
                 s.id, s.name, s.online, s.seen, r.ticks, r.rad, r.speed_raw, r.velocity,
                 t.current_ma, t.temperature_c, r.status, t.torque_enabled, s.error_count,
-                now < s.duplicate_until)))
-        return BusSnapshot(self.bus.connected, tuple(out))
+                now < s.duplicate_until, r.at)))
+        return BusSnapshot(self.bus.connected, tuple(out),
+                           oldest if oldest < math.inf else None)
 
     # -- logging --------------------------------------------------------------------------------
 
@@ -514,8 +533,18 @@ class ServoBusCore:
             if now - self._throttle.get(key, -math.inf) < every_s:
                 return
             self._throttle[key] = now
+        text = clip(text)
+        log = self._log
         try:
-            getattr(self._log, level)(clip(text))
+            # One call site per level: rclpy's logger refuses a second severity at a call site
+            # ("Logger severity cannot be changed between calls"), which is caught below, so
+            # a shared site would silently drop every line after the first level it saw.
+            if level == 'info':
+                log.info(text)
+            elif level == 'warning':
+                log.warning(text)
+            else:
+                log.error(text)
         except Exception:  # noqa: BLE001 - logging must never cost the bus (context gone)
             pass
 
@@ -713,8 +742,10 @@ class ServoBusCore:
         if ticks != old.ticks and s.seen:
             s.direction = 1.0 if ticks > old.ticks else -1.0
         rpt = self._rad_per_tick
+        # Stamped with the reply's arrival: the reader thread took it off the port just now.
         s.reading = _new(Reading, (ticks, (ticks - self._zero_tick) * rpt, speed,
-                                   s.direction * speed * rpt if speed else 0.0, status))
+                                   s.direction * speed * rpt if speed else 0.0, status,
+                                   self._link.last_rx_time))
         changed = status != old.status or not s.online
         if not s.online and s.seen:
             self.log_info(f'{s.name} (id {s.id}) is back online')
@@ -826,6 +857,18 @@ class ServoBusCore:
             if due and self._running:
                 self._report()
 
+    def _on_latency(self, report: LatencyReport) -> None:
+        # Reader thread, on every (re)open: say what was found and done once, and again only
+        # when it changes (another adapter after a replug).
+        text = report.summary()
+        if text != self._latency_logged:
+            self._latency_logged = text
+            if report.kind == 'ftdi' and not report.ok:
+                self.log_warning(f'serial port latency: {text}')
+            else:
+                self.log_info(f'serial port latency: {text}')
+        self._changed()
+
     def _on_connection(self, up: bool, reason: str) -> None:
         # Reader thread: only flags here, never a transaction.
         for s in self._servos:
@@ -856,8 +899,48 @@ class ServoBusCore:
                     self.commands_superseded += 1
                     del self._pending[servo_id]  # re-inserted last: the newest order
                 self._pending[servo_id] = (ticks, ms)
-            self._cmd_cond.notify()
+            # While the read chain runs, a due command is handed to it on this thread and goes
+            # out at the next READ boundary; otherwise the command thread sends it.
+            if not (self._command_due() and self._post_pending()):
+                self._cmd_cond.notify()
         return Result(True, f'{len(targets)} target(s) queued')
+
+    def _command_due(self) -> bool:
+        """Whether the next command frame may go now (``_cmd_cond`` held).
+
+        Not before the last one handed to the read chain has left the line, and then not
+        before its spacing has passed since (a loaded host may write it late: the spacing
+        counts from the line, or a backlog would take the bus from the reads).
+        """
+        last = self._last_post
+        if last is not None:
+            if not last.done:
+                return False
+            self._last_post = None
+            self._next_command_at = max(self._next_command_at,
+                                        last.written_at + self._spacing(last.size))
+        return time.monotonic() >= self._next_command_at
+
+    def _spacing(self, size: int) -> float:
+        """Return the time between two command batches of `size` bytes."""
+        return max(COMMAND_SPACING * wire_time(size, self.config.baud),
+                   COMMAND_CYCLE_SHARE / self.config.publish_rate_hz)
+
+    def _post_pending(self) -> bool:
+        """Hand the pending targets to the running read chain (``_cmd_cond`` held)."""
+        frames = sync_write_frames([(i, t, ms) for i, (t, ms) in self._pending.items()])
+        posted = self.bus.post(frames)
+        if posted is None:
+            return False
+        self._last_post = posted
+        self._pending = {}
+        self._commands_sent(frames)
+        return True
+
+    def _commands_sent(self, frames: Sequence[bytes]) -> None:
+        """Count command frames and set when the next may go (``_cmd_cond`` held)."""
+        self.command_frames_sent += len(frames)
+        self._next_command_at = time.monotonic() + self._spacing(sum(map(len, frames)))
 
     def _resolve(self, names: Sequence[str], ids: Sequence[int], positions: Sequence[float],
                  move_time_ms: int) -> List[Target]:
@@ -867,22 +950,24 @@ class ServoBusCore:
     def _commander_main(self) -> None:
         while self._running:
             with self._cmd_cond:
-                while self._running and (not self._pending or
-                                         time.monotonic() < self._next_command_at):
-                    wait = self._next_command_at - time.monotonic() if self._pending else 0.5
+                while self._running and not (self._pending and self._command_due()):
+                    if not self._pending:
+                        wait = 0.5
+                    elif self._last_post is not None:
+                        wait = 0.002  # the frames handed to the read chain are not out yet
+                    else:
+                        wait = self._next_command_at - time.monotonic()
                     self._cmd_cond.wait(max(0.0005, min(0.5, wait)))
                 if not self._running:
                     return
+                if self._post_pending():
+                    continue
                 targets = [(i, t, ms) for i, (t, ms) in self._pending.items()]
                 self._pending = {}
             try:
-                frames = self.bus.sync_write_positions(targets, PRIORITY_SERVICE)
-                self.command_frames_sent += len(frames)
-                spacing = max(COMMAND_SPACING * wire_time(sum(map(len, frames)),
-                                                          self.config.baud),
-                              COMMAND_CYCLE_SHARE / self.config.publish_rate_hz)
+                frames = self.bus.sync_write_positions(targets, PRIORITY_SERVICE, wait=False)
                 with self._cmd_cond:
-                    self._next_command_at = time.monotonic() + spacing
+                    self._commands_sent(frames)
             except LinkError as exc:
                 self.log_warning(f'~/command not sent: {exc}', every_s=5.0, key='cmd-link')
             except Exception:  # noqa: BLE001 - the command thread must not die
@@ -948,6 +1033,7 @@ class ServoBusCore:
     def emergency_stop(self) -> Result:
         """Torque off, every servo at once (one broadcast); queued commands are dropped."""
         self._drop_pending()
+        self.bus.discard_posted()
         self.bus.write(proto.BROADCAST_ID, TORQUE.address, b'\x00', PRIORITY_URGENT)
         for s in self._servos:
             s.set_torque(False)
@@ -1040,6 +1126,10 @@ class ServoBusCore:
         if shared:
             message += (f'; more than one servo answers to id(s) {few(shared)}: connect them '
                         'one at a time and give each its own id')
+        slow = [i for i in found if self.bus.margin_for(i) > self.bus.margin_s]
+        if slow:
+            message += (f'; id(s) {few(slow)} answer late: the driver waits up to '
+                        f'{max(self.bus.margin_for(i) for i in slow) * 1000:.0f} ms for them')
         return Result(True, message, {'ids': found, 'firmware_versions': versions})
 
     @_service
@@ -1201,7 +1291,7 @@ class ServoBusCore:
             ('bytes in', stats.bytes_in), ('bytes out', stats.bytes_out),
             ('commands', self.commands_received),
             ('commands superseded', self.commands_superseded),
-            ('read loop restarts', self._loop_failures)]
+            ('read loop restarts', self._loop_failures)] + self._latency_values()
         level, message = self._bus_problem(now)
         if level == OK:
             duplicates = [s for s in servos if now < s.duplicate_until]
@@ -1216,6 +1306,24 @@ class ServoBusCore:
             else:
                 message = f'{online}/{len(servos)} servos online'
         return Health(level, message, values)
+
+    def _latency_values(self) -> List[Tuple[str, Any]]:
+        """Return the port's latency timer and the reply margin as diagnostic values."""
+        bus = self.bus
+        report = bus.latency
+        margin = f'{bus.margin_s * 1000:.1f}'
+        if self.config.response_timeout_ms > 0:
+            margin += ' (response_timeout_ms)'
+        if report is None:
+            return [('latency timer', 'port not opened yet'), ('reply margin [ms]', margin)]
+
+        def ms(value: Optional[int]) -> str:
+            return 'none' if value is None else str(value)
+        return [('latency timer before [ms]', ms(report.before_ms)),
+                ('latency timer after [ms]', ms(report.after_ms)),
+                ('latency timer action', report.action),
+                ('reply margin [ms]', margin),
+                ('udev rule', report.udev_rule() or 'not needed')]
 
     def _bus_problem(self, now: float) -> Tuple[int, str]:
         loop = self._loop
@@ -1250,7 +1358,8 @@ class ServoBusCore:
         values = [('id', s.id), ('online', s.online), ('position [ticks]', r.ticks),
                   ('position [rad]', f'{r.rad:.4f}'), ('current [mA]', t.current_ma),
                   ('temperature [degC]', t.temperature_c), ('status', f'0x{r.status:02X}'),
-                  ('torque', t.torque_enabled), ('error count', s.error_count)]
+                  ('torque', t.torque_enabled), ('error count', s.error_count),
+                  ('reply margin [ms]', f'{self.bus.margin_for(s.id) * 1000:.1f}')]
         who = f'{s.name} (id {s.id})'
         if self.clock() < s.duplicate_until:
             return Health(ERROR, f'{who}: duplicate id, more than one servo answers; give '

@@ -5,7 +5,15 @@ emergency stop overtakes a read cycle and a service call gets in between two rea
 flushed before each request, exactly the reply of the addressed id with the expected length, a
 timeout of the wire time of request + reply plus a margin, bounded retries, chains of READs sent
 by the reader thread (the read loop), and frames that expect no reply (broadcast, SYNC WRITE,
-ACTION) holding the bus for their own wire time.
+ACTION) holding the bus for their own wire time; while a chain runs, such frames are handed to it
+(`post`) and go out between two READs from the reader thread, with no thread hand-off.
+
+The reply margin is derived from the port on every (re)open (`uav_serial_common.usb_latency`: a
+USB adapter's latency timer is lowered where allowed; a pty or a 1 ms adapter gets a few ms), and
+per servo from replies that came late (a servo that answers slowly gets a longer wait, forgotten
+again after a run of timely replies). A scan PINGs with the short margin and collects late
+replies by id while it goes on, then confirms those ids with a long wait (docs/protocols.md,
+"Scan").
 """
 
 from __future__ import annotations
@@ -14,17 +22,18 @@ from collections import deque
 from contextlib import contextmanager
 import threading
 import time
-from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, Optional, Protocol,
-                    Sequence, Tuple)
+from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, Optional, Protocol,
+                    Sequence, Set, Tuple)
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Reply, StreamDecoder
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
+from uav_serial_common.usb_latency import BASE_MARGIN_S, inspect_latency_timer, LatencyReport
 
 __all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'PRIORITY_LOOP',
            'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ReadItem', 'ReadPlan',
-           'ServoBusLink', 'REPLY_OVERHEAD']
+           'Posted', 'ServoBusLink', 'REPLY_OVERHEAD', 'sync_write_frames']
 
 # Priorities of the bus lock: lower number goes first.
 PRIORITY_URGENT = 0    # emergency stop, shutdown torque-off
@@ -32,12 +41,20 @@ PRIORITY_SERVICE = 1   # commands and service calls
 PRIORITY_LOOP = 2      # the read loop
 # Reply frame = FF F5 ID LEN STATUS params CHK.
 REPLY_OVERHEAD = 6
-# Margin beyond the wire time of request + reply when response_timeout_ms is 0 ("derived"):
-# the servo answers within ~0.1..1 ms, but a USB-serial adapter holds received bytes for up to its
-# latency timer (16 ms by default on FTDI, twice when a reply straddles two periods), and a busy
-# companion computer adds scheduling delays. Waiting 2 x 16 + 2 ms costs time only when a servo
-# is really missing; a margin that is too short makes healthy servos flap offline.
+# Margin beyond the wire time of request + reply when response_timeout_ms is 0 ("derived") and the
+# port has not been looked at yet: the servo answers within ~0.1..1 ms, but a USB-serial adapter
+# holds received bytes for up to its latency timer (16 ms by default on FTDI, twice when a reply
+# straddles two periods). On open the margin is derived from the port itself (LatencyReport).
 DERIVED_MARGIN_S = 0.034
+# A servo whose reply came later than the margin gets its own: LEARN_FACTOR times what it took,
+# plus the base margin, at most MAX_LEARNED_MARGIN_S; forgotten after FORGET_AFTER_REPLIES timely
+# replies in a row (a late reply may also be a moment the host stalled).
+LEARN_FACTOR = 1.5
+MAX_LEARNED_MARGIN_S = 0.1
+FORGET_AFTER_REPLIES = 20
+# How long a scan listens for late replies after its last PING, and waits for a reply when it
+# confirms an id that answered late (or garbled).
+LATE_REPLY_WINDOW_S = 0.1
 # After a frame without a reply, wait this much beyond its wire time before the next one, so a
 # servo still parsing it never sees the next header glued to it.
 IDLE_GUARD_S = 0.0001
@@ -50,6 +67,39 @@ GARBLE_WEIGHT = 0.2
 
 class BusBusy(LinkError):
     """The bus stayed taken by others for too long."""
+
+
+class Posted:
+    """Frames without a reply handed to the read chain (`ServoBusLink.post`), and their fate."""
+
+    __slots__ = ('frames', 'size', 'event', 'error', 'written_at')
+
+    def __init__(self, frames: Sequence[bytes]) -> None:
+        self.frames = list(frames)
+        self.size = sum(map(len, frames))
+        """Bytes of all the frames."""
+        self.event = threading.Event()
+        self.error: Optional[LinkError] = None
+        self.written_at = 0.0
+        """When the last frame had left the line (monotonic), once `done`."""
+
+    @property
+    def done(self) -> bool:
+        """Whether every frame was written (or failed: `error`)."""
+        return self.event.is_set()
+
+    def settle(self, error: Optional[LinkError] = None) -> None:
+        """Record the outcome and wake whoever waits."""
+        self.error = error
+        self.written_at = time.monotonic()
+        self.event.set()
+
+
+def sync_write_frames(targets: Sequence[Tuple[int, int, int]]) -> List[bytes]:
+    """Return the SYNC WRITE frames of (id, ticks, ms) targets (50 servos per frame, S18)."""
+    step = proto.MAX_SYNC_WRITE_POSITIONS
+    return [proto.encode_sync_write_positions(targets[k:k + step])
+            for k in range(0, len(targets), step)]
 
 
 class _PriorityLock:
@@ -115,14 +165,22 @@ class _ReadChain:
         self.sent: Deque[list] = deque()  # [item, attempts] of READs awaiting their result
         self.retry: Optional[list] = None
 
-    def next_request(self) -> Optional[Tuple[bytes, Callable[[Reply], bool], float]]:
+    def next_request(self) -> Optional[Tuple[bytes, Optional[Callable[[Reply], bool]], float]]:
         bus = self.bus
+        if bus._posted_item is not None:
+            bus._posted_done()  # the frame before this request left without an error
         entry, self.retry = self.retry, None
         if bus._lock.waiting_above(self.priority):
             # Yield the bus between two READs; a retry that cannot go out has failed.
             if entry is not None:
                 self._settle(entry[0], None)
             return None
+        if bus._posted:
+            # A frame without a reply (a command) goes out between two READs; the READ to be
+            # retried, if any, follows it.
+            self.retry = entry
+            frame = bus._next_posted()
+            return frame, None, wire_time(len(frame), bus.baud) + IDLE_GUARD_S
         if entry is None:
             item = self.plan.next_read()
             if item is None:
@@ -132,7 +190,8 @@ class _ReadChain:
         entry[2] = (stats.bytes_in, stats.frames_in)
         self.sent.append(entry)
         frame, servo_id, nparams = entry[0][:3]
-        return frame, bus._matcher(servo_id, nparams), bus.timeout_for(len(frame), nparams)
+        return (frame, bus._matcher(servo_id, nparams),
+                bus.timeout_for(len(frame), nparams, servo_id))
 
     def on_result(self, reply: Optional[Reply]) -> None:
         entry = self.sent.popleft()
@@ -165,11 +224,33 @@ class ServoBusLink:
                  max_retries: int = 1,
                  on_connection: Optional[Callable[[bool, str], None]] = None,
                  logger: Optional[object] = None,
-                 backoff_max_s: float = 1.0) -> None:
+                 backoff_max_s: float = 1.0, adjust_latency_timer: bool = True,
+                 on_latency: Optional[Callable[[LatencyReport], None]] = None) -> None:
         self.port = port
         self.baud = baud
         self.max_retries = max_retries
-        self.response_timeout_ms = response_timeout_ms
+        self.adjust_latency_timer = adjust_latency_timer
+        # What the port's latency timer was and what was done, as of the last open (None
+        # before the first); the derived margin follows it.
+        self.latency: Optional[LatencyReport] = None
+        self._on_latency = on_latency
+        self._derived_margin = DERIVED_MARGIN_S
+        self._response_timeout_ms = response_timeout_ms
+        self._margin = self._pick_margin()
+        self._wire: Dict[Tuple[int, int], float] = {}
+        # Per id: when the last request went out and its length (late replies are judged by
+        # them), the margin learned from late replies, timely replies since.
+        self.sent_at = [0.0] * 256
+        self.sent_len = [0] * 256
+        self.slow_margin = [0.0] * 256
+        self._timely = [0] * 256
+        self._late_sink: Optional[Dict[int, float]] = None
+        # Frames without a reply handed to the running read chain (post); _posting says
+        # whether a chain takes them.
+        self._posted: Deque[Posted] = deque()
+        self._posted_item: Optional[Posted] = None
+        self._posting = False
+        self._post_lock = threading.Lock()
         self.decoder = StreamDecoder('reply')
         self.transactions = 0
         self.failed_transactions = 0
@@ -183,7 +264,7 @@ class ServoBusLink:
         self.garble_level = [0.0] * 256
         self.link = SerialLink(port, baud, self.decoder, on_frame=self._on_unsolicited,
                                on_connection=on_connection, on_tx=self._on_tx, logger=logger,
-                               backoff_max_s=backoff_max_s)
+                               backoff_max_s=backoff_max_s, on_open=self._on_port_open)
         self._lock = _PriorityLock()
         self._idle_at = 0.0
         self._matchers: Dict[Tuple[int, int], Callable[[Reply], bool]] = {}
@@ -210,14 +291,73 @@ class ServoBusLink:
     # -- timing ---------------------------------------------------------------------------------
 
     @property
-    def margin_s(self) -> float:
-        """Wait beyond the wire time: response_timeout_ms, or DERIVED_MARGIN_S when it is 0."""
-        ms = self.response_timeout_ms
-        return ms / 1000.0 if ms and ms > 0 else DERIVED_MARGIN_S
+    def response_timeout_ms(self) -> float:
+        """The margin the user set [ms]; 0 = derived from the port."""
+        return self._response_timeout_ms
 
-    def timeout_for(self, request_len: int, reply_params: int) -> float:
+    @response_timeout_ms.setter
+    def response_timeout_ms(self, value: float) -> None:
+        self._response_timeout_ms = value
+        self._margin = self._pick_margin()
+
+    def _pick_margin(self) -> float:
+        ms = self._response_timeout_ms
+        return ms / 1000.0 if ms and ms > 0 else self._derived_margin
+
+    @property
+    def margin_s(self) -> float:
+        """Wait beyond the wire time: response_timeout_ms, or the port's derived margin if 0."""
+        return self._margin
+
+    def margin_for(self, servo_id: int) -> float:
+        """Return the margin of one servo: the bus's, or longer when it answered late."""
+        slow = self.slow_margin[servo_id]
+        return slow if slow > self._margin else self._margin
+
+    def timeout_for(self, request_len: int, reply_params: int, servo_id: int = 0) -> float:
         """Return the reply timeout of one attempt: wire time of request + reply + margin."""
-        return wire_time(request_len + reply_params + REPLY_OVERHEAD, self.baud) + self.margin_s
+        key = (request_len, reply_params)
+        wire = self._wire.get(key)
+        if wire is None:
+            wire = self._wire[key] = wire_time(request_len + reply_params + REPLY_OVERHEAD,
+                                               self.baud)
+        slow = self.slow_margin[servo_id]
+        return wire + (slow if slow > self._margin else self._margin)
+
+    def _on_port_open(self, port: Any) -> None:
+        """Look at the port's latency timer on every (re)open (reader thread, before use)."""
+        def low_latency() -> None:
+            port.set_low_latency_mode(True)
+        report = inspect_latency_timer(self.port, allow_change=self.adjust_latency_timer,
+                                       request_low_latency=low_latency)
+        self.latency = report
+        self._derived_margin = report.reply_margin_s()
+        self._margin = self._pick_margin()
+        if self._on_latency is not None:
+            self._on_latency(report)
+
+    def _learn(self, servo_id: int, margin: float) -> None:
+        """Give `servo_id` a longer margin after a reply that needed `margin` beyond its wire."""
+        value = min(MAX_LEARNED_MARGIN_S, LEARN_FACTOR * margin + BASE_MARGIN_S)
+        self._timely[servo_id] = 0
+        if value > self.slow_margin[servo_id]:
+            self.slow_margin[servo_id] = value
+
+    def _reply_margin(self, servo_id: int, reply_len: int) -> float:
+        """Return how long the reply just received took beyond the wire time of its exchange."""
+        arrived = self.link.last_rx_time or time.monotonic()
+        return arrived - self.sent_at[servo_id] - wire_time(
+            self.sent_len[servo_id] + reply_len, self.baud)
+
+    def _slow_servo_replied(self, servo_id: int, reply_len: int) -> None:
+        """Count a timely reply of a servo with a learned margin; forget it after a run."""
+        if self._reply_margin(servo_id, reply_len) > self._margin:
+            self._timely[servo_id] = 0
+            return
+        self._timely[servo_id] += 1
+        if self._timely[servo_id] >= FORGET_AFTER_REPLIES:
+            self.slow_margin[servo_id] = 0.0
+            self._timely[servo_id] = 0
 
     def wire_limit_s(self, request_len: int, reply_params: int) -> float:
         """Return the pure wire time of one transaction (for rate comparisons)."""
@@ -231,12 +371,15 @@ class ServoBusLink:
         if match is None:
             replies = self.replies_by_id
             garble = self.garble_level
+            slow = self.slow_margin
             keep = 1.0 - GARBLE_WEIGHT
 
             def match(reply: Reply, servo_id=servo_id, nparams=nparams) -> bool:
                 if reply.servo_id == servo_id and len(reply.params) == nparams:
                     replies[servo_id] += 1
                     garble[servo_id] *= keep
+                    if slow[servo_id]:
+                        self._slow_servo_replied(servo_id, len(reply.raw))
                     return True
                 return False
             self._matchers[key] = match
@@ -261,15 +404,17 @@ class ServoBusLink:
             self.failed_transactions += 1
             raise
         finally:
-            self._idle_at = 0.0
             self._lock.release()
 
     def transact(self, frame: bytes, servo_id: int, reply_params: int,
                  priority: int = PRIORITY_SERVICE, retries: Optional[int] = None,
-                 timeout: Optional[float] = None) -> Reply:
-        """Send one request and return the reply of ``servo_id`` with ``reply_params`` params."""
+                 timeout: Optional[float] = None, flush: bool = True) -> Reply:
+        """Send one request and return the reply of ``servo_id`` with ``reply_params`` params.
+
+        `flush` False keeps what arrived before the request (a scan collects late replies).
+        """
         if timeout is None:
-            timeout = self.timeout_for(len(frame), reply_params)
+            timeout = self.timeout_for(len(frame), reply_params, servo_id)
         if retries is None:
             retries = self.max_retries
         match = self._matcher(servo_id, reply_params)
@@ -278,7 +423,7 @@ class ServoBusLink:
             stats = self.link.stats
             mark = (stats.bytes_in, stats.frames_in)
             try:
-                return self.link.request(frame, match, timeout, retries, flush=True)
+                return self.link.request(frame, match, timeout, retries, flush=flush)
             except LinkTimeout:
                 self._note_silence(servo_id, mark)
                 raise
@@ -316,18 +461,94 @@ class ServoBusLink:
         """
         chain = _ReadChain(self, plan, priority)
         with self._holding(priority):
-            return self.link.request_chain(chain, flush=True)
+            with self._post_lock:
+                self._posting = True
+            error: Optional[LinkError] = None
+            try:
+                return self.link.request_chain(chain, flush=True)
+            except LinkError as exc:
+                error = exc
+                raise
+            finally:
+                self._end_posting(error)
+
+    def post(self, frames: Sequence[bytes], wait_s: Optional[float] = None) -> Optional[Posted]:
+        """Hand frames without a reply to the running read chain; None if none runs.
+
+        The chain's reader thread writes them between two READs (after the reply in flight),
+        each holding the bus for its wire time; no thread hand-off. With `wait_s`, block until
+        they are written: raises what writing raised, or BusBusy after `wait_s`.
+        """
+        item = Posted(frames)
+        with self._post_lock:
+            if not self._posting:
+                return None
+            self._posted.append(item)
+        if wait_s is not None:
+            if not item.event.wait(wait_s):
+                raise BusBusy(f'the bus on {self.port} took no command for {wait_s:.0f} s')
+            if item.error is not None:
+                raise item.error
+        return item
+
+    def discard_posted(self) -> None:
+        """Drop frames posted and not sent yet (an emergency stop); their waiters are told."""
+        with self._post_lock:
+            items = list(self._posted)
+            self._posted.clear()
+        for item in items:
+            item.settle(LinkError('dropped by an emergency stop'))
+
+    def _next_posted(self) -> bytes:
+        """Take the next posted frame (reader thread, chain lock held)."""
+        with self._post_lock:
+            item = self._posted[0]
+            frame = item.frames.pop(0)
+            if not item.frames:
+                self._posted.popleft()
+                self._posted_item = item
+        self.transactions += 1
+        return frame
+
+    def _posted_done(self, error: Optional[LinkError] = None) -> None:
+        item, self._posted_item = self._posted_item, None
+        if item is not None:
+            item.settle(error)
+
+    def _end_posting(self, error: Optional[LinkError]) -> None:
+        """After a chain (bus held): settle its last posted frame, send what is still posted."""
+        with self._post_lock:
+            self._posting = False
+            left = list(self._posted)
+            self._posted.clear()
+        self._posted_done(error)
+        for item in left:
+            try:
+                for frame in item.frames:
+                    self._write_held(frame)
+            except LinkError as exc:
+                item.settle(exc)
+                continue
+            item.settle()
+
+    def _write_held(self, frame: bytes) -> None:
+        """Write a frame without a reply while holding the bus; it holds it for its wire time."""
+        delay = self._idle_at - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        self.transactions += 1
+        try:
+            self.link.write(frame)
+        except LinkError:
+            self.failed_transactions += 1
+            raise
+        self._idle_at = time.monotonic() + wire_time(len(frame), self.baud) + IDLE_GUARD_S
 
     def send(self, frame: bytes, priority: int = PRIORITY_SERVICE) -> None:
         """Send a frame that gets no reply; the bus stays taken for its wire time."""
         self._take(priority)
         try:
-            self.transactions += 1
-            self.link.write(frame)
-            self._idle_at = time.monotonic() + wire_time(len(frame), self.baud) + IDLE_GUARD_S
-        except LinkError:
-            self.failed_transactions += 1
-            raise
+            self._write_held(frame)
         finally:
             self._lock.release()
 
@@ -379,27 +600,76 @@ class ServoBusLink:
         return self.transact(proto.encode_reset(servo_id), servo_id, 0, priority)
 
     def sync_write_positions(self, targets: Sequence[Tuple[int, int, int]],
-                             priority: int = PRIORITY_SERVICE) -> list:
-        """SYNC WRITE (id, ticks, ms) in as few frames as fit; returns the frames sent."""
-        frames = [proto.encode_sync_write_positions(targets[k:k + proto.MAX_SYNC_WRITE_POSITIONS])
-                  for k in range(0, len(targets), proto.MAX_SYNC_WRITE_POSITIONS)]
-        for frame in frames:
-            self.send(frame, priority)
+                             priority: int = PRIORITY_SERVICE, wait: bool = True) -> list:
+        """SYNC WRITE (id, ticks, ms) in as few frames as fit; returns the frames.
+
+        While the read chain runs they go out from it at the next READ boundary (`post`; with
+        `wait`, this returns once they are written), else at once under the bus lock.
+        """
+        frames = sync_write_frames(targets)
+        if self.post(frames, BUS_LOCK_TIMEOUT_S if wait else None) is None:
+            for frame in frames:
+                self.send(frame, priority)
         return frames
 
-    def scan(self, ids: Iterable[int], timeout: Optional[float] = None,
-             priority: int = PRIORITY_SERVICE) -> list:
-        """PING each id once (no retries); returns the ids that answered, garbled or not."""
-        found = []
-        for servo_id in ids:
+    def scan(self, ids: Iterable[int], priority: int = PRIORITY_SERVICE) -> List[int]:
+        """PING each id once; return the ids that answered (cleanly or garbled), in order.
+
+        The PINGs use the normal margin, so an absent id costs a few ms. A reply that comes
+        after its PING's timeout still names its id (it is collected while the next ids are
+        PINGed, and for LATE_REPLY_WINDOW_S after the last); a PING answered by bytes that make
+        no frame (two servos at one id, S24, or a late reply that collided with a PING on a
+        half-duplex wire) makes that id and the one before it suspects. Late and suspect ids
+        are then PINGed again, one at a time with a wait of LATE_REPLY_WINDOW_S, and count as
+        found when they answer; a late servo keeps a margin of its own (docs/protocols.md).
+        """
+        ids = list(ids)
+        wanted = set(ids)
+        answered: Set[int] = set()
+        suspects: Set[int] = set()
+        late: Dict[int, float] = {}
+        previous: Optional[int] = None
+        self._late_sink = late
+        try:
+            for servo_id in ids:
+                garbled = self.garbled_by_id[servo_id]
+                try:
+                    self.transact(proto.encode_ping(servo_id), servo_id, 0, priority,
+                                  retries=0, flush=False)
+                    answered.add(servo_id)
+                except LinkTimeout:
+                    if self.garbled_by_id[servo_id] != garbled:
+                        suspects.add(servo_id)
+                        if previous is not None:
+                            suspects.add(previous)
+                previous = servo_id
+            if ids:
+                time.sleep(LATE_REPLY_WINDOW_S)
+        finally:
+            self._late_sink = None
+        for servo_id in sorted((set(late) | suspects) & wanted - answered):
+            if self._confirm(servo_id, priority):
+                answered.add(servo_id)
+        return [i for i in ids if i in answered]
+
+    def _confirm(self, servo_id: int, priority: int) -> bool:
+        """PING up to twice with a long wait; True if anything answers (learns its margin)."""
+        frame = proto.encode_ping(servo_id)
+        wire = wire_time(len(frame) + REPLY_OVERHEAD, self.baud)
+        for _ in range(2):
             garbled = self.garbled_by_id[servo_id]
             try:
-                self.ping(servo_id, priority, retries=0, timeout=timeout)
+                reply = self.transact(frame, servo_id, 0, priority, retries=0,
+                                      timeout=wire + LATE_REPLY_WINDOW_S)
             except LinkTimeout:
-                if self.garbled_by_id[servo_id] == garbled:
-                    continue
-            found.append(servo_id)
-        return found
+                if self.garbled_by_id[servo_id] != garbled:
+                    return True
+                continue
+            needed = self._reply_margin(servo_id, len(reply.raw))
+            if needed > self._margin:
+                self._learn(servo_id, needed)
+            return True
+        return False
 
     # -- counters -------------------------------------------------------------------------------
 
@@ -409,14 +679,28 @@ class ServoBusLink:
         return self.decoder.checksum_errors
 
     def _on_unsolicited(self, frame: Reply) -> None:
-        # Late replies (after a timeout) and duplicate-id replies (S24) end up here.
+        # Late replies (after a timeout) and duplicate-id replies (S24) end up here. A reply
+        # later than its servo's margin is a slow servo (or a stalled host): it gets a margin of
+        # its own. A duplicate's second reply follows the first at once, within the margin.
+        servo_id = frame.servo_id
         self.unexpected_frames += 1
-        self.replies_by_id[frame.servo_id] += 1
+        self.replies_by_id[servo_id] += 1
+        if self.sent_at[servo_id]:
+            needed = self._reply_margin(servo_id, len(frame.raw))
+            if needed > self.margin_for(servo_id):
+                self._learn(servo_id, needed)
+        sink = self._late_sink
+        if sink is not None:
+            sink.setdefault(servo_id, time.monotonic())
 
     def _on_tx(self, data: bytes) -> None:
         # Every unicast instruction is answered (S13), broadcast ones never.
-        if len(data) > 4 and data[2] != proto.BROADCAST_ID:
-            self.requests_by_id[data[2]] += 1
+        if len(data) > 4:
+            servo_id = data[2]
+            if servo_id != proto.BROADCAST_ID:
+                self.requests_by_id[servo_id] += 1
+                self.sent_at[servo_id] = time.monotonic()
+                self.sent_len[servo_id] = len(data)
 
     def surplus_replies(self, servo_id: int) -> int:
         """Return replies minus requests of ``servo_id`` so far; growing means a duplicate id.

@@ -1,12 +1,26 @@
-"""The servo bus's snapshots as ROS messages (pure functions, no node needed)."""
+"""The servo bus's snapshots as ROS messages (pure functions and packers, no node needed).
+
+`joint_state` and `servo_state_array` build the message objects. The node publishes the same
+messages as serialized bytes (CDR, little endian) from `JointStatePacker` and
+`ServoStatesPacker`: they are published after every read cycle, and building a
+``ServoStateArray`` of 12 ``ServoState`` objects and converting it for the middleware cost more
+than everything else the driver does per cycle (``bench/README.md``, ``cpu_servo_pct``). Names,
+ids and the frame are constant, so each message is a few ``struct`` packs of the values joined
+to precomputed bytes; rclpy publishes ``bytes`` as a serialized message.
+``test/test_servo_messages.py`` deserializes them and compares with the builders.
+"""
 
 from __future__ import annotations
 
+import struct
+from typing import Callable, Dict, Sequence, Tuple
+
 from builtin_interfaces.msg import Time
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.core import BusSnapshot
+from desheng_servo_ros.core import BusSnapshot, ServoSnapshot
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
+from uav_serial_common import cdr
 from uav_serial_drivers.msg import ServoState, ServoStateArray
 
 
@@ -30,3 +44,85 @@ def servo_state_array(snapshot: BusSnapshot, stamp: Time, frame_id: str) -> Serv
                    voltage_fault=bool(s.status & proto.STATUS_VOLTAGE_FAULT),
                    torque_enabled=s.torque_enabled, error_count=s.error_count)
         for s in snapshot.servos])
+
+
+# -- serialized messages ----------------------------------------------------------------------
+
+_SERVO_FIELDS = '?ididdB????I'
+"""ServoState after id and name: online .. error_count, as ``struct`` codes."""
+
+
+class JointStatePacker:
+    """``joint_states`` of a snapshot as serialized bytes (see the module docstring)."""
+
+    def __init__(self, frame_id: str) -> None:
+        self._layouts: Dict[Tuple[str, ...], Tuple[bytes, Callable[..., bytes]]] = {}
+        self.set_frame_id(frame_id)
+
+    def set_frame_id(self, frame_id: str) -> None:
+        """Change ``header.frame_id``."""
+        self.frame_id = frame_id
+        self._header, self._offset = cdr.header(frame_id)
+        self._layouts = {}
+
+    def _layout(self, names: Tuple[str, ...]) -> Tuple[bytes, Callable[..., bytes]]:
+        listed, offset = cdr.string_sequence(names, self._offset)
+        n = len(names)
+        # position and velocity (count, values), effort (always empty)
+        values = cdr.fields('I' + 'd' * n + 'I' + 'd' * n + 'I', offset)[0]
+        layout = self._layouts[names] = (self._header + listed, values.pack)
+        return layout
+
+    def pack(self, snapshot: BusSnapshot, sec: int, nanosec: int) -> bytes:
+        """Return the serialized ``JointState`` of every online servo (as `joint_state`)."""
+        online: Sequence[ServoSnapshot] = [s for s in snapshot.servos if s.online]
+        names = tuple(s.name for s in online)
+        head, pack = self._layouts.get(names) or self._layout(names)
+        n = len(online)
+        return b''.join((cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), head, pack(
+            n, *[s.position_rad for s in online], n, *[s.velocity for s in online], 0)))
+
+
+class ServoStatesPacker:
+    """``~/servo_states`` of a snapshot as serialized bytes (see the module docstring)."""
+
+    def __init__(self, frame_id: str) -> None:
+        self._layouts: Dict[Tuple[Tuple[int, str], ...], Tuple[bytes, list]] = {}
+        self.set_frame_id(frame_id)
+
+    def set_frame_id(self, frame_id: str) -> None:
+        """Change ``header.frame_id``."""
+        self.frame_id = frame_id
+        self._header, self._offset = cdr.header(frame_id)
+        self._layouts = {}
+
+    def _layout(self, key: Tuple[Tuple[int, str], ...]) -> Tuple[bytes, list]:
+        offset = self._offset
+        pad = bytes(-offset % 4)
+        head = self._header + pad + struct.pack('<I', len(key))
+        offset += len(pad) + 4
+        parts = []
+        for servo_id, name in key:
+            # id and name are constant; the rest of a ServoState is one struct of the values.
+            named, offset = cdr.string(name, offset + 1)
+            values, offset = cdr.fields(_SERVO_FIELDS, offset)
+            parts.append((bytes((servo_id,)) + named, values.pack))
+        self._layouts[key] = (head, parts)
+        return head, parts
+
+    def pack(self, snapshot: BusSnapshot, sec: int, nanosec: int) -> bytes:
+        """Return the serialized ``ServoStateArray`` of every servo (as `servo_state_array`)."""
+        servos = snapshot.servos
+        key = tuple((s.id, s.name) for s in servos)
+        head, parts = self._layouts.get(key) or self._layout(key)
+        out = [cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), head]
+        overload, heat, voltage = (proto.STATUS_OVERLOAD, proto.STATUS_OVER_TEMPERATURE,
+                                   proto.STATUS_VOLTAGE_FAULT)
+        for s, (prefix, pack) in zip(servos, parts):
+            status = s.status
+            out.append(prefix)
+            out.append(pack(s.online, s.position_ticks, s.position_rad, s.speed_raw,
+                            s.current_ma, s.temperature_c, status, bool(status & overload),
+                            bool(status & heat), bool(status & voltage), s.torque_enabled,
+                            s.error_count))
+        return b''.join(out)

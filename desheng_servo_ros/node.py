@@ -2,15 +2,17 @@
 
 A thin adapter around :class:`~desheng_servo_ros.core.ServoBusCore`, which owns the bus, the read
 loop and every rule: parameters become its config, services and ``~/command`` become its calls,
-its snapshots become ``joint_states`` and ``~/servo_states`` (``messages.py``), its health
-becomes ``/diagnostics``. The contract is the "Servo bus driver" section of the README; decisions
+its snapshots become ``joint_states`` and ``~/servo_states`` (``messages.py``, published as
+serialized bytes, stamped with the time the positions came off the wire), its health becomes
+``/diagnostics``. The contract is the "Servo bus driver" section of the README; decisions
 are in ``docs/protocols.md`` (Driver decisions).
 """
 
 from __future__ import annotations
 
 import sys
-from typing import Any, Callable, Dict, List, Optional
+import time
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from desheng_servo_ros import messages
 from desheng_servo_ros.core import BusSnapshot, Health, Result, ServoBusConfig, ServoBusCore
@@ -50,13 +52,17 @@ PARAMETERS = (
     ParamSpec('default_move_time_ms', 0, 'run time when a command gives -1 [ms]; 0 = fastest',
               int_range=(0, 65535)),
     ParamSpec('response_timeout_ms', 0.0,
-              'wait for a reply beyond its wire time [ms]; 0 = derived (34 ms)',
-              float_range=(0.0, 10000.0)),
+              'wait for a reply beyond its wire time [ms]; 0 = derived from the port (a few ms '
+              'on a pty, an on-board UART or a 1 ms USB adapter; 2 latency timer periods + 2 ms '
+              'otherwise)', float_range=(0.0, 10000.0)),
     ParamSpec('max_retries', 1, 'retries per transaction', int_range=(0, 10)),
     ParamSpec('torque_on_start', False, 'turn torque on for every servo at start',
               startup_only=True),
     ParamSpec('torque_off_on_shutdown', True, 'broadcast torque off as the last act on shutdown'),
     ParamSpec('frame_id', 'servo_bus', 'header frame_id of published messages'),
+    ParamSpec('adjust_latency_timer', True, 'on every open of a USB serial adapter, lower its '
+              'latency timer to 1 ms where the driver may (low-latency mode, else sysfs)',
+              read_only=True),
 )
 
 
@@ -74,6 +80,11 @@ class ServoBusNode(Node):
         if problems:
             raise StartupError('; '.join(problems))
         self.frame_id = values['frame_id']
+        self._joints = messages.JointStatePacker(self.frame_id)
+        self._states = messages.ServoStatesPacker(self.frame_id)
+        # Stamps come from the wall clock (as the node's clock would give them) unless the node
+        # runs on simulated time.
+        self._sim_time = bool(self.get_parameter('use_sim_time').value)
         log = self.get_logger()
         try:
             self.core = ServoBusCore(ServoBusConfig.from_values(values), logger=log,
@@ -121,6 +132,8 @@ class ServoBusNode(Node):
     def _apply(self, changes: Dict[str, Any]) -> None:
         if 'frame_id' in changes:
             self.frame_id = changes['frame_id']
+            self._joints.set_frame_id(self.frame_id)
+            self._states.set_frame_id(self.frame_id)
         self.core.update_config(changes)
 
     def _on_command(self, msg: ServoCommand) -> None:
@@ -151,10 +164,21 @@ class ServoBusNode(Node):
 
     def _publish(self, snapshot: BusSnapshot) -> None:
         # The core's reporter thread, after every cycle (and while the port is away).
-        stamp = self.get_clock().now().to_msg()
+        sec, nanosec = self._stamp(snapshot.read_at)
         if snapshot.connected:
-            self.joint_pub.publish(messages.joint_state(snapshot, stamp, self.frame_id))
-        self.state_pub.publish(messages.servo_state_array(snapshot, stamp, self.frame_id))
+            self.joint_pub.publish(self._joints.pack(snapshot, sec, nanosec))
+        self.state_pub.publish(self._states.pack(snapshot, sec, nanosec))
+
+    def _stamp(self, read_at: Optional[float]) -> Tuple[int, int]:
+        """Return (sec, nanosec) of the moment `read_at` (monotonic), or of now if None.
+
+        The messages carry the time their oldest position came off the wire, not the time
+        they are published (docs/protocols.md, "Stamps").
+        """
+        now_ns = self.get_clock().now().nanoseconds if self._sim_time else time.time_ns()
+        if read_at is not None:
+            now_ns -= int((time.monotonic() - read_at) * 1e9)
+        return divmod(now_ns, 1_000_000_000)
 
     def _changed(self) -> None:
         self.diagnostics.force_update()

@@ -19,6 +19,7 @@ from uav_serial_drivers.msg import BusServoState, BusServoStateArray, ButtonEven
 
 from originman_board_ros.core import (AsrSample, BatterySample, BusServoStatus, ButtonSample,
                                       GamepadSample, ImuSample, OriginManSnapshot, SbusSample)
+from uav_serial_common import cdr
 from uav_serial_common.diagnostics import ERROR, OK, STALE, Status, WARN
 
 NAN = math.nan
@@ -67,8 +68,6 @@ class ImuPacker:
     ``test_originman_messages`` deserializes them with ``rclpy.serialization`` and compares.
     """
 
-    _ENCAPSULATION = b'\x00\x01\x00\x00'  # CDR, little endian, no options
-    _STAMP = struct.Struct('<iI')
     _VECTOR = struct.Struct('<3d')
 
     def __init__(self, frame_id: str) -> None:
@@ -83,17 +82,14 @@ class ImuPacker:
 
     def set_frame_id(self, frame_id: str) -> None:
         """Change ``header.frame_id``."""
-        text = frame_id.encode('utf-8') + b'\x00'
-        frame = struct.pack('<I', len(text)) + text
-        # Doubles are aligned to 8 bytes from the start of the data (after the 4-byte
-        # encapsulation); the stamp takes 8.
-        self._frame = frame + bytes(-(8 + len(frame)) % 8)
+        frame, offset = cdr.header(frame_id)
+        self._frame = frame + bytes(-offset % 8)  # the doubles that follow are 8-aligned
         self.frame_id = frame_id
 
     def pack(self, sample: ImuSample, sec: int, nanosec: int) -> bytes:
         """Return the serialized ``~/imu`` of one report."""
         vector = self._VECTOR.pack
-        return b''.join((self._ENCAPSULATION, self._STAMP.pack(sec, nanosec), self._frame,
+        return b''.join((cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), self._frame,
                          self._orientation, vector(*sample.angular_velocity), self._zero9,
                          vector(*sample.linear_acceleration), self._zero9))
 

@@ -171,6 +171,35 @@ def test_unplug_is_noticed_and_the_link_reopens_the_same_path_after_replug(devic
         assert link.stats.reconnects == 1
 
 
+def test_the_on_open_hook_sees_every_open_before_the_port_is_used(device):
+    opened = []
+    states = []
+
+    def on_open(port):
+        # Before the link reports the port open and before anything is written to it.
+        opened.append((port.is_open, list(states), len(device.received)))
+    link = SerialLink(device.port.path, 115200, LineDecoder(), on_frame=lambda frame: None,
+                      on_connection=lambda up, why: states.append(up), on_open=on_open)
+    link.start()
+    try:
+        assert link.wait_connected(2)
+        assert opened == [(True, [], 0)]
+        device.port.unplug()
+        wait_for(lambda: not link.connected, 2, what='the unplug noticed')
+        device.port.replug()
+        wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        assert len(opened) == 2
+    finally:
+        link.stop()
+
+
+def test_a_failing_on_open_hook_costs_the_port_nothing(device):
+    def on_open(port):
+        raise OSError('no such ioctl')
+    with open_link(device.port.path, on_open=on_open) as (link, _, _):
+        assert link.request(b'ask 5\n', lambda f: f == b're 5', timeout=1.0) == b're 5'
+
+
 def test_a_request_in_flight_fails_fast_when_the_port_goes_away(device):
     with open_link(device.port.path) as (link, _, _):
         device.silent = True
@@ -328,6 +357,35 @@ def test_a_chain_can_retry_a_silent_request_at_once_and_survives_a_handler_bug(d
         assert device.received[-4:] == [b'ask 1', b'ask 2', b'ask 2', b'ask 3']
         assert [frame for frame, _ in chain.results] == [b're 1', None, None, b're 3']
         assert link.request_chain(ListChain(link, [])) == 0
+
+
+class HoldingChain(ListChain):
+    """A chain that sends a frame without a reply (`note N`) before each `ask N`."""
+
+    def __init__(self, link, numbers, hold_s):
+        super().__init__(link, numbers)
+        self.hold_s = hold_s
+        self.noted = False
+
+    def next_request(self):
+        if self.todo and not self.noted:
+            self.noted = True
+            return f'note {self.todo[0]}\n'.encode(), None, self.hold_s
+        self.noted = False
+        return super().next_request()
+
+
+def test_a_frame_without_a_reply_holds_the_chain_for_its_time_without_a_result(device):
+    with open_link(device.port.path) as (link, _, _):
+        chain = HoldingChain(link, [1, 2], hold_s=0.05)
+        timeouts = link.stats.timeouts
+        assert link.request_chain(chain) == 4
+        assert device.received[-4:] == [b'note 1', b'ask 1', b'note 2', b'ask 2']
+        # Only the requests with a reply have a result; a hold is no timeout.
+        assert [frame for frame, _ in chain.results] == [b're 1', b're 2']
+        assert link.stats.timeouts == timeouts
+        # The request after a hold waited for it (a lower bound only).
+        assert device.arrivals[-1] - device.arrivals[-2] >= 0.045
 
 
 def test_safety_14_a_port_that_fails_any_way_is_a_link_error_and_the_reader_lives_on(tmp_path):

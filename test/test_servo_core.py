@@ -8,10 +8,12 @@ logic (cycles, telemetry, re-probes, duplicate-id checks) runs on a clock the te
 
 import math
 import threading
+import time
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAILURES,
                                     REPROBE_PERIOD_S, ServoBusConfig, ServoBusCore, WARN)
+from desheng_servo_ros.link import FORGET_AFTER_REPLIES
 from desheng_servo_ros.protocol import Instruction, StreamDecoder
 from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
@@ -66,9 +68,9 @@ class Tap:
 
 class Rig:
     def __init__(self, tmp_path, ids=(1, 2, 3), servo_ids=(1, 2, 3), loop=False, clock=None,
-                 device_baud=115200, **config):
+                 device_baud=115200, response_delay_s=0.0, **config):
         self.dev = VirtualServoBus(str(tmp_path / 'bus'), list(ids), baud=device_baud,
-                                   response_delay_s=0.0, seed=1).start()
+                                   response_delay_s=response_delay_s, seed=1).start()
         self.tap = Tap(self.dev.runner)
         self.clock = clock or FakeClock()
         self.log = Log()
@@ -419,3 +421,141 @@ def test_a_missing_port_is_an_error_that_says_so_and_opening_is_no_error(tmp_pat
         assert 'no such device' in core.bus_health().message
     finally:
         core.stop()
+
+
+# -- the port's latency, slow servos, stamps, commands between two READs ------------------------
+
+def test_on_a_pty_the_health_says_pseudo_terminal_and_the_derived_margin_is_a_few_ms(tmp_path):
+    rig = Rig(tmp_path, response_timeout_ms=0.0)
+    try:
+        values = dict(rig.core.bus_health().values)
+        assert 'pseudo-terminal' in values['latency timer action']
+        assert values['latency timer before [ms]'] == values['latency timer after [ms]'] == 'none'
+        assert values['udev rule'] == 'not needed'
+        assert 0.5 <= float(values['reply margin [ms]']) <= 5.0
+        assert dict(rig.core.servo_health(1).values)['reply margin [ms]'] == \
+            values['reply margin [ms]']
+        # Said once, as information: nothing to fix on a pty.
+        said = [(lv, t) for lv, t in rig.log.lines if 'serial port latency' in t]
+        assert [lv for lv, _ in said] == ['info']
+        assert 'pseudo-terminal' in said[0][1] and 'reply margin 2 ms' in said[0][1]
+        assert all(s.online for s in rig.cycle().servos)
+    finally:
+        rig.stop()
+
+
+def test_a_set_response_timeout_wins_over_the_derived_margin(rig):
+    values = dict(rig.core.bus_health().values)
+    assert values['reply margin [ms]'] == '25.0 (response_timeout_ms)'
+
+
+SLOW_S = 0.025  # far beyond a pty's reply margin
+
+
+def test_scan_finds_servos_whose_replies_come_late_and_reads_them_afterwards(tmp_path):
+    rig = Rig(tmp_path, ids=(5, 100, 250), servo_ids=(5, 100, 250), response_delay_s=SLOW_S,
+              response_timeout_ms=0.0)
+    try:
+        bus = rig.core.bus
+        assert bus.margin_s + 0.002 < SLOW_S
+        result = rig.core.scan(1, 250)
+        assert result.ok and result.data['ids'] == [5, 100, 250], result.message
+        assert 'answer late' in result.message
+        # Each PINGed once in the sweep, and once more with a long wait to confirm it.
+        pings = [r.servo_id for r in rig.tap.requests() if r.instruction == Instruction.PING]
+        assert sorted(pings) == sorted(list(range(1, 251)) + [5, 100, 250])
+        for servo_id in (5, 100, 250):
+            assert SLOW_S < bus.margin_for(servo_id) <= 0.1
+        assert bus.margin_for(7) == bus.margin_s
+        # The read loop waits long enough for them: no READ of theirs fails.
+        snap = rig.cycle()
+        assert all(s.online and s.error_count == 0 for s in snap.servos)
+    finally:
+        rig.stop()
+
+
+def test_the_start_up_scan_finds_a_slow_servo_and_reads_it(tmp_path):
+    rig = Rig(tmp_path, ids=(3, 200), servo_ids=(), response_delay_s=SLOW_S,
+              response_timeout_ms=0.0, loop=True, clock=time.monotonic)
+    try:
+        wait_for(lambda: [j.id for j in rig.core.servos] == [3, 200], 20,
+                 what='the start-up scan to find both servos')
+        wait_for(lambda: rig.core.snapshot().servos and
+                 all(s.online for s in rig.core.snapshot().servos), 10,
+                 what='both servos online')
+        assert 'found servos [3, 200]' in rig.log.text('info')
+        assert all(s.error_count == 0 for s in rig.core.snapshot().servos)
+    finally:
+        rig.stop()
+
+
+def test_a_late_reply_in_the_read_loop_gives_that_servo_a_longer_wait_for_a_while(tmp_path):
+    rig = Rig(tmp_path, response_timeout_ms=0.0, telemetry_period_s=3600.0)
+    try:
+        bus = rig.core.bus
+        rig.cycle()
+        rig.dev.runner.faults.reply_delay_s = SLOW_S
+        rig.cycle()  # every READ times out: the replies come late
+        wait_for(lambda: bus.margin_for(1) > SLOW_S, 2, what='the late replies')
+        rig.dev.runner.faults.reply_delay_s = 0.0
+        # Timely replies again: after a run of them (FORGET_AFTER_REPLIES) the longer wait is
+        # forgotten; the cycles meanwhile lose no servo.
+        for k in range(FORGET_AFTER_REPLIES * 5):
+            snap = rig.cycle()
+            if bus.margin_for(1) == bus.margin_s:
+                break
+        assert bus.margin_for(1) == bus.margin_s and k >= FORGET_AFTER_REPLIES - 1
+        assert all(s.online for s in snap.servos)
+    finally:
+        rig.stop()
+
+
+def test_positions_are_stamped_with_their_arrival_not_with_the_time_they_are_taken(rig):
+    replies = []
+    rig.dev.runner.add_tap(lambda d, data, t: replies.append(t) if d == 'tx' else None)
+    before = time.monotonic()
+    snap = rig.cycle()
+    after = time.monotonic()
+    assert snap.read_at is not None and before <= snap.read_at <= after
+    # The oldest position of the cycle: the first reply's arrival (not earlier than it left
+    # the device), and each servo carries its own.
+    assert snap.read_at >= replies[0]
+    assert snap.read_at == min(s.read_at for s in snap.servos)
+    assert snap.servos[0].read_at < snap.servos[2].read_at
+    # Taken again later, nothing was read meanwhile: the same stamps.
+    again = rig.core.snapshot()
+    assert again.read_at == snap.read_at
+    assert [s.read_at for s in again.servos] == [s.read_at for s in snap.servos]
+
+
+def test_a_command_goes_out_at_the_next_read_boundary_from_the_running_read_loop(tmp_path):
+    rig = Rig(tmp_path, loop=True, clock=time.monotonic, publish_rate_hz=1000.0,
+              telemetry_period_s=3600.0)
+    try:
+        wait_for(lambda: all(s.online for s in rig.core.snapshot().servos), 5,
+                 what='every servo online')
+        for k in range(5):
+            mark = rig.tap.mark()
+            assert rig.core.command([], [1, 2, 3], [0.1 * k] * 3, 0).ok
+
+            def sent():
+                return [r for r in rig.tap.requests(mark)
+                        if r.instruction == Instruction.SYNC_WRITE]
+            wait_for(sent, 2, what='the SYNC WRITE')
+            before = []
+            for r in rig.tap.requests(mark):
+                if r.instruction == Instruction.SYNC_WRITE:
+                    break
+                before.append(r)
+            # At most the READ that was on the wire when the command came.
+            assert len(before) <= 1, before
+            # Quiet again before the next: the command is not held back by the spacing.
+            wait_for(lambda: rig.core._last_post is None or rig.core._last_post.done, 2,
+                     what='the command written')
+            wait_for(lambda: time.monotonic() > rig.core._next_command_at + 0.015, 2,
+                     what='the command spacing over')
+        # The read loop went on.
+        count = rig.core.cycle_count
+        wait_for(lambda: rig.core.cycle_count > count + 10, 5, what='more read cycles')
+    finally:
+        rig.stop()

@@ -36,9 +36,17 @@ def test_read_returns_the_addressed_servos_reply(bus):
     assert link.ping(3).servo_id == 3
 
 
-def test_timeout_is_the_wire_time_plus_the_margin(bus):
+def test_timeout_is_the_wire_time_plus_the_margin_the_port_allows(bus):
     _, _, link = bus
-    assert link.timeout_for(8, 4) == pytest.approx(wire_time(18, 115200) + DERIVED_MARGIN_S)
+    # Before the port was looked at: two periods of an FTDI adapter's default timer + 2 ms.
+    unopened = ServoBusLink('/nonexistent/servobus', 115200)
+    assert unopened.latency is None
+    assert unopened.timeout_for(8, 4) == pytest.approx(wire_time(18, 115200) + DERIVED_MARGIN_S)
+    # A pty has no latency timer: the margin is the host's few ms.
+    assert link.latency.kind == 'pty' and 'pseudo-terminal' in link.latency.summary()
+    assert link.margin_s == pytest.approx(link.latency.reply_margin_s())
+    assert link.margin_s < 0.005
+    assert link.timeout_for(8, 4) == pytest.approx(wire_time(18, 115200) + link.margin_s)
     link.response_timeout_ms = 3.0
     try:
         assert link.timeout_for(8, 4) == pytest.approx(wire_time(18, 115200) + 0.003)

@@ -5,6 +5,7 @@ servos the others do not rely on.
 """
 
 import math
+import time
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Instruction
@@ -75,6 +76,36 @@ def test_servo_states_list_every_servo_with_telemetry(rig):
         assert s.online and s.temperature_c == pytest.approx(25, abs=2)
         assert not (s.overload or s.over_temperature or s.voltage_fault)
     rig.diag('/servo_bus: bus', lambda s: s.level == b'\x00' and '3/3' in s.message)
+
+
+def test_the_bus_diagnostics_say_what_the_port_is_and_the_reply_margin(rig):
+    status = rig.diag('/servo_bus: bus', lambda s: any(v.key == 'latency timer action'
+                                                       for v in s.values))
+    values = {v.key: v.value for v in status.values}
+    assert 'pseudo-terminal' in values['latency timer action']
+    assert values['udev rule'] == 'not needed'
+    # The rig sets response_timeout_ms; the derived margin is tested in test_servo_core.
+    assert values['reply margin [ms]'] == '250.0 (response_timeout_ms)'
+    log = rig.node.output()
+    assert log.count('serial port latency:') == 1 and 'pseudo-terminal' in log
+
+
+def stamp_s(msg):
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+def test_joint_states_are_stamped_when_their_positions_were_read(rig):
+    # Stamped with the arrival of the cycle's oldest reply, before it was published and
+    # received; servo_states of the same cycle carry the same stamp.
+    start_j, start_s = len(rig.joints), len(rig.states)
+    rig.joints.wait(lambda m: len(m.name) == 3, 5, start=start_j + 5)
+    rig.states.wait(lambda m: True, 5, start=start_s + 5)
+    now = time.time()
+    joints = rig.joints.messages[start_j:]
+    states = rig.states.messages[start_s:]
+    assert all(stamp_s(m) <= now for m in joints + states)
+    assert [stamp_s(m) for m in joints] == sorted(stamp_s(m) for m in joints)
+    assert {stamp_s(m) for m in joints} & {stamp_s(m) for m in states}
 
 
 def test_command_is_one_sync_write_and_the_servos_reach_their_targets(rig):

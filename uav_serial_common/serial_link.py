@@ -93,8 +93,12 @@ class _Waiter:
 class RequestChain(Protocol):
     """Requests sent one after the other, each the moment the previous one is settled."""
 
-    def next_request(self) -> Optional[Tuple[bytes, Match, float]]:
-        """Return the next (data, match, timeout), or None to end the chain."""
+    def next_request(self) -> Optional[Tuple[bytes, Optional[Match], float]]:
+        """Return the next (data, match, timeout), or None to end the chain.
+
+        `match` None: a frame that gets no reply; the chain holds the line for `timeout` (its
+        wire time and a guard), then goes on without a result (``on_result`` is not called).
+        """
 
     def on_result(self, frame: Any) -> None:
         """Take the reply of the request before (None: it timed out)."""
@@ -115,6 +119,7 @@ class _Chain:
         self.lock = threading.Lock()
         self.event = threading.Event()
         self.match: Match = _match_nothing
+        self.no_reply = False
         self.deadline = 0.0
         self.sent = 0
         self.done = False
@@ -133,6 +138,10 @@ class _Chain:
 
     def expire(self) -> None:
         """Report the current request as timed out and go on (caller's thread, lock held)."""
+        if self.no_reply:
+            # A frame without a reply has had its time on the line: nothing timed out.
+            self.send_next()
+            return
         self.link.stats.timeouts += 1
         self._deliver(None)
         self.send_next()
@@ -151,7 +160,9 @@ class _Chain:
         if item is None:
             self.finish()
             return
-        data, self.match, timeout = item
+        data, match, timeout = item
+        self.no_reply = match is None
+        self.match = _match_nothing if match is None else match
         try:
             if self.flush:
                 self.link.flush_input(port=flush_port)
@@ -162,6 +173,18 @@ class _Chain:
             return
         self.sent += 1
         self.deadline = time.monotonic() + timeout
+        if self.no_reply:
+            self.link._hold(self)
+
+    def end_hold(self) -> None:
+        """End a hold that is over and send on (reader thread)."""
+        with self.lock:
+            if self.done or not self.no_reply:
+                return
+            if time.monotonic() >= self.deadline:
+                self.expire()
+            else:
+                self.link._hold(self)  # a newer hold began meanwhile: watch that one
 
     def _deliver(self, frame: Any) -> None:
         try:
@@ -197,6 +220,7 @@ class SerialLink:
         backoff_max_s: float = 1.0,
         read_timeout_s: float = 0.05,
         idle_flush_s: Optional[float] = None,
+        on_open: Optional[Callable[[serial.SerialBase], None]] = None,
     ) -> None:
         self.url = url
         self.baud = baud
@@ -212,6 +236,10 @@ class SerialLink:
         self._on_connection = on_connection
         self._on_tx = on_tx
         self._on_rx = on_rx
+        # Called on the reader thread with the port each time it is (re)opened, before anyone
+        # may use it: port settings that the owner derives from the device (a USB adapter's
+        # latency timer). A failure is logged and the port used as it is.
+        self._on_open = on_open
         self._log = logger or logging.getLogger('serial_link')
         self._backoff_initial = backoff_initial_s
         self._backoff_max = backoff_max_s
@@ -230,6 +258,10 @@ class SerialLink:
         self._stop = threading.Event()
         self._connected = threading.Event()
         self._thread: Optional[threading.Thread] = None
+        # A request chain holding the line after a frame without a reply, and until when: the
+        # reader thread ends the hold itself (no hand-off to the chain's caller).
+        self._holder: Optional[_Chain] = None
+        self._hold_until = 0.0
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -341,6 +373,7 @@ class SerialLink:
                 with run.lock:
                     if run.done:
                         break
+                    run.event.clear()  # set again by a hold the reader cannot end, or the end
                     remaining = run.deadline - time.monotonic()
                     if remaining <= 0:
                         run.expire()
@@ -418,7 +451,20 @@ class SerialLink:
             self._receive(data)
         elif self._idle_flush_s is not None:
             self._flush_idle()
+        if self._hold_until and time.monotonic() >= self._hold_until:
+            holder, self._holder, self._hold_until = self._holder, None, 0.0
+            if holder is not None:
+                holder.end_hold()
         return backoff
+
+    def _hold(self, chain: _Chain) -> None:
+        """Have the reader thread end `chain`'s hold at its deadline (lock of `chain` held)."""
+        if self._fast_fd is None:
+            # No timed wake-up of the reader here: the chain's caller ends the hold.
+            chain.event.set()
+            return
+        self._holder = chain
+        self._hold_until = chain.deadline
 
     def _read_port(self, port: serial.SerialBase) -> bytes:
         fd = self._fast_fd
@@ -464,6 +510,10 @@ class SerialLink:
             due = self._idle_flush_s if last is None else \
                 last + self._idle_flush_s - time.monotonic()
             timeout = min(timeout, max(due, 0.0005))
+        hold = self._hold_until
+        if hold:
+            # A chain's request without a reply holds the line: the reader ends the hold.
+            timeout = min(timeout, max(0.0, hold - time.monotonic()))
         return timeout
 
     def _write_port(self, port: serial.SerialBase, data: bytes) -> None:
@@ -549,6 +599,11 @@ class SerialLink:
                 self._log.error(message)
             self.last_error = message
             return False
+        if self._on_open is not None:
+            try:
+                self._on_open(port)
+            except Exception:  # noqa: BLE001 - a settings problem must not cost the port
+                self._log.error(f'{self.url}: on-open handler failed:\n{traceback.format_exc()}')
         with self._rx_lock:
             self._decoder.reset()
         self._serial = port
