@@ -22,6 +22,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from uav_serial_common.diagnostics import DiagnosticsUpdater, Status
+from uav_serial_common.executor import InlineCallbackGroup
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
                                       ParamSpec)
@@ -101,8 +102,10 @@ class ServoBusNode(Node):
         self._sync_servo_tasks()
         ParameterBinding(self, PARAMETERS, apply=self._apply)
 
+        # A command only queues targets for the core (or hands them to the running read chain):
+        # it never waits on the bus, so it runs on the executor's thread, with no hand-off.
         self.create_subscription(ServoCommand, '~/command', self._on_command, 10,
-                                 callback_group=MutuallyExclusiveCallbackGroup())
+                                 callback_group=InlineCallbackGroup())
         core = self.core
         services = MutuallyExclusiveCallbackGroup()
         for srv_type, name, call in (

@@ -91,3 +91,14 @@ def test_ports_without_a_timer(tree):
     (tree[0] / 'ttyUSB4').write_text('')
     unknown = inspect(tree, 'ttyUSB4')
     assert unknown.kind == 'usb' and unknown.reply_margin_s() == pytest.approx(0.034)
+
+
+def test_a_port_unplugged_while_it_is_resolved_gives_a_report_not_an_exception(tree, monkeypatch):
+    # The race of a flaky connector: the udev link is there when the link opens the port and
+    # gone when realpath reads it (lstat saw a symlink, readlink finds nothing).
+    def vanished(path, *args, **kwargs):
+        raise FileNotFoundError(2, 'No such file or directory', path)
+    monkeypatch.setattr(os.path, 'realpath', vanished)
+    report = inspect(tree, 'servobus')
+    assert report.kind == 'gone' and 'vanished' in report.summary()
+    assert report.reply_margin_s() == pytest.approx(0.002)

@@ -43,7 +43,7 @@ def string_sequence(items: Iterable[str], offset: int) -> Tuple[bytes, int]:
 
 
 def fields(codes: str, offset: int) -> Tuple[struct.Struct, int]:
-    """Return a Struct of fixed-size fields (``struct`` codes) starting at `offset`.
+    """Return a packer of fixed-size values, ``struct`` `codes`, starting at `offset`.
 
     Each field is aligned to its own size, as CDR does; returns the Struct and the end offset.
     """

@@ -18,9 +18,10 @@ import threading
 from typing import Callable, List, Optional
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from uav_serial_common.executor import DriverExecutor
 
 _WAIT_STEP_S = 0.2
 """The main thread wakes this often, so a signal is seen promptly."""
@@ -64,8 +65,7 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
         if signals.stop.is_set():
             return 0
         node = factory()
-        executor = MultiThreadedExecutor(num_threads=threads)
-        _start_pool(executor, threads)
+        executor = DriverExecutor(num_threads=threads)
         executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor, signals.stop),
                                    name='executor', daemon=True)
@@ -112,30 +112,7 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
     return code
 
 
-def _start_pool(executor: MultiThreadedExecutor, threads: int) -> None:
-    """Start every worker thread of the executor now instead of on its first busy moment.
-
-    The pool (a ThreadPoolExecutor) adds a thread whenever no idle one is there, so a driver's
-    thread count would creep up over its first minutes of concurrent callbacks; fixed from the
-    start, any growth later is a leak a check can see.
-    """
-    pool = getattr(executor, '_executor', None)
-    if pool is None:
-        return
-    gate = threading.Barrier(threads + 1)
-    for _ in range(threads):
-        pool.submit(_pass, gate)
-    _pass(gate)
-
-
-def _pass(gate: threading.Barrier) -> None:
-    try:
-        gate.wait(5.0)
-    except threading.BrokenBarrierError:
-        pass
-
-
-def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
+def _spin(executor: DriverExecutor, stop: threading.Event) -> None:
     try:
         # No timeout: rclpy makes a timer for every timed wait, and each wake-up walks every
         # entity of the node in Python (~0.3 ms of CPU). The shutdown wakes it (wake() above;

@@ -43,7 +43,7 @@ class LatencyReport:
     device: str
     tty: Optional[str]
     kind: str
-    """'pty', 'uart', 'url', 'ftdi', 'usb' (a ttyUSB without a timer file), 'cdc-acm'."""
+    """'pty', 'uart', 'url', 'ftdi', 'usb' (a ttyUSB without a timer file), 'cdc-acm', 'gone'."""
     before_ms: Optional[int]
     after_ms: Optional[int]
     action: str
@@ -94,7 +94,14 @@ def inspect_latency_timer(port: str, allow_change: bool = True,
     """
     if '://' in port:
         return LatencyReport(port, port, None, 'url', None, None, 'a pyserial URL: no adapter')
-    device = os.path.realpath(port)
+    try:
+        device = os.path.realpath(port)
+    except OSError as exc:
+        # Unplugged between the open and here (a udev link that went away mid-resolution):
+        # the port fails its next read and the driver reopens it and asks again.
+        return LatencyReport(port, port, None, 'gone', None, None,
+                             f'the port vanished while its latency timer was looked up '
+                             f'({_reason(exc)})')
     tty = os.path.basename(device)
     if tty.startswith('ttyACM'):
         return LatencyReport(port, device, tty, 'cdc-acm', None, None,

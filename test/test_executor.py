@@ -1,0 +1,119 @@
+"""DriverExecutor: inline callbacks on the spin thread, the rest in the pool, never blocked by it.
+
+Real rclpy in a private context: a node with a topic in an `InlineCallbackGroup`, a service that
+blocks in the pool, a publisher and a client in the test's `ros` harness.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.node import Node
+from std_msgs.msg import Int32
+from std_srvs.srv import Trigger
+from uav_serial_common.executor import DriverExecutor, InlineCallbackGroup
+from uav_serial_common.process import wait_for
+
+
+class _Driver:
+    """A node of its own context, spun by a DriverExecutor in a thread named 'spin'."""
+
+    def __init__(self, threads: int = 2) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = Node('executor_under_test', context=self.context)
+        self.seen = []
+        self.release = threading.Event()
+        self.blocked = 0
+        self._lock = threading.Lock()
+        self.fail_on = None
+        self.node.create_subscription(Int32, '~/fast', self._on_fast, 10,
+                                      callback_group=InlineCallbackGroup())
+        for k in range(threads):
+            # A group each, so all of them can block the pool at once.
+            self.node.create_service(Trigger, f'~/slow_{k}', self._on_slow,
+                                     callback_group=MutuallyExclusiveCallbackGroup())
+        self.executor = DriverExecutor(num_threads=threads, context=self.context)
+        self.executor.add_node(self.node)
+        self.errors = []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, name='spin', daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while not self.stop.is_set() and self.context.ok():
+                self.executor.spin_once(timeout_sec=0.1)
+        except Exception as exc:  # noqa: BLE001 - the test reads what ended spinning
+            self.errors.append(exc)
+
+    def _on_fast(self, msg: Int32) -> None:
+        if msg.data == self.fail_on:
+            raise RuntimeError(f'callback failed on {msg.data}')
+        self.seen.append((msg.data, threading.current_thread().name))
+
+    def _on_slow(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self._lock:
+            self.blocked += 1
+        self.release.wait(10.0)
+        response.success = True
+        response.message = threading.current_thread().name
+        return response
+
+    def close(self) -> None:
+        self.release.set()
+        self.stop.set()
+        self.thread.join(2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def driver():
+    d = _Driver()
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+def _publish_until_seen(ros, driver, value: int) -> None:
+    pub = ros.node.create_publisher(Int32, '/executor_under_test/fast', 10)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, what='the subscription matched')
+    pub.publish(Int32(data=value))
+    wait_for(lambda: any(v == value for v, _ in driver.seen), 5, what=f'message {value} taken')
+
+
+def test_an_inline_callback_runs_on_the_spin_thread_and_a_service_in_the_pool(ros, driver):
+    _publish_until_seen(ros, driver, 1)
+    assert driver.seen == [(1, 'spin')]
+    driver.release.set()
+    response = ros.call(Trigger, '/executor_under_test/slow_0', timeout=10.0)
+    assert response.success and response.message.startswith('callback')
+
+
+def test_an_inline_callback_is_taken_while_every_pool_thread_is_blocked(ros, driver):
+    futures = []
+    for k in range(2):
+        client = ros.client(Trigger, f'/executor_under_test/slow_{k}')
+        assert client.wait_for_service(timeout_sec=10.0)
+        futures.append(client.call_async(Trigger.Request()))
+    wait_for(lambda: driver.blocked == 2, 5, what='both pool threads blocked in a service')
+    _publish_until_seen(ros, driver, 7)
+    assert not any(f.done() for f in futures)
+    driver.release.set()
+    wait_for(lambda: all(f.done() for f in futures), 5, what='the services answered')
+
+
+def test_an_exception_in_an_inline_callback_ends_spinning_as_rclpys_executors_do(ros, driver):
+    driver.fail_on = 3
+    pub = ros.node.create_publisher(Int32, '/executor_under_test/fast', 10)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, what='the subscription matched')
+    pub.publish(Int32(data=3))
+    wait_for(lambda: driver.errors, 5, what='the failure raised out of spin_once')
+    assert 'callback failed on 3' in str(driver.errors[0])
