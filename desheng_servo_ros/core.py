@@ -20,7 +20,8 @@ Threads and state (who writes what, and what guards it):
   assignment, so a snapshot never mixes two replies.
 - **reporter** (``_reporter_main``): calls ``on_cycle(snapshot)`` after each cycle, off the wire.
 - **commander** (``_commander_main``): sends the newest pending command; ``_pending`` and
-  ``_next_command_at`` are guarded by ``_cmd_cond``.
+  the command budget (``_next_command_at``, ``_command_budget_at``) are guarded by
+  ``_cmd_cond``.
 - **callers** (the node's executor threads): services and ``command()``. A service that needs
   a quiet bus or changes the servo list pauses the read loop first (``_pause`` and
   ``_loop_idle``, guarded by ``_pause_cond``).
@@ -94,12 +95,15 @@ PROBE_READS = 5
 # pause that grows up to LOOP_BACKOFF_MAX_S.
 LOOP_FAILURE_HOLD_S = 10.0
 LOOP_BACKOFF_MAX_S = 1.0
-# Commands coming faster than the bus should take them are coalesced: after a SYNC WRITE the
-# next one waits until COMMAND_SPACING times its wire time has passed (from when it was written,
-# so the read loop gets at least as much bus time as the commands), and at least
-# COMMAND_CYCLE_SHARE of a read cycle (at most two command frames per cycle: every frame costs
-# a hand-off of the bus between two threads, which a loaded computer pays in scheduling delays).
+# Commands coming faster than the bus should take them are coalesced. Each batch of command
+# frames owes the read loop COMMAND_SPACING times its wire time, so over any stretch commands
+# take at most 1 / (1 + COMMAND_SPACING) of the bus; a batch that finds that budget unspent goes
+# at once, up to COMMAND_BURST batches ahead of it (a token bucket kept as a time, GCRA), so a
+# command at a normal rate waits only for the READ on the wire. Budget and spacing count from
+# the line: a loaded host that writes a batch late moves them with it. Batches are also at
+# least COMMAND_CYCLE_SHARE of a read cycle apart (at most two per cycle).
 COMMAND_SPACING = 2.0
+COMMAND_BURST = 2.0
 COMMAND_CYCLE_SHARE = 0.5
 ALL_IDS = range(proto.MIN_ID, proto.MAX_ID + 1)
 
@@ -443,6 +447,8 @@ class ServoBusCore:
         self._cmd_cond = threading.Condition()
         self._pending: Dict[int, Tuple[int, int]] = {}
         self._next_command_at = 0.0
+        self._command_budget_at = 0.0  # when the commands' bus budget is paid (GCRA's TAT)
+        self._command_tolerance = 0.0
         self._last_post: Optional[Posted] = None
         self.commands_received = 0
         self.commands_superseded = 0
@@ -908,23 +914,28 @@ class ServoBusCore:
     def _command_due(self) -> bool:
         """Whether the next command frame may go now (``_cmd_cond`` held).
 
-        Not before the last one handed to the read chain has left the line, and then not
-        before its spacing has passed since (a loaded host may write it late: the spacing
-        counts from the line, or a backlog would take the bus from the reads).
+        Not before the last one handed to the read chain has left the line; then as the bus
+        budget allows (see COMMAND_SPACING).
         """
         last = self._last_post
         if last is not None:
             if not last.done:
                 return False
             self._last_post = None
-            self._next_command_at = max(self._next_command_at,
-                                        last.written_at + self._spacing(last.size))
-        return time.monotonic() >= self._next_command_at
+            self._charge(last.written_at, last.size)
+        return time.monotonic() >= self._command_free_at()
 
-    def _spacing(self, size: int) -> float:
-        """Return the time between two command batches of `size` bytes."""
-        return max(COMMAND_SPACING * wire_time(size, self.config.baud),
-                   COMMAND_CYCLE_SHARE / self.config.publish_rate_hz)
+    def _command_free_at(self) -> float:
+        """Return when the bus budget lets the next command batch go (``_cmd_cond`` held)."""
+        return max(self._next_command_at, self._command_budget_at - self._command_tolerance)
+
+    def _charge(self, ended_at: float, size: int) -> None:
+        """Charge a batch of `size` bytes that left the line at `ended_at` (``_cmd_cond`` held)."""
+        wire = wire_time(size, self.config.baud)
+        cost = wire * (1.0 + COMMAND_SPACING)
+        self._command_budget_at = max(self._command_budget_at, ended_at - wire) + cost
+        self._command_tolerance = COMMAND_BURST * cost
+        self._next_command_at = ended_at + COMMAND_CYCLE_SHARE / self.config.publish_rate_hz
 
     def _post_pending(self) -> bool:
         """Hand the pending targets to the running read chain (``_cmd_cond`` held)."""
@@ -938,9 +949,8 @@ class ServoBusCore:
         return True
 
     def _commands_sent(self, frames: Sequence[bytes]) -> None:
-        """Count command frames and set when the next may go (``_cmd_cond`` held)."""
+        """Count command frames (``_cmd_cond`` held)."""
         self.command_frames_sent += len(frames)
-        self._next_command_at = time.monotonic() + self._spacing(sum(map(len, frames)))
 
     def _resolve(self, names: Sequence[str], ids: Sequence[int], positions: Sequence[float],
                  move_time_ms: int) -> List[Target]:
@@ -956,7 +966,7 @@ class ServoBusCore:
                     elif self._last_post is not None:
                         wait = 0.002  # the frames handed to the read chain are not out yet
                     else:
-                        wait = self._next_command_at - time.monotonic()
+                        wait = self._command_free_at() - time.monotonic()
                     self._cmd_cond.wait(max(0.0005, min(0.5, wait)))
                 if not self._running:
                     return
@@ -968,6 +978,7 @@ class ServoBusCore:
                 frames = self.bus.sync_write_positions(targets, PRIORITY_SERVICE, wait=False)
                 with self._cmd_cond:
                     self._commands_sent(frames)
+                    self._charge(time.monotonic(), sum(map(len, frames)))
             except LinkError as exc:
                 self.log_warning(f'~/command not sent: {exc}', every_s=5.0, key='cmd-link')
             except Exception:  # noqa: BLE001 - the command thread must not die
