@@ -1,1 +1,1 @@
-"""What the two drivers truly share: the serial link and the pseudo-terminal helper."""
+"""What the drivers truly share: the serial link, the pty helper, parameters, diagnostics, run_node."""
