@@ -221,17 +221,19 @@ def imu_latencies(rig, directory, duration_s: float) -> Dict:
 
     Every report carries its own gyro x (a counter, from the model's IMU source), so a message
     is matched to the wire time of exactly its report. The receiver is a process of its own
-    (``bench.imu_receiver``): this one runs the board, and its GIL would be in the figure.
+    (``bench.topic_receiver``): this one runs the board, and its GIL would be in the figure.
     """
     import json
-    from bench.imu_receiver import imu_receiver
+    from bench.topic_receiver import topic_receiver
     out = directory / 'imu_received.json'
-    with imu_receiver('/originman_board/imu', out) as wall_offset:
+    with topic_receiver('sensor_msgs/msg/Imu', '/originman_board/imu', out,
+                        fields=('angular_velocity.x', 'header.stamp')) as wall_offset:
         t0 = time.monotonic() + 0.5
         time.sleep(duration_s + 0.5)
         t1 = time.monotonic()
         time.sleep(0.5)  # the last reports of the window arrive
-    received = {k: (t, stamp - wall_offset) for k, t, stamp in json.loads(out.read_text())}
+    received = {f['angular_velocity.x']: (t, f['header.stamp'] - wall_offset)
+                for f, t, _ in json.loads(out.read_text())}
     with rig.tap._lock:
         sent = {k: t for k, t in rig.tap.imu_times.items() if t0 <= t <= t1}
     latencies = [(received[k][0] - t) * 1000.0 for k, t in sent.items() if k in received]
