@@ -23,7 +23,7 @@ import contextlib
 import time
 from typing import Dict, List
 
-from bench.common import (node_process, ParachuteRig, percentile, ros_client, wait_for,
+from bench.common import (node_process, ParachuteRig, percentile, ros_client,
                           workdir)
 from bench.device_proc import servo_bus_process
 
@@ -158,27 +158,31 @@ def _handset_key(field: str, value: float) -> tuple:
     return field, round(value, 4)
 
 
-def handset_latencies(rig, client, duration_s: float) -> Dict:
+def handset_latencies(rig, directory, duration_s: float) -> Dict:
     """Record `duration_s` of numbered ticks; return frame-to-``~/setpoint`` latencies (ms).
 
     A frame's time is when its last byte arrived at the driver's port (the runner's pacing); a
-    message's time is when this process received it. Each stick frame carries a value unique to
-    its tick, so each is matched to the message that carries it.
+    message's time is when a subscriber in a process of its own received it
+    (``bench.topic_receiver``: this process runs the handset, and its GIL would be in the
+    figure). Each stick frame carries a value unique to its tick, so each is matched to the
+    message that carries it.
     """
-    from uav_serial_drivers.msg import HandsetSetpoint
-    received: List[tuple] = []
-    client.subscribe(HandsetSetpoint, '/handset_link/setpoint',
-                     lambda m: received.append((time.monotonic(), m)), depth=100)
-    wait_for(lambda: received, 20, what='the first setpoint')  # the subscription matched
-    time.sleep(0.5)
-    t0 = time.monotonic()
-    time.sleep(duration_s)
-    t1 = time.monotonic()
-    time.sleep(0.5)  # the last frames' messages
+    import json
+    from bench.topic_receiver import topic_receiver
+    out = directory / 'setpoints_received.json'
+    sticks = ('yaw_deg', 'pitch_deg', 'roll_deg', 'altitude_m')
+    with topic_receiver('uav_serial_drivers/msg/HandsetSetpoint', '/handset_link/setpoint', out,
+                        fields=('updated',) + sticks):
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        time.sleep(duration_s)
+        t1 = time.monotonic()
+        time.sleep(0.5)  # the last frames' messages
     arrivals: Dict[tuple, float] = {}
-    for t_rx, msg in list(received):
-        for field in msg.updated:
-            arrivals.setdefault(_handset_key(field, getattr(msg, field)), t_rx)
+    for fields, t_rx, _ in json.loads(out.read_text()):
+        for field in fields['updated']:
+            if field in sticks:
+                arrivals.setdefault(_handset_key(field, fields[field]), t_rx)
     latencies: List[float] = []
     missed = 0
     for t_wire, cmd in rig.tap.snapshot():
@@ -200,9 +204,8 @@ def run_handset(duration_s: float = 20.0, background: bool = True) -> Dict:
     with workdir() as directory, contextlib.ExitStack() as stack:
         bg = _background(stack, directory) if background else []
         rig = stack.enter_context(HandsetRig(directory, numbered=True))
-        client = stack.enter_context(ros_client('bench_handset_latency'))
         rig.wait_ready()
-        r = handset_latencies(rig, client, duration_s)
+        r = handset_latencies(rig, directory, duration_s)
         alive = rig.node.alive() and all(p.alive() for p in bg)
     lat = r['latencies_ms']
     return {
@@ -221,17 +224,19 @@ def imu_latencies(rig, directory, duration_s: float) -> Dict:
 
     Every report carries its own gyro x (a counter, from the model's IMU source), so a message
     is matched to the wire time of exactly its report. The receiver is a process of its own
-    (``bench.imu_receiver``): this one runs the board, and its GIL would be in the figure.
+    (``bench.topic_receiver``): this one runs the board, and its GIL would be in the figure.
     """
     import json
-    from bench.imu_receiver import imu_receiver
+    from bench.topic_receiver import topic_receiver
     out = directory / 'imu_received.json'
-    with imu_receiver('/originman_board/imu', out) as wall_offset:
+    with topic_receiver('sensor_msgs/msg/Imu', '/originman_board/imu', out,
+                        fields=('angular_velocity.x', 'header.stamp')) as wall_offset:
         t0 = time.monotonic() + 0.5
         time.sleep(duration_s + 0.5)
         t1 = time.monotonic()
         time.sleep(0.5)  # the last reports of the window arrive
-    received = {k: (t, stamp - wall_offset) for k, t, stamp in json.loads(out.read_text())}
+    received = {f['angular_velocity.x']: (t, f['header.stamp'] - wall_offset)
+                for f, t, _ in json.loads(out.read_text())}
     with rig.tap._lock:
         sent = {k: t for k, t in rig.tap.imu_times.items() if t0 <= t <= t1}
     latencies = [(received[k][0] - t) * 1000.0 for k, t in sent.items() if k in received]

@@ -95,22 +95,11 @@ def _sync_writes(rig: ServoRig, since: float) -> Dict[int, float]:
     return out
 
 
-def command_latencies(rig: ServoRig, count: int) -> Dict[str, Any]:
-    """Publish `count` commands at random moments; return publish -> wire latencies (ms)."""
+def move_latencies(rig: ServoRig, mode: str, count: int, first_ticks: int) -> Dict[str, Any]:
+    """Send `count` moves (`mode` 'command' or 'write_positions'); return send -> wire (ms)."""
     from bench.servo_client import run_client
     start = time.monotonic()
-    out = run_client('command', count, 100, IDS)
-    time.sleep(0.2)
-    wire = _sync_writes(rig, start)
-    latencies = [(wire[t] - t0) * 1000.0 for t, t0 in out['sent'] if t in wire]
-    return {'latencies_ms': latencies, 'missed': len(out['sent']) - len(latencies)}
-
-
-def write_positions_latencies(rig: ServoRig, count: int) -> Dict[str, Any]:
-    """Call ``~/write_positions`` `count` times; return call -> wire latencies (ms)."""
-    from bench.servo_client import run_client
-    start = time.monotonic()
-    out = run_client('write_positions', count, 2100, IDS)
+    out = run_client(mode, count, first_ticks, IDS)
     time.sleep(0.2)
     wire = _sync_writes(rig, start)
     latencies = [(wire[t] - t0) * 1000.0 for t, t0 in out['sent'] if t in wire]
@@ -236,8 +225,8 @@ def run(count: int = 200, age_window_s: float = 10.0, scans: int = 3) -> Dict[st
         rig.wait_ready()
         time.sleep(1.0)
         age = joint_states_ages(rig, directory, age_window_s)
-        cmd = command_latencies(rig, count)
-        wp = write_positions_latencies(rig, count)
+        cmd = move_latencies(rig, 'command', count, 100)
+        wp = move_latencies(rig, 'write_positions', count, 2100)
         alive = rig.node.alive()
     out.update({
         'joint_states_age_p50_ms': percentile(age['ages_ms'], 50),

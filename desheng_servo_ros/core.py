@@ -51,6 +51,7 @@ from desheng_servo_ros.registers import (by_address, by_name, decode_block, deco
                                          encode_value, RegisterError)
 from desheng_servo_ros.units import (Joint, resolve_targets, select, servo_list, Target,
                                      Units)
+from uav_serial_common.logs import log_at
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.text import clip, few
 from uav_serial_common.usb_latency import LatencyReport
@@ -540,17 +541,8 @@ class ServoBusCore:
                 return
             self._throttle[key] = now
         text = clip(text)
-        log = self._log
         try:
-            # One call site per level: rclpy's logger refuses a second severity at a call site
-            # ("Logger severity cannot be changed between calls"), which is caught below, so
-            # a shared site would silently drop every line after the first level it saw.
-            if level == 'info':
-                log.info(text)
-            elif level == 'warning':
-                log.warning(text)
-            else:
-                log.error(text)
+            log_at(self._log, level, text)
         except Exception:  # noqa: BLE001 - logging must never cost the bus (context gone)
             pass
 

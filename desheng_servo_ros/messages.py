@@ -13,7 +13,7 @@ to precomputed bytes; rclpy publishes ``bytes`` as a serialized message.
 from __future__ import annotations
 
 import struct
-from typing import Callable, Dict, Sequence, Tuple
+from typing import Callable, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
 from desheng_servo_ros import protocol as proto
@@ -52,54 +52,41 @@ _SERVO_FIELDS = '?ididdB????I'
 """ServoState after id and name: online .. error_count, as ``struct`` codes."""
 
 
-class JointStatePacker:
+class JointStatePacker(cdr.FramedPacker):
     """``joint_states`` of a snapshot as serialized bytes (see the module docstring)."""
 
-    def __init__(self, frame_id: str) -> None:
-        self._layouts: Dict[Tuple[str, ...], Tuple[bytes, Callable[..., bytes]]] = {}
-        self.set_frame_id(frame_id)
+    def _layout(self, frame: bytes, offset: int) -> tuple:
+        return frame, offset, {}  # and the layout of each list of names, made when first met
 
-    def set_frame_id(self, frame_id: str) -> None:
-        """Change ``header.frame_id``."""
-        self.frame_id = frame_id
-        self._header, self._offset = cdr.header(frame_id)
-        self._layouts = {}
-
-    def _layout(self, names: Tuple[str, ...]) -> Tuple[bytes, Callable[..., bytes]]:
-        listed, offset = cdr.string_sequence(names, self._offset)
+    def _names_layout(self, names: Tuple[str, ...]) -> Tuple[bytes, Callable[..., bytes]]:
+        frame, offset, layouts = self._parts
+        listed, offset = cdr.string_sequence(names, offset)
         n = len(names)
         # position and velocity (count, values), effort (always empty)
         values = cdr.fields('I' + 'd' * n + 'I' + 'd' * n + 'I', offset)[0]
-        layout = self._layouts[names] = (self._header + listed, values.pack)
+        layout = layouts[names] = (frame + listed, values.pack)
         return layout
 
     def pack(self, snapshot: BusSnapshot, sec: int, nanosec: int) -> bytes:
         """Return the serialized ``JointState`` of every online servo (as `joint_state`)."""
         online: Sequence[ServoSnapshot] = [s for s in snapshot.servos if s.online]
         names = tuple(s.name for s in online)
-        head, pack = self._layouts.get(names) or self._layout(names)
+        head, pack = self._parts[2].get(names) or self._names_layout(names)
         n = len(online)
         return b''.join((cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), head, pack(
             n, *[s.position_rad for s in online], n, *[s.velocity for s in online], 0)))
 
 
-class ServoStatesPacker:
+class ServoStatesPacker(cdr.FramedPacker):
     """``~/servo_states`` of a snapshot as serialized bytes (see the module docstring)."""
 
-    def __init__(self, frame_id: str) -> None:
-        self._layouts: Dict[Tuple[Tuple[int, str], ...], Tuple[bytes, list]] = {}
-        self.set_frame_id(frame_id)
+    def _layout(self, frame: bytes, offset: int) -> tuple:
+        return frame, offset, {}  # and the layout of each list of servos, made when first met
 
-    def set_frame_id(self, frame_id: str) -> None:
-        """Change ``header.frame_id``."""
-        self.frame_id = frame_id
-        self._header, self._offset = cdr.header(frame_id)
-        self._layouts = {}
-
-    def _layout(self, key: Tuple[Tuple[int, str], ...]) -> Tuple[bytes, list]:
-        offset = self._offset
+    def _servos_layout(self, key: Tuple[Tuple[int, str], ...]) -> Tuple[bytes, list]:
+        frame, offset, layouts = self._parts
         pad = bytes(-offset % 4)
-        head = self._header + pad + struct.pack('<I', len(key))
+        head = frame + pad + struct.pack('<I', len(key))
         offset += len(pad) + 4
         parts = []
         for servo_id, name in key:
@@ -107,14 +94,14 @@ class ServoStatesPacker:
             named, offset = cdr.string(name, offset + 1)
             values, offset = cdr.fields(_SERVO_FIELDS, offset)
             parts.append((bytes((servo_id,)) + named, values.pack))
-        self._layouts[key] = (head, parts)
+        layouts[key] = (head, parts)
         return head, parts
 
     def pack(self, snapshot: BusSnapshot, sec: int, nanosec: int) -> bytes:
         """Return the serialized ``ServoStateArray`` of every servo (as `servo_state_array`)."""
         servos = snapshot.servos
         key = tuple((s.id, s.name) for s in servos)
-        head, parts = self._layouts.get(key) or self._layout(key)
+        head, parts = self._parts[2].get(key) or self._servos_layout(key)
         out = [cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), head]
         overload, heat, voltage = (proto.STATUS_OVERLOAD, proto.STATUS_OVER_TEMPERATURE,
                                    proto.STATUS_VOLTAGE_FAULT)

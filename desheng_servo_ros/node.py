@@ -24,8 +24,7 @@ from std_srvs.srv import Trigger
 from uav_serial_common.diagnostics import DiagnosticsUpdater, Status
 from uav_serial_common.executor import InlineCallbackGroup
 from uav_serial_common.node_main import run_node
-from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
-                                      ParamSpec)
+from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 from uav_serial_common.text import clip
 from uav_serial_drivers.msg import ServoCommand, ServoStateArray
 from uav_serial_drivers.srv import (FactoryReset, GoToPreset, ReadRegister, ScanBus, SetId,
@@ -76,10 +75,7 @@ class ServoBusNode(Node):
 
     def __init__(self, node_name: str = 'servo_bus') -> None:
         super().__init__(node_name)
-        values = declare_parameters(self, PARAMETERS)
-        problems = check_values(PARAMETERS, values)
-        if problems:
-            raise StartupError('; '.join(problems))
+        values = declare_and_check(self, PARAMETERS)
         self.frame_id = values['frame_id']
         self._joints = messages.JointStatePacker(self.frame_id)
         self._states = messages.ServoStatesPacker(self.frame_id)

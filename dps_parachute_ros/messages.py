@@ -50,24 +50,16 @@ def status_msg(snap: Snapshot, stamp: Time, frame_id: str) -> ParachuteStatus:
     return _header(msg, stamp, frame_id)
 
 
-class StatusPacker:
+class StatusPacker(cdr.FramedPacker):
     """``~/status`` as serialized bytes, the same message as :func:`status_msg` makes.
 
     The status stream is the one message of every frame (20 Hz by default): the frame id is
     serialized once, each message is a struct pack (``uav_serial_common.cdr``).
     """
 
-    def __init__(self, frame_id: str) -> None:
-        self.frame_id = ''
-        self._parts: tuple = ()
-        self.set_frame_id(frame_id)
-
-    def set_frame_id(self, frame_id: str) -> None:
-        """Change ``header.frame_id`` (any thread: the parts change as one)."""
-        frame, offset = cdr.header(frame_id)
+    def _layout(self, frame: bytes, offset: int) -> tuple:
         # online armed triggered tilt accel streaming light bay_open charging voltage att ff
-        self._parts = (frame, cdr.fields('???dd?d??d??', offset)[0].pack)
-        self.frame_id = frame_id
+        return frame, cdr.fields('???dd?d??d??', offset)[0].pack
 
     def pack(self, snap: Snapshot, sec: int, nanosec: int) -> bytes:
         """Return the serialized ``~/status`` of `snap`, stamped (sec, nanosec)."""

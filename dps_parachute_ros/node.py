@@ -32,9 +32,9 @@ from dps_parachute_ros.state import (Deployment, FLAG_SETTINGS, LAYOUTS, Listene
                                      RequestDecision, Result, SessionConfig, SETTINGS, Snapshot,
                                      TRIGGER_MODES, value_problem)
 from uav_serial_common.diagnostics import DiagnosticsUpdater, ERROR, OK, Status, WARN
+from uav_serial_common.logs import log_at
 from uav_serial_common.node_main import run_node
-from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
-                                      ParamSpec)
+from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 from uav_serial_drivers.msg import (ParachuteConfig, ParachuteStatus, TriggerEvent,
                                     TriggerRequest)
 from uav_serial_drivers.srv import (Confirmed, Deploy, GetParachuteConfig, GetTriggerRecords,
@@ -92,10 +92,7 @@ class ParachuteNode(Node, Listener):
 
     def __init__(self) -> None:
         super().__init__('parachute')
-        values = declare_parameters(self, PARAMS)
-        problems = check_values(PARAMS, values)
-        if problems:
-            raise ValueError('; '.join(problems))
+        values = declare_and_check(self, PARAMS)
         self.frame_id: str = values['frame_id']
         self._status = m.StatusPacker(self.frame_id)
         config = SessionConfig.from_values(values)
@@ -254,16 +251,7 @@ class ParachuteNode(Node, Listener):
 
     def on_log(self, level: str, text: str) -> None:
         """Write a line of the session to the ROS log."""
-        # One call site per severity: rclpy refuses two severities from one site.
-        logger = self.get_logger()
-        if level == 'error':
-            logger.error(text)
-        elif level == 'warn':
-            logger.warning(text)
-        elif level == 'debug':
-            logger.debug(text)
-        else:
-            logger.info(text)
+        log_at(self.get_logger(), level, text)
 
     def on_diagnostics(self) -> None:
         """Publish the diagnostics soon (rate-limited by the updater)."""

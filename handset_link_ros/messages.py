@@ -38,7 +38,7 @@ def setpoint_msg(sp: core.Setpoint, frame_id: str, stamp: Time) -> HandsetSetpoi
         altitude_m=float(sp.altitude_m), updated=list(sp.updated))
 
 
-class SetpointPacker:
+class SetpointPacker(cdr.FramedPacker):
     """``~/setpoint`` as serialized bytes, the same message as :func:`setpoint_msg` makes.
 
     One setpoint goes out per stick frame (~200/s at the handset's 50 Hz): the frame id is
@@ -46,18 +46,10 @@ class SetpointPacker:
     (``uav_serial_common.cdr``); a message is a struct pack and a join.
     """
 
-    def __init__(self, frame_id: str) -> None:
-        self.frame_id = ''
-        self._parts: tuple = ()
-        self.set_frame_id(frame_id)
-
-    def set_frame_id(self, frame_id: str) -> None:
-        """Change ``header.frame_id`` (any thread: the parts change as one)."""
-        frame, offset = cdr.header(frame_id)
+    def _layout(self, frame: bytes, offset: int) -> tuple:
         sticks, offset = cdr.fields('dddd', offset)
         tails: Dict[Tuple[str, ...], bytes] = {}
-        self._parts = (frame, sticks.pack, tails, offset)
-        self.frame_id = frame_id
+        return frame, sticks.pack, tails, offset
 
     def pack(self, sp: core.Setpoint, sec: int, nanosec: int) -> bytes:
         """Return the serialized ``~/setpoint`` of `sp`, stamped (sec, nanosec)."""

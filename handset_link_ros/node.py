@@ -29,9 +29,9 @@ from uav_serial_drivers.msg import Failsafe, HandsetAuxiliary, HandsetLink, Hand
 from handset_link_ros import messages
 from handset_link_ros.core import HandsetConfig, HandsetCore
 from uav_serial_common.diagnostics import DiagnosticsUpdater, ERROR, OK, Status, WARN
+from uav_serial_common.logs import log_at
 from uav_serial_common.node_main import run_node
-from uav_serial_common.params import (check_values, declare_parameters, ParameterBinding,
-                                      ParamSpec)
+from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 
 LOW_RATE_FRACTION = 0.8
 """A measured command rate below this share of ``expected_rate_hz`` is a warning."""
@@ -73,10 +73,7 @@ class HandsetLinkNode(Node):
 
     def __init__(self) -> None:
         super().__init__('handset_link')
-        values = declare_parameters(self, SPECS)
-        problems = check_values(SPECS, values)
-        if problems:
-            raise ValueError('; '.join(problems))
+        values = declare_and_check(self, SPECS)
         self.frame_id: str = values['frame_id']
         self._setpoint = messages.SetpointPacker(self.frame_id)
         self.battery_topic: str = values['battery_topic']
@@ -139,16 +136,7 @@ class HandsetLinkNode(Node):
         self.diagnostics.force_update()
 
     def _on_log(self, level: str, text: str) -> None:
-        # One call site per severity: rclpy refuses a call site whose severity changes.
-        log = self.get_logger()
-        if level == 'ERROR':
-            log.error(text)
-        elif level == 'WARN':
-            log.warning(text)
-        elif level == 'DEBUG':
-            log.debug(text)
-        else:
-            log.info(text)
+        log_at(self.get_logger(), level, text)
 
     # -- executor callbacks --------------------------------------------------------------------
 

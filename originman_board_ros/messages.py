@@ -58,7 +58,7 @@ def fill_imu(msg: Imu, sample: ImuSample, sec: int, nanosec: int, frame_id: str)
     return msg
 
 
-class ImuPacker:
+class ImuPacker(cdr.FramedPacker):
     """``~/imu`` as the serialized (CDR, little endian) bytes rclpy would make of :func:`imu_msg`.
 
     The IMU is the one stream that runs all the time at up to 100 Hz, and building an ``Imu``
@@ -69,29 +69,20 @@ class ImuPacker:
     """
 
     _VECTOR = struct.Struct('<3d')
+    _ZERO9 = struct.pack('<9d', *([0.0] * 9))
+    # Orientation: the default quaternion (0, 0, 0, 1), unknown (covariance[0] = -1).
+    _ORIENTATION = struct.pack('<4d', 0.0, 0.0, 0.0, 1.0) + \
+        struct.pack('<9d', -1.0, *([0.0] * 8))
 
-    def __init__(self, frame_id: str) -> None:
-        zero9 = struct.pack('<9d', *([0.0] * 9))
-        unknown = struct.pack('<9d', -1.0, *([0.0] * 8))
-        # Orientation: the default quaternion (0, 0, 0, 1), unknown (covariance[0] = -1).
-        self._orientation = struct.pack('<4d', 0.0, 0.0, 0.0, 1.0) + unknown
-        self._zero9 = zero9
-        self.frame_id = ''
-        self._frame = b''
-        self.set_frame_id(frame_id)
-
-    def set_frame_id(self, frame_id: str) -> None:
-        """Change ``header.frame_id``."""
-        frame, offset = cdr.header(frame_id)
-        self._frame = frame + bytes(-offset % 8)  # the doubles that follow are 8-aligned
-        self.frame_id = frame_id
+    def _layout(self, frame: bytes, offset: int) -> tuple:
+        return (frame + bytes(-offset % 8),)  # the doubles that follow are 8-aligned
 
     def pack(self, sample: ImuSample, sec: int, nanosec: int) -> bytes:
         """Return the serialized ``~/imu`` of one report."""
-        vector = self._VECTOR.pack
-        return b''.join((cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), self._frame,
-                         self._orientation, vector(*sample.angular_velocity), self._zero9,
-                         vector(*sample.linear_acceleration), self._zero9))
+        vector, zero9 = self._VECTOR.pack, self._ZERO9
+        return b''.join((cdr.ENCAPSULATION, cdr.STAMP.pack(sec, nanosec), self._parts[0],
+                         self._ORIENTATION, vector(*sample.angular_velocity), zero9,
+                         vector(*sample.linear_acceleration), zero9))
 
 
 def battery_msg(sample: BatterySample, stamp: Time, frame_id: str) -> BatteryState:

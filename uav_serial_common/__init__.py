@@ -1,1 +1,1 @@
-"""What the drivers truly share: the serial link, the pty helper, parameters, diagnostics, run_node."""
+"""What the drivers truly share: serial link, pty helper, parameters, diagnostics, run_node."""

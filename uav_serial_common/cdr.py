@@ -59,3 +59,26 @@ def fields(codes: str, offset: int) -> Tuple[struct.Struct, int]:
 def header(frame_id: str) -> Tuple[bytes, int]:
     """Return a ``std_msgs/Header``'s frame_id field (it follows the 8-byte stamp), end offset."""
     return string(frame_id, STAMP.size)
+
+
+class FramedPacker:
+    """A message packer whose constant parts follow ``header.frame_id``.
+
+    A subclass lays out what it needs after the header in `_layout`; `set_frame_id` swaps the
+    parts in one assignment, so a thread packing meanwhile uses the old parts or the new ones.
+    """
+
+    def __init__(self, frame_id: str) -> None:
+        self.frame_id = ''
+        self._parts: tuple = ()
+        self.set_frame_id(frame_id)
+
+    def set_frame_id(self, frame_id: str) -> None:
+        """Change ``header.frame_id`` (any thread: the parts change as one)."""
+        frame, offset = header(frame_id)
+        self._parts = self._layout(frame, offset)
+        self.frame_id = frame_id
+
+    def _layout(self, frame: bytes, offset: int) -> tuple:
+        """Return the parts after a frame id field `frame` that ends at `offset`."""
+        raise NotImplementedError
