@@ -223,3 +223,28 @@ def test_failsafe_actions_are_constants_of_the_message():
     from uav_serial_drivers.msg import Failsafe
     assert (Failsafe.ACTION_NONE, Failsafe.ACTION_RETURN_TO_HOME) == \
         (core.ACTION_NONE, core.ACTION_RETURN_TO_HOME)
+
+
+# Everything below each node: the device cores, their links, protocols, units, state, the black
+# box and the device models. None may import ROS (the layers are tested, and usable, without it).
+ROS_FREE = {
+    'dps_parachute_ros': ['protocol', 'link', 'state', 'session', 'blackbox', 'simulation',
+                          'blackbox_read', 'blackbox_events'],
+    'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],
+    'handset_link_ros': ['protocol', 'link', 'core', 'simulation'],
+    'originman_board_ros': ['protocol', 'link', 'core', 'simulation'],
+}
+
+
+@pytest.mark.parametrize('package', sorted(ROS_FREE))
+def test_the_device_core_and_everything_below_it_import_no_ros(package):
+    import subprocess
+    imports = ', '.join(f'{package}.{m}' for m in ROS_FREE[package])
+    code = (f'import sys\nimport {imports}\n'
+            "ros = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('rclpy', 'rcl_interfaces', 'uav_serial_drivers') or m.endswith('_msgs'))\n"
+            'print(ros)\n')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=60, cwd=str(ROOT))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == '[]', f'{package}: {result.stdout.strip()}'
