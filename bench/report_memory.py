@@ -153,13 +153,21 @@ def write_synthetic_blackbox(path: str, size_bytes: int, seed: int = 1) -> Dict[
     return made
 
 
+# The child's peak is its own high-water mark (VmHWM of its memory after exec): ru_maxrss keeps
+# the maximum across exec, so a child forked from a large benchmark process would report the
+# parent's size.
 _CHILD = """
-import json, resource, sys, time
+import json, sys, time
+def hwm_mb():
+    with open('/proc/self/status') as status:
+        for line in status:
+            if line.startswith('VmHWM:'):
+                return int(line.split()[1]) / 1024
 t0 = time.monotonic()
 from dps_parachute_ros.report import build_report
 s = build_report([sys.argv[1]], sys.argv[2], progress=sys.argv[3] == '1')
 print(json.dumps({'seconds': time.monotonic() - t0,
-                  'peak_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  'peak_mb': hwm_mb(),
                   'counts': s.counts, 'deployments_listed': len(s.deployments),
                   'unknown_kinds': s.unknown_kinds}))
 """
