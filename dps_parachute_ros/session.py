@@ -1371,6 +1371,11 @@ class ParachuteSession:
     def _deploy_end(self, outcome: str, message: str, success: bool = False,
                     t0: Optional[float] = None, log: bool = True, **extra: Any) -> Result:
         latency = None if t0 is None else (self.clock() - t0) * 1000.0
+        if outcome == 'refused' and self.snapshot.deploy_outcome_unknown:
+            # True of this call, and not the whole truth: a caller must never read "refused"
+            # as "the parachute did not deploy" while an earlier frame's fate is not known.
+            message += ('; an earlier deploy frame left without an acknowledgement: its outcome '
+                        'is UNKNOWN (the parachute may have deployed) until the module answers')
         self.blackbox.record('decision', what='deploy', outcome=outcome, success=success,
                              reason=message, **extra)
         self._safety_sync()

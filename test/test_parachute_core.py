@@ -691,3 +691,46 @@ def test_safety_3_an_unknown_deploy_that_did_not_fire_stays_not_deployed_across_
     wait_for(lambda: not rig.snap.deploy_outcome_unknown, 5, what='the unknown deploy settled')
     assert [r['outcome'] for r in rig.deploy_outcomes()] == ['unknown', 'not deployed']
     assert not rig.heard.events
+
+
+def test_safety_3_6_concurrent_deploys_cut_by_the_link_a_policy_change_and_a_reboot(rig):
+    """The faults of items 3, 4, 6 and 7 at once, as a harsh flight would combine them.
+
+    Ten deploy calls race; the cable goes the moment the first deploy frame reaches the module;
+    the trigger-request policy changes while they are answered; the module deployed and is
+    power-cycled while unplugged. One frame left, no answer says it did not deploy, and after
+    the replug the trigger records settle it as one deployment.
+    """
+    rig.arm()
+    mark = rig.wire.mark()
+    unplug_when_deploy_arrives(rig)
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(
+        rig.session.deploy('DEPLOY', True))) for _ in range(10)]
+    for thread in threads:
+        thread.start()
+    rig.session.reconfigure(SessionConfig.from_values({**rig.config.__dict__,
+                                                       'trigger_request_policy': 'deny'}))
+    for thread in threads:
+        thread.join(20)
+    assert len(results) == 10
+    messages = [r.message for r in results]
+    assert not any(r.ok for r in results), messages  # nobody saw an acknowledgement
+    # Calls that found the module gone sent nothing, and say so, but none may read as "it did
+    # not deploy": every answer names the unknown outcome of the frame that left.
+    assert not any('did NOT deploy' in m for m in messages), messages
+    assert all('UNKNOWN' in m for m in messages), messages
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]
+    with rig.model():
+        assert rig.sim.deployments == 1 and rig.sim.triggered
+        rig.sim.power_cycle()
+    rig.runner.replug()
+    rig.wait_ready()
+    wait_for(lambda: not rig.snap.deploy_outcome_unknown, 5, what='the unknown deploy settled')
+    assert rig.snap.policy == 'deny'
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]  # no retry after the reboot
+    wait_for(lambda: rig.heard.events, 3, what='the deployment reported')
+    assert len(rig.heard.events) == 1
+    # Switched off and on after the deployment is the README's "re-pack it and switch it off
+    # and on": the policy still in force is the one set mid-request, and arming is allowed.
+    assert rig.session.arm(True).ok
