@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
 from uav_serial_common.text import few, short
@@ -95,14 +95,21 @@ def select(joints: Sequence[Joint], ids: Sequence[int]) -> List[Joint]:
             raise ValueError('no servos configured (yet)')
         return list(joints)
     by_id: Dict[int, Joint] = {j.id: j for j in joints}
-    unknown = [i for i in ids if i not in by_id]
-    if unknown:
-        raise ValueError(f'unknown servo id(s) {few(unknown)}; configured: '
-                         f'{few(by_id, 12)} (~/scan lists the bus)')
-    twice = _twice(ids)
-    if twice:
-        raise ValueError(f'servo id(s) listed twice: {few(twice)}')
-    return [by_id[i] for i in ids]
+    return _pick(by_id, ids, lambda unknown: f'unknown servo id(s) {few(unknown)}; configured: '
+                 f'{few(by_id, 12)} (~/scan lists the bus)',
+                 lambda twice: f'servo id(s) listed twice: {few(twice)}')
+
+
+def _pick(table: Dict[Any, Joint], keys: Sequence, unknown: Callable[[List], str],
+          twice: Callable[[List], str]) -> List[Joint]:
+    """Return the joints of `keys`; ValueError (`unknown`, then `twice`) for bad keys."""
+    missing = [k for k in keys if k not in table]
+    if missing:
+        raise ValueError(unknown(missing))
+    repeated = _twice(keys)
+    if repeated:
+        raise ValueError(twice(repeated))
+    return [table[k] for k in keys]
 
 
 def resolve_targets(joints: Sequence[Joint], units: Units, names: Sequence[str],
@@ -121,14 +128,9 @@ def resolve_targets(joints: Sequence[Joint], units: Units, names: Sequence[str],
     ms = check_move_time(move_time_ms, default_move_time_ms)
     if names:
         by_name: Dict[str, Joint] = {j.name: j for j in joints}
-        unknown = [n for n in names if n not in by_name]
-        if unknown:
-            raise ValueError(f'unknown joint name(s) {few(unknown)}; known: '
-                             f'{few(by_name, 12)}')
-        twice = _twice(names)
-        if twice:
-            raise ValueError(f'joint(s) listed twice: {few(twice)}')
-        selected = [by_name[n] for n in names]
+        selected = _pick(by_name, names, lambda unknown: f'unknown joint name(s) '
+                         f'{few(unknown)}; known: {few(by_name, 12)}',
+                         lambda twice: f'joint(s) listed twice: {few(twice)}')
     else:
         selected = select(joints, ids)
     return [(j.id, units.rad_to_ticks(rad, f'{j.name} (id {j.id})'), ms)
