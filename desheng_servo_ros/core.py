@@ -92,6 +92,9 @@ DUPLICATE_HOLD_S = 5.0
 GARBLE_HINT_LEVEL = 0.2
 # READs of the present position that tell one servo at an id from several (set_id, scan).
 PROBE_READS = 5
+# An id change or RESET whose frame left without an acknowledgement (lost, or the link dropped)
+# is settled by asking the bus; a link that went down gets this long to come back for that.
+SETTLE_WAIT_S = 2.0
 # A failed read loop is reported for this long after its last failure, and restarts after a
 # pause that grows up to LOOP_BACKOFF_MAX_S.
 LOOP_FAILURE_HOLD_S = 10.0
@@ -393,6 +396,11 @@ def _service(method: Callable[..., Result]) -> Callable[..., Result]:
     return call
 
 
+def _unknown(what: str, error: LinkError, then: str) -> Result:
+    """Answer an outcome the bus did not tell: never a success or refusal not seen."""
+    return Result(False, f'UNKNOWN whether {what}: its frame left, then {error}; {then}')
+
+
 class ServoBusCore:
     """One bus of Desheng servos: read loop, commands, services, health. See the module doc."""
 
@@ -486,11 +494,16 @@ class ServoBusCore:
         for thread in self._threads:
             thread.join(1.0)
         try:
-            if self.config.torque_off_on_shutdown and self.bus.connected:
+            if self.config.torque_off_on_shutdown:
+                if not self.bus.connected:
+                    # Said, not silently skipped: the servos may still hold their torque.
+                    raise LinkDown(f'{self.config.port} is not open '
+                                   f'({self.bus.link.last_error or "not connected"})')
                 self.bus.write(proto.BROADCAST_ID, TORQUE.address, b'\x00', PRIORITY_URGENT)
                 self.bus.drain()
         except LinkError as exc:
-            self.log_error(f'torque off on shutdown failed: {exc}')
+            self.log_error(f'torque off on shutdown NOT sent: {exc}; servos that had torque on '
+                           'still hold it')
         finally:
             self.bus.stop()
 
@@ -1219,14 +1232,41 @@ class ServoBusCore:
                     f'more than one servo answers at id {old} ({why}): a new id would go to '
                     'all of them. Disconnect or power off all but one, then try again; nothing '
                     'changed'))
-            self.bus.write(old, ID.address, encode_value(ID, new))
-            if self._answers(new) != 'yes':
-                return Result(False, f'servo {old} acknowledged but does not answer at id '
-                                     f'{new}; check with ~/scan')
+            what = f'servo {old} now has id {new}'
+            lost = self._send_unacknowledged(
+                lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
+            try:
+                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                    return _unknown(what, lost, f'~/scan tells (id {new} answers if it did)')
+                if self._answers(new) != 'yes':
+                    if lost is None:
+                        return Result(False, f'servo {old} acknowledged but does not answer at '
+                                             f'id {new}; check with ~/scan')
+                    if self._answers(old) == 'yes':
+                        return Result(False, f'servo {old} did not take id {new} ({lost}): it '
+                                             f'still answers at id {old}; nothing changed')
+                    return _unknown(what, lost, f'neither id {old} nor {new} answers now; '
+                                                'check with ~/scan')
+            except LinkError as exc:
+                return _unknown(what, exc, f'~/scan tells (id {new} answers if it did)')
             self._rename(old, new)
-        message = f'servo {old} now answers at id {new}'
+        message = f'servo {old} now answers at id {new}' + (
+            '' if lost is None else f' (its acknowledgement was lost: {lost})')
         self.log_info(message)
         return Result(True, message)
+
+    def _send_unacknowledged(self, send: Callable[[], Any]) -> Optional[LinkError]:
+        """Run `send`; return None if acknowledged, the error if its frame left without one.
+
+        An error before the frame left (the port not open) is raised: nothing was sent.
+        """
+        try:
+            send()
+        except LinkError as exc:
+            if not exc.sent:
+                raise
+            return exc
+        return None
 
     def _rename(self, old: int, new: int) -> None:
         servos = []
@@ -1244,11 +1284,30 @@ class ServoBusCore:
             raise ValueError('confirm must be exactly "RESET"; nothing sent')
         if not proto.is_servo_id(servo_id):
             raise ValueError(f'id must be 1..250 (RESET is never broadcast), got {servo_id}')
+        what = f'servo {servo_id} reset to factory settings'
         with self._loop_paused():
             taken = servo_id != FACTORY_ID and self._answers(FACTORY_ID) != 'no'
-            self.bus.reset(servo_id)
-            at_own = self._answers(servo_id) == 'yes'
-            at_factory = 'no' if at_own else self._how_many_answer(FACTORY_ID)[0]
+            lost = self._send_unacknowledged(lambda: self.bus.reset(servo_id))
+            try:
+                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                    return _unknown(what, lost, f'~/scan tells (a reset servo answers at the '
+                                                f'factory id {FACTORY_ID})')
+                at_own = self._answers(servo_id) == 'yes'
+                at_factory = 'no' if at_own else self._how_many_answer(FACTORY_ID)[0]
+            except LinkError as exc:
+                return _unknown(what, exc, '~/scan tells')
+        if lost is not None:
+            if at_own:
+                # A servo that keeps its id on RESET (S23) or one that never got it: the bus
+                # cannot tell them apart.
+                return _unknown(what, lost, f'it still answers at id {servo_id}; read its '
+                                            'registers with ~/read_register')
+            if at_factory == 'none':
+                return _unknown(what, lost, f'neither id {servo_id} nor the factory id '
+                                            f'{FACTORY_ID} answers now; check with ~/scan')
+            note = f' (its acknowledgement was lost: {lost})'
+        else:
+            note = ''
         if at_own:
             return Result(True, f'servo {servo_id} reset to factory settings (torque off)')
         give_back = (f'give it its id back with ~/set_id {FACTORY_ID} -> {servo_id}'
@@ -1264,10 +1323,10 @@ class ServoBusCore:
                        + f', and ~/set_id refuses an id more than one servo answers to. '
                        f'Disconnect {owner} (or power it off), then {give_back}')
             self.log_warning(message)
-            return Result(True, message)
+            return Result(True, message + note)
         if at_factory != 'none':
             return Result(True, f'servo {servo_id} reset to factory settings and now answers at '
-                                f'the factory id {FACTORY_ID}; {give_back}')
+                                f'the factory id {FACTORY_ID}; {give_back}{note}')
         return Result(True, f'servo {servo_id} acknowledged RESET but no longer answers')
 
     # -- health (diagnostics) -------------------------------------------------------------------

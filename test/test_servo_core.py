@@ -388,6 +388,82 @@ def test_factory_reset_of_a_lone_servo_says_where_it_answers_now(tmp_path):
         rig.stop()
 
 
+def on_request(rig, frame, act):
+    """Call act() in the device thread the moment the bus receives `frame`, before it answers."""
+    def tap(direction, data, t):
+        if direction == 'rx' and frame in data:
+            act()
+    rig.dev.runner.add_tap(tap)
+
+
+def lose_the_reply(rig):
+    rig.dev.runner.faults.drop_next = 1
+
+
+def later(seconds, act):
+    timer = threading.Timer(seconds, act)
+    timer.start()
+    return timer
+
+
+def test_safety_16_set_id_whose_acknowledgement_is_lost_finds_out_and_renames(rig):
+    on_request(rig, proto.encode_write(3, 0x05, bytes([9])), lambda: lose_the_reply(rig))
+    result = rig.core.set_id(3, 9)
+    assert result.ok and 'now answers at id 9' in result.message, result.message
+    assert 'acknowledgement' in result.message
+    assert sorted(rig.sim.ids) == [1, 2, 9] and rig.core.servos[2].name == 'servo_9'
+
+
+def test_safety_16_set_id_cut_by_an_unplug_finds_out_once_the_bus_is_back(rig):
+    on_request(rig, proto.encode_write(3, 0x05, bytes([9])),
+               lambda: (rig.dev.runner.port.unplug(), later(0.3, rig.dev.runner.replug)))
+    result = rig.core.set_id(3, 9)
+    assert result.ok and 'now answers at id 9' in result.message, result.message
+    assert sorted(rig.sim.ids) == [1, 2, 9] and rig.core.servos[2].name == 'servo_9'
+
+
+def test_safety_16_set_id_cut_by_an_unplug_for_good_says_the_outcome_is_unknown(rig):
+    on_request(rig, proto.encode_write(3, 0x05, bytes([9])), rig.dev.runner.port.unplug)
+    result = rig.core.set_id(3, 9)
+    assert not result.ok and 'UNKNOWN' in result.message and '~/scan' in result.message, \
+        result.message
+    assert 'nothing changed' not in result.message
+    assert sorted(rig.sim.ids) == [1, 2, 9]  # it did change: the answer must not deny it
+    assert [j.id for j in rig.core.servos] == [1, 2, 3]  # not renamed on a guess either
+
+
+def test_set_id_on_an_unplugged_bus_sends_nothing_and_says_so(rig):
+    rig.dev.runner.unplug()
+    wait_for(lambda: not rig.core.bus.connected, 3, what='the port closed')
+    result = rig.core.set_id(3, 9)
+    assert not result.ok and 'not open' in result.message and 'UNKNOWN' not in result.message
+    assert sorted(rig.sim.ids) == [1, 2, 3]
+
+
+def test_safety_16_factory_reset_whose_acknowledgement_is_lost_finds_out(tmp_path):
+    rig = Rig(tmp_path, ids=(2, 3), servo_ids=(2, 3))
+    try:
+        on_request(rig, proto.encode_reset(2), lambda: lose_the_reply(rig))
+        result = rig.core.factory_reset(2, 'RESET')
+        assert result.ok and 'now answers at the factory id 1' in result.message, \
+            result.message
+        assert 'acknowledgement' in result.message
+        assert sorted(rig.sim.ids) == [1, 3]
+    finally:
+        rig.stop()
+
+
+def test_safety_16_factory_reset_cut_by_an_unplug_for_good_is_unknown(tmp_path):
+    rig = Rig(tmp_path, ids=(2, 3), servo_ids=(2, 3))
+    try:
+        on_request(rig, proto.encode_reset(2), rig.dev.runner.port.unplug)
+        result = rig.core.factory_reset(2, 'RESET')
+        assert not result.ok and 'UNKNOWN' in result.message, result.message
+        assert sorted(rig.sim.ids) == [1, 3]
+    finally:
+        rig.stop()
+
+
 def test_scan_names_ids_more_than_one_servo_answers_to(rig):
     with rig.dev.runner.locked():
         rig.sim.add_servo(3, allow_duplicate=True, position_ticks=500)

@@ -48,6 +48,22 @@ def test_safety_10_ctrl_c_twice_still_sends_the_final_torque_off(rig):
     assert torque(rig) == [False] * 3
 
 
+def test_safety_10_ctrl_c_twice_while_unplugged_ends_and_says_the_torque_stays_on(rig):
+    rig.dev.runner.unplug()
+    rig.state(1, start=len(rig.states), pred=lambda s: not s.online, what='the bus offline')
+    mark = rig.wire.mark()
+    os.kill(rig.node.pid, signal.SIGINT)
+    time.sleep(0.002)  # the terminal's SIGINT, then launch's: a few ms apart
+    os.kill(rig.node.pid, signal.SIGINT)
+    assert rig.node.stop(signal.SIGINT, timeout=10) == 0
+    output = rig.node.output()
+    assert 'KeyboardInterrupt' not in output and 'Traceback' not in output, output
+    # Nothing could reach the servos, and the log says what that leaves: torque still on.
+    assert 'torque off on shutdown NOT sent' in output and 'still hold it' in output, output
+    rig.dev.runner.replug()
+    assert rig.wire.requests(mark) == [] and torque(rig) == [True] * 3
+
+
 def test_mismatched_joint_names_are_a_clear_startup_error():
     result = subprocess.run(
         [executable_path('servo_bus_node'), '--ros-args', '-p', 'port:=/nonexistent/servo',

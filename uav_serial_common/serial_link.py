@@ -50,7 +50,13 @@ class Decoder(Protocol):
 
 
 class LinkError(Exception):
-    """Base class of link errors."""
+    """Base class of link errors.
+
+    `sent` says whether the request's frame had left when the error ended it (set by
+    `SerialLink.request`): then the device may have acted on it, and only asking it tells.
+    """
+
+    sent: bool = False
 
 
 class LinkDown(LinkError):
@@ -338,6 +344,7 @@ class SerialLink:
         """
         waiter = _Waiter(match)
         self._add_waiter(waiter)
+        sent = False
         try:
             for attempt in range(retries + 1):
                 if attempt:
@@ -345,6 +352,7 @@ class SerialLink:
                 if flush:
                     self.flush_input()
                 self.write(data)
+                sent = True
                 if waiter.event.wait(timeout) and waiter.frame is not None:
                     return waiter.frame
                 if not self._connected.is_set():
@@ -352,6 +360,9 @@ class SerialLink:
             self.stats.timeouts += 1
             raise LinkTimeout(f'no reply within {timeout * 1000:.0f} ms '
                               f'after {retries + 1} attempt(s)')
+        except LinkError as exc:
+            exc.sent = sent
+            raise
         finally:
             self._remove_waiter(waiter)
 
