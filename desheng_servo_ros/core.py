@@ -385,10 +385,15 @@ def _service(method: Callable[..., Result]) -> Callable[..., Result]:
             result = method(self, *args, **kwargs)
         except (ValueError, RegisterError) as exc:
             result = Result(False, f'refused: {exc}')
-        except LinkDown as exc:
-            result = Result(False, f'port not open: {exc}')
         except LinkError as exc:
-            result = Result(False, f'bus error: {exc}')
+            if exc.sent:
+                # The servo may have acted on a frame whose answer never came.
+                result = Result(False, f'bus error: {exc}; the request had left, so whether the '
+                                       'servo acted on it is UNKNOWN (read it back)')
+            elif isinstance(exc, LinkDown):
+                result = Result(False, f'port not open: {exc}; nothing sent')
+            else:
+                result = Result(False, f'bus error: {exc}')
         except Exception as exc:  # noqa: BLE001 - a bug must not cost the node
             self.log_error(f'{method.__name__} failed:\n{traceback.format_exc()}')
             result = Result(False, f'internal error: {exc!r}')

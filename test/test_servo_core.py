@@ -440,6 +440,14 @@ def test_set_id_on_an_unplugged_bus_sends_nothing_and_says_so(rig):
     assert sorted(rig.sim.ids) == [1, 2, 3]
 
 
+def test_a_write_whose_acknowledgements_are_all_lost_is_unknown_not_failed(rig):
+    rig.dev.runner.faults.drop_next = 2  # the write and its retry both land; no ack comes back
+    result = rig.core.write_register(2, 'run_time', 300)
+    assert not result.ok and 'UNKNOWN' in result.message and 'read it back' in result.message
+    assert rig.sim.servo(2).values['run_time'] == 300
+    assert rig.core.write_register(2, 'run_time', 400).ok  # nothing left behind
+
+
 def test_safety_16_factory_reset_whose_acknowledgement_is_lost_finds_out(tmp_path):
     rig = Rig(tmp_path, ids=(2, 3), servo_ids=(2, 3))
     try:
