@@ -734,3 +734,97 @@ def test_safety_3_6_concurrent_deploys_cut_by_the_link_a_policy_change_and_a_reb
     # Switched off and on after the deployment is the README's "re-pack it and switch it off
     # and on": the policy still in force is the one set mid-request, and arming is allowed.
     assert rig.session.arm(True).ok
+
+
+def concurrent_deploys(rig, n=5):
+    """Start `n` deploy calls (arm_if_locked) at once; return their results once all answered."""
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(
+        rig.session.deploy('DEPLOY', True))) for _ in range(n)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(20)
+    assert len(results) == n
+    return results
+
+
+def test_safety_3_6_repeated_unplugs_during_concurrent_deploys_never_pass_the_frame_guard(rig):
+    """Items 3 and 6 over and over: each round five deploy calls race and the cable goes as a
+    deploy frame arrives (a frame lost on the way in: nothing deploys). Two frames in all, then
+    every call is refused by the guard, however often the cable comes back; a reboot lifts it."""
+    rig.arm()
+    flaky = [True]
+
+    def tap(direction, data, t):
+        if flaky[0] and direction == 'rx' and DEPLOY in data:
+            rig.runner.port.unplug()
+    rig.runner.add_tap(tap)
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}
+    mark = rig.wire.mark()
+    rounds = []
+    for _ in range(4):
+        rounds.append(concurrent_deploys(rig))
+        rig.runner.replug()
+        rig.wait_ready()
+        wait_for(lambda: not rig.snap.deploy_outcome_unknown, 5, what='the outcome settled')
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY] * 2
+    assert rig.wire.since(mark, p.CMD_ARM) == []  # still armed: never re-armed
+    for results in rounds[:2]:
+        messages = [r.message for r in results]
+        assert not any(r.ok for r in results), messages
+        assert not any('did NOT deploy' in m for m in messages), messages
+        assert all('UNKNOWN' in m for m in messages), messages
+    for results in rounds[2:]:
+        assert all('2 deploy frames in a row went unacknowledged' in r.message
+                   for r in results), [r.message for r in results]
+    assert not rig.snap.triggered and not rig.heard.events
+    with rig.model():
+        assert rig.sim.deployments == 0 and not rig.sim.protection
+        rig.sim.lost_commands = set()
+    flaky[0] = False
+    rig.fresh()
+    results = concurrent_deploys(rig)
+    assert all(r.ok for r in results), [r.message for r in results]
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY] * 3
+    wait_for(lambda: rig.heard.events, 3, what='the deployment reported')
+    assert len(rig.heard.events) == 1
+
+
+def test_safety_7_11_a_full_disk_and_a_reboot_during_a_deploy(tmp_path):
+    """Items 7 and 11 at once: the black box cannot write a byte (ENOSPC) and the module reboots
+    as the deploy frame arrives. The answer is the module's truth, the next deploy re-arms the
+    rebooted module and goes out, and the lost records are counted and said once."""
+    box = BlackBox(str(tmp_path), path='/dev/full')
+    rig = Rig(tmp_path, blackbox=box)
+    try:
+        rig.arm()
+        with rig.model():
+            rig.sim.lost_commands = {p.CMD_DEPLOY}
+
+        def reboot_on_deploy(direction, data, t):
+            if direction == 'rx' and DEPLOY in data and rig.sim.boot_count == 1:
+                rig.clock.advance(0.5)
+                rig.sim.power_cycle()  # runner thread: the model's only user right now
+        rig.runner.add_tap(reboot_on_deploy)
+        mark = rig.wire.mark()
+        result = rig.session.deploy('DEPLOY')
+        assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \
+            result.message, result.message
+        with rig.model():
+            rig.sim.lost_commands = set()
+        rig.wait_ready(boot=2)
+        result = rig.session.deploy('DEPLOY', True)
+        assert result.ok, result.message
+        assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY] * 2
+        with rig.model():
+            assert rig.sim.deployments == 1 and rig.sim.failed_attempts_total == 0
+        wait_for(lambda: rig.heard.events, 3, what='the deployment reported')
+        assert len(rig.heard.events) == 1
+        assert not box.sync(1.0) and box.status().lost > 0
+        assert rig.session.blackbox_problem().startswith('cannot write: No space left')
+        said = [text for level, text in rig.heard.logs if 'black box' in text]
+        assert len(said) == 1, said
+    finally:
+        rig.close()

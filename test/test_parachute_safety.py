@@ -141,6 +141,35 @@ def test_safety_3_sigint_during_a_deploy_records_an_unknown_outcome_not_a_refusa
     assert 'success' not in outcomes[0] and 'shutting down' in outcomes[0]['reason']
 
 
+def test_safety_3_10_a_deploy_cut_by_an_unplug_then_sigint_twice_while_unplugged(make_rig):
+    """Items 3 and 10 at once: the cable goes as the deploy frame arrives, then Ctrl-C twice
+    while the port is still away. The answer says UNKNOWN, the shutdown completes and the black
+    box keeps the unknown outcome and its stop record; nothing is retried on the way out."""
+    rig = make_rig()
+    rig.wait_ready()
+    rig.arm()
+    mark = rig.wire.mark()
+
+    def tap(direction, data, t):
+        if direction == 'rx' and DEPLOY in data:
+            rig.runner.port.unplug()
+    rig.runner.add_tap(tap)
+    start = len(rig.status)
+    reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+    assert not reply.success and 'UNKNOWN' in reply.message, reply.message
+    assert 'did NOT deploy' not in reply.message
+    rig.status.wait(lambda m: not m.online, 10, start=start, what='offline status')
+    assert interrupt_twice(rig) == 0, rig.proc.output()
+    output = rig.proc.output()
+    assert 'Traceback' not in output and 'KeyboardInterrupt' not in output, output
+    records = rig.blackbox()
+    assert records[-1]['kind'] == 'stop'
+    assert [r['outcome'] for r in records_of(rig, 'deploy')] == ['unknown']
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]
+    with rig.model():
+        assert rig.sim.deployments == 1
+
+
 def test_safety_11_a_blackbox_dir_under_a_regular_file_leaves_the_driver_working(
         make_rig, tmp_path):
     blocker = tmp_path / 'a-file'
