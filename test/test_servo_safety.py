@@ -136,6 +136,23 @@ def test_safety_16_set_id_is_refused_when_two_servos_answer_at_the_old_id(rig):
     assert rig.sim.ids == [1, 1, 3]
 
 
+def test_safety_16_set_id_across_an_unplug_finds_out_what_the_servo_did(rig):
+    write_id = proto.encode_write(3, 0x05, bytes([9]))
+
+    def tap(direction, data, t):
+        if direction == 'rx' and write_id in data:
+            rig.dev.runner.unplug(duration_s=0.3)  # the cable back 0.3 s later
+    rig.dev.runner.add_tap(tap)
+    resp = rig.call(SetId, 'set_id', id=3, new_id=9)
+    assert resp.success and 'now answers at id 9' in resp.message, resp.message
+    assert 'acknowledgement was lost' in resp.message
+    assert sorted(rig.sim.ids) == [1, 2, 9]
+    start = len(rig.joints)
+    msg = rig.joints.wait(lambda m: 'servo_9' in m.name, 10, start=start,
+                          what='joint_states naming servo_9')
+    assert list(msg.name) == ['servo_1', 'servo_2', 'servo_9']
+
+
 def flood(rig, rate_hz, seconds, ids='1,2'):
     """Publish commands from a process of its own; return its report and the joint_states rate
     over the flood (its first second left out), from the driver's own publication stamps."""
@@ -186,6 +203,45 @@ def test_safety_17_a_command_flood_keeps_the_reads_going_and_the_newest_command_
     assert len(reads) <= 3 * 3, len(reads)
     assert rate >= 0.5 * refused_rate, (rate, refused_rate)
     assert_alive_and_reading(rig, 'the command flood')
+
+
+def test_safety_14_17_a_command_flood_through_unplug_cycles(rig):
+    """Items 14 and 17 at once: 500 commands a second while the cable comes and goes. The node
+    lives, the reads come back after every replug, and the newest command reaches the wire."""
+    rig.joints.wait(lambda m: len(m.name) == 3, 5, what='joint_states before the flood')
+    mark = rig.wire.mark()
+    flood = subprocess.Popen([sys.executable, str(HERE / 'flood_commands.py'), '500', '6'],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: any(r.instruction == Instruction.SYNC_WRITE
+                             for r in rig.wire.commands(mark)), 15, what='the flood on the wire')
+        rng = random.Random(1417)
+        port = rig.dev.runner.port
+        for _ in range(8):
+            rig.dev.runner.unplug()
+            time.sleep(rng.uniform(0.01, 0.15))
+            rig.dev.runner.replug()
+            wait_for(lambda: port.line_baud() == 115200, 5, interval=0.0002,
+                     what='the driver to reopen the port')
+            time.sleep(rng.uniform(0.0, 0.15))
+        replugged = rig.wire.mark()
+        out, err = flood.communicate(timeout=60)
+    finally:
+        if flood.poll() is None:
+            flood.kill()
+            flood.wait()
+    assert flood.returncode == 0, err
+    report = json.loads(out.strip().splitlines()[-1])
+    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in report['last']]
+    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
+
+    def last_command():
+        syncs = [r for r in rig.wire.commands(replugged)
+                 if r.instruction == Instruction.SYNC_WRITE]
+        return syncs[-1].raw if syncs else None
+    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    assert_alive_and_reading(rig, 'a command flood through 8 unplug/replug cycles')
+    assert 'read loop stopped' not in rig.node.output()
 
 
 def test_safety_18_unknown_names_by_the_thousand_get_a_bounded_answer_and_log_line(rig):
