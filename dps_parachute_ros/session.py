@@ -372,6 +372,7 @@ class ParachuteSession:
             return
         self._log('warn', 'unsolicited heartbeat: the module has (re)booted')
         self.blackbox.record('state', event='module reboot (unsolicited heartbeat)')
+        self._void_pending('the module rebooted while the request was pending')
         self._schedule('init', force=True)
         self._emit_status()
         self.listener.on_diagnostics()
@@ -495,6 +496,17 @@ class ParachuteSession:
         self._decide('confirmed', policy, f'{why}; {outcome}', pending.t_rx, t_tx)
         return Result(True, f'confirmation sent {(t_tx - pending.t_rx) * 1000:.0f} ms after the '
                             f'request; {outcome}')
+
+    def _void_pending(self, why: str) -> None:
+        """Settle a waiting request the module no longer makes (it rebooted): nothing sent."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+            policy = self._config.trigger_request_policy
+        if pending is not None:
+            # A rebooted module boots locked and has forgotten its question (D15): a confirm now
+            # would answer nobody, and the armed state behind "it deploys" is from before.
+            self._decide('denied', policy, f'{why}: its request is gone; no confirmation sent',
+                         pending.t_rx, None)
 
     def answer_trigger_request(self, confirm: bool) -> Result:
         """`~/answer_trigger_request`: answer the deferred request, if one is pending."""
@@ -762,6 +774,7 @@ class ParachuteSession:
             epoch = self._epoch
         if rebooted:
             self._log('warn', f'module boot count {previous} -> {count}: it rebooted')
+            self._void_pending('the module rebooted while the request was pending')
             if reinit:
                 self._schedule('init', force=True)
         return epoch

@@ -828,3 +828,34 @@ def test_safety_7_11_a_full_disk_and_a_reboot_during_a_deploy(tmp_path):
         assert len(said) == 1, said
     finally:
         rig.close()
+
+
+def test_safety_4_5_a_pending_request_across_an_unplug_is_never_confirmed(rig):
+    mark = held_request(rig)
+    rig.runner.unplug()
+    wait_for(lambda: not rig.snap.online, 3, what='offline')
+    result = rig.session.answer_trigger_request(True)
+    assert not result.ok and 'deploys' not in result.message, result.message
+    assert rig.heard.decisions[-1].decision != 'confirmed'
+    rig.runner.replug()
+    rig.wait_ready()
+    assert CONFIRM not in rig.wire.since(mark)
+    with rig.model():
+        assert not rig.sim.triggered
+
+
+def test_safety_5_7_a_pending_request_across_a_reboot_claims_no_deployment(rig):
+    """The module asked, then power-cycled (it boots locked, its question gone): an answer true
+    must not say "it deploys" on the armed state read before the reboot."""
+    mark = held_request(rig)
+    boot = rig.power_cycle()
+    wait_for(lambda: rig.heard.decisions, 3, what='the request settled by the reboot')
+    decision = rig.heard.decisions[-1]
+    assert decision.decision == 'denied' and 'rebooted' in decision.reason, decision
+    assert not rig.snap.pending_request
+    result = rig.session.answer_trigger_request(True)
+    assert not result.ok and 'no trigger request is pending' in result.message, result.message
+    rig.wait_ready(boot)
+    with rig.model():
+        assert not rig.sim.triggered and not rig.sim.armed
+    assert CONFIRM not in rig.wire.since(mark)
