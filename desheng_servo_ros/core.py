@@ -377,6 +377,11 @@ class ReadCycles:
         return True
 
 
+# Services that change nothing on a servo: a request of theirs that went unanswered leaves no
+# outcome to find out.
+_READS_ONLY = frozenset({'read_register', 'scan'})
+
+
 def _service(method: Callable[..., Result]) -> Callable[..., Result]:
     """One error path for every service: refusals, link errors and bugs become a Result."""
     @functools.wraps(method)
@@ -386,12 +391,12 @@ def _service(method: Callable[..., Result]) -> Callable[..., Result]:
         except (ValueError, RegisterError) as exc:
             result = Result(False, f'refused: {exc}')
         except LinkError as exc:
-            if exc.sent:
+            if not exc.sent and isinstance(exc, LinkDown):
+                result = Result(False, f'port not open: {exc}; nothing sent')
+            elif exc.sent and method.__name__ not in _READS_ONLY:
                 # The servo may have acted on a frame whose answer never came.
                 result = Result(False, f'bus error: {exc}; the request had left, so whether the '
                                        'servo acted on it is UNKNOWN (read it back)')
-            elif isinstance(exc, LinkDown):
-                result = Result(False, f'port not open: {exc}; nothing sent')
             else:
                 result = Result(False, f'bus error: {exc}')
         except Exception as exc:  # noqa: BLE001 - a bug must not cost the node

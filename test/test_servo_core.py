@@ -642,3 +642,21 @@ def test_a_command_goes_out_at_the_next_read_boundary_from_the_running_read_loop
         wait_for(lambda: rig.core.cycle_count > count + 10, 5, what='more read cycles')
     finally:
         rig.stop()
+
+
+def test_a_scan_cut_by_an_unplug_says_so_and_the_bus_reads_again_after(rig):
+    once = [True]
+
+    def unplug_once():
+        if once:
+            once.clear()
+            rig.dev.runner.port.unplug()
+    on_request(rig, proto.encode_ping(40), unplug_once)
+    result = rig.core.scan(1, 80)
+    assert not result.ok and 'closed while waiting' in result.message, result.message
+    # A PING changes nothing on a servo; and it did leave.
+    assert 'UNKNOWN' not in result.message and 'nothing sent' not in result.message
+    rig.dev.runner.replug()
+    assert rig.core.bus.wait_connected(5)
+    result = rig.core.scan(1, 80)
+    assert result.ok and result.data['ids'] == [1, 2, 3], result.message
