@@ -974,21 +974,27 @@ class ServoBusCore:
 
     def _commander_main(self) -> None:
         while self._running:
+            in_flight = None
             with self._cmd_cond:
                 while self._running and not (self._pending and self._command_due()):
-                    if not self._pending:
-                        wait = 0.5
-                    elif self._last_post is not None:
-                        wait = 0.002  # the frames handed to the read chain are not out yet
-                    else:
-                        wait = self._command_free_at() - time.monotonic()
+                    if self._pending and self._last_post is not None:
+                        in_flight = self._last_post
+                        break
+                    wait = (0.5 if not self._pending
+                            else self._command_free_at() - time.monotonic())
                     self._cmd_cond.wait(max(0.0005, min(0.5, wait)))
                 if not self._running:
                     return
-                if self._post_pending():
-                    continue
-                targets = [(i, t, ms) for i, (t, ms) in self._pending.items()]
-                self._pending = {}
+                if in_flight is None:
+                    if self._post_pending():
+                        continue
+                    targets = [(i, t, ms) for i, (t, ms) in self._pending.items()]
+                    self._pending = {}
+            if in_flight is not None:
+                # The frames handed to the read chain are not out yet; the reader thread
+                # settles them. Waited for outside the lock: it takes the post lock meanwhile.
+                in_flight.event.wait(0.1)
+                continue
             try:
                 frames = self.bus.sync_write_positions(targets, PRIORITY_SERVICE, wait=False)
                 with self._cmd_cond:
