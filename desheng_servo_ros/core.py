@@ -51,7 +51,7 @@ from desheng_servo_ros.registers import (by_address, by_name, decode_block, deco
                                          encode_value, RegisterError)
 from desheng_servo_ros.units import (Joint, resolve_targets, select, servo_list, Target,
                                      Units)
-from uav_serial_common.logs import log_at
+from uav_serial_common.logs import log_at, Throttle
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.text import clip, few
 from uav_serial_common.usb_latency import LatencyReport
@@ -433,7 +433,7 @@ class ServoBusCore:
         self._on_cycle = on_cycle
         self._on_change = on_change
         self._on_servos = on_servos
-        self._throttle: Dict[str, float] = {}
+        self._throttle = Throttle()
         self.bus = ServoBusLink(config.port, config.baud,
                                 response_timeout_ms=config.response_timeout_ms,
                                 max_retries=config.max_retries,
@@ -558,12 +558,12 @@ class ServoBusCore:
         if self._log is None:
             return
         if every_s > 0:
-            now = time.monotonic()
-            key = key or text
-            if now - self._throttle.get(key, -math.inf) < every_s:
+            note = self._throttle.admit(key or text, time.monotonic(), every_s)
+            if note is None:
                 return
-            self._throttle[key] = now
-        text = clip(text)
+            text = clip(text) + note
+        else:
+            text = clip(text)
         try:
             log_at(self._log, level, text)
         except Exception:  # noqa: BLE001 - logging must never cost the bus (context gone)

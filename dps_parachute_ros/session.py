@@ -39,6 +39,7 @@ from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout, P
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener,
                                      MODULE_WINDOW_S, RequestDecision, Result, SessionConfig,
                                      SETTINGS, Snapshot, source_name)
+from uav_serial_common.logs import Throttle
 
 DEPLOY_TOKEN = 'DEPLOY'
 SHUTDOWN_TOKEN = 'SHUTDOWN'
@@ -154,7 +155,7 @@ class ParachuteSession:
         self._initialized_at = 0.0
         self._init_retry_at = 0.0
         self._flags_query_answered = False
-        self._throttle: Dict[str, float] = {}
+        self._throttle = Throttle()
         self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
         self._link_recorded_at = -1e9
         # -- guarded by _jobs_cond ----------------------------------------------------------
@@ -265,10 +266,10 @@ class ParachuteSession:
         if key is not None:
             now = self.clock()
             with self._lock:
-                last = self._throttle.get(key)
-                if last is not None and now - last < every_s:
-                    return
-                self._throttle[key] = now
+                note = self._throttle.admit(key, now, every_s)
+            if note is None:
+                return
+            text += note
         self.listener.on_log(level, text)
 
     def _update(self, **changes: Any) -> Snapshot:

@@ -34,6 +34,7 @@ from typing import Any, Callable, Deque, Optional
 
 from handset_link_ros import protocol as p
 from handset_link_ros.link import ModemLink, Received
+from uav_serial_common.logs import Throttle
 from uav_serial_common.records import evolve
 
 ACTION_NONE = 'NONE'
@@ -153,12 +154,6 @@ class Failsafe:
 
 
 @dataclass
-class _Throttle:
-    last: float = -math.inf
-    suppressed: int = 0
-
-
-@dataclass
 class _Pending:
     """A setpoint or auxiliary update being gathered from one read."""
 
@@ -213,7 +208,7 @@ class HandsetCore:
         self._window: Deque[float] = deque()
         self._window_by_type: dict[int, Deque[float]] = {t: deque() for t in p.SPECS}
         self._rejections: Deque[float] = deque()
-        self._throttles: dict[Any, _Throttle] = {}
+        self._throttle = Throttle()
         self._unknown_logged: set[int] = set()
 
         self.link = ModemLink(config.port, config.baud, self._on_received,
@@ -438,15 +433,9 @@ class HandsetCore:
 
     def _throttled(self, key: Any, now: float, emits: list, text: str) -> None:
         """Log at most once per key per second, saying how many were held back (H6, H19)."""
-        throttle = self._throttles.setdefault(key, _Throttle())
-        if now - throttle.last < REJECTION_LOG_PERIOD_S:
-            throttle.suppressed += 1
-            return
-        if throttle.suppressed:
-            text += f' ({throttle.suppressed} more like it since the last report)'
-        throttle.last = now
-        throttle.suppressed = 0
-        emits.append(('WARN', text))
+        note = self._throttle.admit(key, now, REJECTION_LOG_PERIOD_S)
+        if note is not None:
+            emits.append(('WARN', text + note))
 
     # -- rules ----------------------------------------------------------------------------------
 

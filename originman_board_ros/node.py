@@ -38,6 +38,7 @@ from originman_board_ros.core import (AsrSample, BatterySample, BusServoStatus, 
                                       CommandResult, ConfigError, GamepadSample, ImuSample,
                                       MOTOR_TYPES, OriginManConfig, OriginManCore, SbusSample)
 from uav_serial_common.diagnostics import DiagnosticsUpdater
+from uav_serial_common.logs import Throttle
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 
@@ -109,7 +110,7 @@ class OriginManBoardNode(Node):
         self.frame_id: str = values['frame_id']
         self.imu_frame_id: str = values['imu_frame_id']
         self._log_lock = threading.Lock()
-        self._logged_at: Dict[str, float] = {}
+        self._log_throttle = Throttle()
         self._send_failures = 0
         self._closing = False
         self._rates = m.ReportRates()
@@ -274,14 +275,11 @@ class OriginManBoardNode(Node):
         self.create_subscription(msg_type, name, callback, 10, callback_group=group)
 
     def _log_once(self, cause: str, text: str) -> None:
-        """Log ``text`` unless a line of the same cause was logged in the last 5 s."""
-        now = time.monotonic()
+        """Log ``text`` unless a line of its cause was logged in the last 5 s (then counted)."""
         with self._log_lock:
-            last = self._logged_at.get(cause)
-            if last is not None and now - last < REFUSAL_LOG_PERIOD_S:
-                return
-            self._logged_at[cause] = now
-        self.get_logger().warning(text)
+            note = self._log_throttle.admit(cause, time.monotonic(), REFUSAL_LOG_PERIOD_S)
+        if note is not None:
+            self.get_logger().warning(text + note)
 
     def _service(self, srv_type: Any, name: str, handler: Callable[[Any, Any], Any],
                  group: Any) -> None:

@@ -5,6 +5,7 @@ import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from uav_serial_common.diagnostics import DiagnosticsUpdater, ERROR, OK, WARN
+from uav_serial_common.logs import Throttle
 from uav_serial_common.params import (check_values, declare_and_check, declare_parameters,
                                       ParameterBinding, ParamSpec)
 
@@ -128,3 +129,13 @@ def test_a_removed_task_is_no_longer_published(ros):
                      start=start)
     names = [s.name for s in msg.status]
     assert names == ['/servo_bus_removal: bus', '/servo_bus_removal: servo_9 (id 9)']
+
+
+def test_a_throttle_lets_one_line_per_key_and_period_through_and_counts_the_rest():
+    throttle = Throttle()
+    assert throttle.admit('a', 10.0, 5.0) == ''
+    assert throttle.admit('a', 11.0, 5.0) is None
+    assert throttle.admit('b', 11.0, 5.0) == ''  # keys apart
+    assert throttle.admit('a', 14.9, 5.0) is None
+    assert throttle.admit('a', 15.0, 5.0) == ' (2 more like it since the last report)'
+    assert throttle.admit('a', 20.0, 5.0) == ''
