@@ -343,6 +343,15 @@ def unplug_when_deploy_arrives(rig):
     rig.runner.add_tap(tap)
 
 
+def reboot_when_deploy_arrives(rig, once=False):
+    """Power-cycle the module the moment it receives a deploy frame (`once`: the first only)."""
+    def tap(direction, data, t):
+        if direction == 'rx' and DEPLOY in data and not (once and rig.sim.boot_count > 1):
+            rig.clock.advance(0.5)
+            rig.sim.power_cycle()  # runner thread: the model's only user right now
+    rig.runner.add_tap(tap)
+
+
 def test_safety_3_a_deploy_cut_short_by_the_link_is_unknown_then_resolved(rig):
     rig.arm()
     unplug_when_deploy_arrives(rig)
@@ -475,11 +484,7 @@ def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
     with rig.model():
         rig.sim.lost_commands = {p.CMD_DEPLOY}  # the frame is lost: no acknowledgement
 
-    def reboot_on_deploy(direction, data, t):
-        if direction == 'rx' and DEPLOY in data:
-            rig.clock.advance(0.5)
-            rig.sim.power_cycle()  # runner thread: the model's only user right now
-    rig.runner.add_tap(reboot_on_deploy)
+    reboot_when_deploy_arrives(rig)
     mark = rig.wire.mark()
     result = rig.session.deploy('DEPLOY')
     assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \
@@ -802,12 +807,7 @@ def test_safety_7_11_a_full_disk_and_a_reboot_during_a_deploy(tmp_path):
         rig.arm()
         with rig.model():
             rig.sim.lost_commands = {p.CMD_DEPLOY}
-
-        def reboot_on_deploy(direction, data, t):
-            if direction == 'rx' and DEPLOY in data and rig.sim.boot_count == 1:
-                rig.clock.advance(0.5)
-                rig.sim.power_cycle()  # runner thread: the model's only user right now
-        rig.runner.add_tap(reboot_on_deploy)
+        reboot_when_deploy_arrives(rig, once=True)
         mark = rig.wire.mark()
         result = rig.session.deploy('DEPLOY')
         assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \

@@ -36,14 +36,21 @@ def test_sigint_broadcasts_torque_off_as_the_last_frame(rig):
     assert torque(rig) == [False] * 3
 
 
-def test_safety_10_ctrl_c_twice_still_sends_the_final_torque_off(rig):
-    """``ros2 launch`` delivers Ctrl-C twice; the second must not cut the shutdown short."""
+def ctrl_c_twice(rig):
+    """Press Ctrl-C under ``ros2 launch`` (two SIGINTs); return the node's output once it ended
+    cleanly (exit 0, no traceback)."""
     os.kill(rig.node.pid, signal.SIGINT)
     time.sleep(0.002)  # the terminal's SIGINT, then launch's: a few ms apart
     os.kill(rig.node.pid, signal.SIGINT)
     assert rig.node.stop(signal.SIGINT, timeout=10) == 0
     output = rig.node.output()
     assert 'KeyboardInterrupt' not in output and 'Traceback' not in output, output
+    return output
+
+
+def test_safety_10_ctrl_c_twice_still_sends_the_final_torque_off(rig):
+    """``ros2 launch`` delivers Ctrl-C twice; the second must not cut the shutdown short."""
+    ctrl_c_twice(rig)
     assert rig.wire.requests()[-1].raw == TORQUE_OFF_TO_ALL
     assert torque(rig) == [False] * 3
 
@@ -52,12 +59,7 @@ def test_safety_10_ctrl_c_twice_while_unplugged_ends_and_says_the_torque_stays_o
     rig.dev.runner.unplug()
     rig.state(1, start=len(rig.states), pred=lambda s: not s.online, what='the bus offline')
     mark = rig.wire.mark()
-    os.kill(rig.node.pid, signal.SIGINT)
-    time.sleep(0.002)  # the terminal's SIGINT, then launch's: a few ms apart
-    os.kill(rig.node.pid, signal.SIGINT)
-    assert rig.node.stop(signal.SIGINT, timeout=10) == 0
-    output = rig.node.output()
-    assert 'KeyboardInterrupt' not in output and 'Traceback' not in output, output
+    output = ctrl_c_twice(rig)
     # Nothing could reach the servos, and the log says what that leaves: torque still on.
     assert 'torque off on shutdown NOT sent' in output and 'still hold it' in output, output
     rig.dev.runner.replug()

@@ -81,19 +81,25 @@ def test_safety_13_absurd_values_are_refused_and_the_node_lives(rig):
     assert_alive_and_reading(rig, 'absurd values')
 
 
+def unplug_cycles(rig, n, rng, unplugged_s, plugged_s=(0.0, 0.0)):
+    """Pull the cable `n` times, each for a random time in `unplugged_s`; after each replug wait
+    until the driver has reopened the port (set its baud), then a random time in `plugged_s`."""
+    port = rig.dev.runner.port
+    for _ in range(n):
+        rig.dev.runner.unplug()
+        time.sleep(rng.uniform(*unplugged_s))
+        rig.dev.runner.replug()
+        wait_for(lambda: port.line_baud() == 115200, 5, interval=0.0002,
+                 what='the driver to reopen the port')
+        time.sleep(rng.uniform(*plugged_s))
+
+
 def test_safety_14_quick_unplug_replug_cycles_never_stop_the_joint_states(rig):
     # A flaky connector: the cable goes again right after the driver has reopened the port
     # (it has set its baud on the pty), while it flushes stale input before its first READ; a
     # vanished pty answers that tcflush with termios.error.
     rig.joints.wait(lambda m: len(m.name) == 3, 5, what='joint_states before the cycles')
-    rng = random.Random(14)
-    port = rig.dev.runner.port
-    for _ in range(12):
-        rig.dev.runner.unplug()
-        time.sleep(rng.uniform(0.0, 0.02))
-        rig.dev.runner.replug()
-        wait_for(lambda: port.line_baud() == 115200, 5, interval=0.0002,
-                 what='the driver to reopen the port')
+    unplug_cycles(rig, 12, random.Random(14), unplugged_s=(0.0, 0.02))
     rig.dev.runner.unplug()
     time.sleep(0.05)
     rig.dev.runner.replug()
@@ -215,15 +221,8 @@ def test_safety_14_17_a_command_flood_through_unplug_cycles(rig):
     try:
         wait_for(lambda: any(r.instruction == Instruction.SYNC_WRITE
                              for r in rig.wire.commands(mark)), 15, what='the flood on the wire')
-        rng = random.Random(1417)
-        port = rig.dev.runner.port
-        for _ in range(8):
-            rig.dev.runner.unplug()
-            time.sleep(rng.uniform(0.01, 0.15))
-            rig.dev.runner.replug()
-            wait_for(lambda: port.line_baud() == 115200, 5, interval=0.0002,
-                     what='the driver to reopen the port')
-            time.sleep(rng.uniform(0.0, 0.15))
+        unplug_cycles(rig, 8, random.Random(1417), unplugged_s=(0.01, 0.15),
+                      plugged_s=(0.0, 0.15))
         replugged = rig.wire.mark()
         out, err = flood.communicate(timeout=60)
     finally:
