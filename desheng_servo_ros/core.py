@@ -66,14 +66,19 @@ CURRENT = by_name('current')
 TEMPERATURE = by_name('temperature')
 RUN_PRESETS = tuple(by_name(f'run_preset_{k}') for k in (1, 2, 3))
 FACTORY_ID = ID.default  # S23: RESET gives every servo the table's default id
-# The read loop's two READs: position + speed, and 0x28 (torque) .. 0x3F (temperature).
+# The read loop's READs. Each cycle reads position + speed of every servo; where a servo's
+# telemetry is due, that READ runs on to the temperature (0x38..0x3F) and a second one takes
+# 0x28..0x2F (torque switch, current). Two 8-byte blocks rather than one of 24 (0x28..0x3F):
+# no READ holds the bus longer than 1.9 ms at 115200 baud (the block of 24 held it 3.3 ms), and
+# a command waits for the READ in flight.
 assert SPEED.address == POSITION.end
 POSITION_READ = (POSITION.address, POSITION.size + SPEED.size)
-TELEMETRY_READ = (TORQUE.address, TEMPERATURE.end - TORQUE.address)
-_T = TELEMETRY_READ[0]
-_T_TORQUE, _T_CURRENT = TORQUE.address - _T, CURRENT.address - _T
-_T_POSITION, _T_SPEED = POSITION.address - _T, SPEED.address - _T
-_T_TEMPERATURE = TEMPERATURE.address - _T
+WIDE_READ = (POSITION.address, TEMPERATURE.end - POSITION.address)
+STATE_READ = (TORQUE.address, CURRENT.end - TORQUE.address)
+_W_TEMPERATURE = TEMPERATURE.address - POSITION.address
+_S_CURRENT = CURRENT.address - TORQUE.address
+# What a READ of the loop is for (the plan's entries, the tags of its replies).
+READ_POSITION, READ_WIDE, READ_STATE = 0, 1, 2
 
 # A servo is offline after this many READs in a row failed (each with its retries), and then
 # probed this often (one READ, no retries), so a missing servo costs little bus time.
@@ -233,7 +238,7 @@ class BusSnapshot:
 class _Servo:
     """What the driver knows of one servo (see the module docstring for who writes it)."""
 
-    __slots__ = ('id', 'name', 'index', 'read_frame', 'telemetry_frame', 'online', 'seen',
+    __slots__ = ('id', 'name', 'index', 'frames', 'online', 'seen',
                  'failures', 'error_count', 'reading', 'telemetry', 'next_telemetry',
                  'next_probe', 'direction', 'telemetry_started', 'surplus_mark',
                  'duplicate_until')
@@ -242,8 +247,9 @@ class _Servo:
         self.id = joint.id
         self.name = joint.name
         self.index = index
-        self.read_frame = proto.encode_read(joint.id, *POSITION_READ)
-        self.telemetry_frame = proto.encode_read(joint.id, *TELEMETRY_READ)
+        # By READ_POSITION, READ_WIDE, READ_STATE: (frame, reply params).
+        self.frames = tuple((proto.encode_read(joint.id, *block), block[1])
+                            for block in (POSITION_READ, WIDE_READ, STATE_READ))
         self.online = False
         self.seen = False
         self.failures = 0
@@ -265,11 +271,12 @@ class _Servo:
         self.telemetry = self.telemetry._replace(torque_enabled=enabled)
 
 
-def plan_cycle(now: float, servos: Sequence[_Servo]) -> List[Tuple[_Servo, bool]]:
-    """Return (servo, telemetry READ?) for each servo to read in a cycle starting `now`.
+def plan_cycle(now: float, servos: Sequence[_Servo]) -> List[Tuple[_Servo, int]]:
+    """Return (servo, READ_*) for each READ of a cycle starting `now`.
 
     Every servo that is not offline, and the offline ones due for their probe (one every
-    REPROBE_PERIOD_S, whose time is set here); telemetry where its period has come.
+    REPROBE_PERIOD_S, whose time is set here, a plain position READ); where its telemetry period
+    has come, the wide READ and the state READ after it.
     """
     plan = []
     for s in servos:
@@ -277,7 +284,12 @@ def plan_cycle(now: float, servos: Sequence[_Servo]) -> List[Tuple[_Servo, bool]
             if now < s.next_probe:
                 continue
             s.next_probe = now + REPROBE_PERIOD_S
-        plan.append((s, now >= s.next_telemetry))
+            plan.append((s, READ_POSITION))
+        elif now >= s.next_telemetry:
+            plan.append((s, READ_WIDE))
+            plan.append((s, READ_STATE))
+        else:
+            plan.append((s, READ_POSITION))
     return plan
 
 
@@ -295,7 +307,7 @@ class ReadCycles:
 
     def __init__(self, *, clock: Callable[[], float], servos: Callable[[], Sequence[_Servo]],
                  period_s: Callable[[], float],
-                 on_read: Callable[[_Servo, bool, float, Optional[proto.Reply]], None],
+                 on_read: Callable[[_Servo, int, float, Optional[proto.Reply]], None],
                  on_cycle_start: Callable[[float], None],
                  on_cycle_done: Callable[[], None], retries: int = 1) -> None:
         self._clock = clock
@@ -332,20 +344,19 @@ class ReadCycles:
             return None
         if self.pos >= len(self.plan) and not self._start_cycle():
             return None
-        s, telemetry = self.plan[self.pos]
+        s, kind = self.plan[self.pos]
         self.pos += 1
-        tag = (s, telemetry, self.started, self.pos == len(self.plan))
+        tag = (s, kind, self.started, self.pos == len(self.plan))
         # A servo that failed as often as it takes to be offline is probed without retries.
         retries = self.retries if s.failures < OFFLINE_AFTER_FAILURES else 0
-        if telemetry:
-            return s.telemetry_frame, s.id, TELEMETRY_READ[1], retries, tag
-        return s.read_frame, s.id, POSITION_READ[1], retries, tag
+        frame, nparams = s.frames[kind]
+        return frame, s.id, nparams, retries, tag
 
-    def on_read(self, tag: Tuple[_Servo, bool, float, bool],
+    def on_read(self, tag: Tuple[_Servo, int, float, bool],
                 reply: Optional[proto.Reply]) -> None:
         """Take the result of one READ; the last one of a cycle completes it."""
-        s, telemetry, started, last = tag
-        self._on_read(s, telemetry, started, reply)
+        s, kind, started, last = tag
+        self._on_read(s, kind, started, reply)
         if last:
             self._on_cycle_done()
 
@@ -736,14 +747,21 @@ class ServoBusCore:
 
     # -- the hot path (link reader thread) ------------------------------------------------------
 
-    def _on_read(self, s: _Servo, telemetry: bool, started: float,
+    def _on_read(self, s: _Servo, kind: int, started: float,
                  reply: Optional[proto.Reply]) -> None:
         """Take the result of one READ of the cycle that started at `started`."""
         if reply is None:
             self._failed(s, started)
             return
         p = reply.params
-        if telemetry:
+        if kind == READ_STATE:
+            s.telemetry = s.telemetry._replace(current_ma=float((p[_S_CURRENT] << 8)
+                                                                | p[_S_CURRENT + 1]),
+                                               torque_enabled=p[0] != 0)
+            if s.failures:
+                s.failures = 0
+            return
+        if kind == READ_WIDE:
             period = self.config.telemetry_period_s
             if s.telemetry_started or period <= 0:
                 s.next_telemetry = started + period
@@ -751,12 +769,8 @@ class ServoBusCore:
                 # Spread the telemetry reads of the servos evenly over the period.
                 s.telemetry_started = True
                 s.next_telemetry = started + period * (s.index + 1) / max(1, len(self._servos))
-            s.telemetry = Telemetry(float((p[_T_CURRENT] << 8) | p[_T_CURRENT + 1]),
-                                    float(p[_T_TEMPERATURE]), p[_T_TORQUE] != 0)
-            self._update_position(s, (p[_T_POSITION] << 8) | p[_T_POSITION + 1],
-                                  (p[_T_SPEED] << 8) | p[_T_SPEED + 1], reply.status)
-        else:
-            self._update_position(s, (p[0] << 8) | p[1], (p[2] << 8) | p[3], reply.status)
+            s.telemetry = s.telemetry._replace(temperature_c=float(p[_W_TEMPERATURE]))
+        self._update_position(s, (p[0] << 8) | p[1], (p[2] << 8) | p[3], reply.status)
 
     def _update_position(self, s: _Servo, ticks: int, speed: int, status: int) -> None:
         old = s.reading

@@ -15,6 +15,7 @@ from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAI
                                     REPROBE_PERIOD_S, ServoBusConfig, ServoBusCore, WARN)
 from desheng_servo_ros.link import FORGET_AFTER_REPLIES
 from desheng_servo_ros.protocol import Instruction, StreamDecoder
+from desheng_servo_ros.simulation import HOLD_CURRENT_MA, IDLE_CURRENT_MA
 from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
@@ -182,13 +183,32 @@ def test_a_cycle_reads_every_servo_and_telemetry_is_spread_over_its_period(rig):
     snap = rig.cycle()
     assert [s.online for s in snap.servos] == [True] * 3
     assert all(s.temperature_c == pytest.approx(25, abs=1) for s in snap.servos)
-    # The first cycle read the telemetry block of each; then they come one third apart.
+    # The first cycle read the telemetry of each; then they come one third apart, each as the
+    # position READ run on to the temperature (0x38, 8) and the torque/current block (0x28, 8).
     mark = rig.tap.mark()
     for _ in range(3):
         rig.cycle(1.0 / 3 + 0.001)
-    blocks = [(r.servo_id, r.params[1]) for r in rig.tap.requests(mark)]
-    assert blocks == [(1, 24), (2, 4), (3, 4), (1, 4), (2, 24), (3, 4), (1, 4), (2, 4), (3, 24)]
+    blocks = [(r.servo_id, r.params[0], r.params[1]) for r in rig.tap.requests(mark)]
+    wide, state = (0x38, 8), (0x28, 8)
+    assert blocks == [(1, *wide), (1, *state), (2, 0x38, 4), (3, 0x38, 4),
+                      (1, 0x38, 4), (2, *wide), (2, *state), (3, 0x38, 4),
+                      (1, 0x38, 4), (2, 0x38, 4), (3, *wide), (3, *state)]
     assert rig.core.cycle_count == 4 and len(rig.cycles) >= 1
+
+
+def test_telemetry_tells_the_torque_switch_current_and_temperature_of_each_servo(rig):
+    rig.cycle()
+    with rig.dev.runner.locked():
+        rig.sim.servo(2).values['torque_enable'] = 0  # let go on the servo's side
+        rig.sim.servo(3).values['torque_enable'] = 1
+        rig.sim.servo(3).temperature_c = 47.0
+        rig.sim.servo(3).over_temperature_limit_c = 90.0
+    for _ in range(4):  # a telemetry period: each servo's turn comes once
+        snap = rig.cycle(1.0 / 3 + 0.001)
+    off, holding = rig.by_id(snap, 2), rig.by_id(snap, 3)
+    assert not off.torque_enabled and off.current_ma == IDLE_CURRENT_MA
+    assert holding.torque_enabled and holding.current_ma == HOLD_CURRENT_MA
+    assert holding.temperature_c == pytest.approx(47, abs=1)
 
 
 def test_positions_and_velocity_follow_the_servo(rig):
