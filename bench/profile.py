@@ -1,9 +1,10 @@
 """Where a driver's CPU goes under the CPU benchmark's load: py-spy's top functions by own time.
 
-``python bench/profile.py [servo|parachute ...] [--seconds N]`` starts each driver as
+``python bench/profile.py [servo|parachute|handset ...] [--seconds N]`` starts each driver as
 ``bench/cpu.py`` does (servo: 12 servos at ``publish_rate_hz`` 50; parachute: status stream at
-20 Hz), samples it with ``py-spy record --nonblocking --format raw`` (no
-pause of the process, so the profile does not change what it measures) and prints the functions
+20 Hz; handset: 50 Hz with one ``~/setpoint`` subscriber), samples it with
+``py-spy record --nonblocking --format raw`` (no pause of the process, so the profile does not
+change what it measures) and prints the functions
 with the most samples of their own, in % of all samples of threads that were not idle, and the
 process's CPU over the same window. py-spy is not a dependency of the package: install it into
 the environment first (``pip install py-spy``); the machine needs ptrace rights on the driver.
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import shutil
 import subprocess
 import sys
@@ -25,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import CpuMeter, ParachuteRig, ServoRig, workdir  # noqa: E402
+from bench.common import (CpuMeter, HandsetRig, ParachuteRig, ros_client,  # noqa: E402
+                          ServoRig, workdir)
 
 
 def top_functions(raw: str, count: int) -> Tuple[int, List[Tuple[float, str]]]:
@@ -55,9 +58,14 @@ def _record(pid: int, seconds: float) -> str:
 
 def profile(driver: str, seconds: float, count: int) -> None:
     """Profile one driver under load and print its top functions."""
-    with workdir() as directory:
+    with workdir() as directory, contextlib.ExitStack() as stack:
         if driver == 'servo':
             rig = ServoRig(directory, list(range(1, 13)), 115200, {'publish_rate_hz': 50.0})
+        elif driver == 'handset':
+            from uav_serial_drivers.msg import HandsetSetpoint
+            rig = HandsetRig(directory)
+            client = stack.enter_context(ros_client('bench_profile_handset'))
+            client.subscribe(HandsetSetpoint, '/handset_link/setpoint', lambda _m: None)
         else:
             rig = ParachuteRig(directory, stream_period_s=0.05)
         with rig:
@@ -75,7 +83,7 @@ def profile(driver: str, seconds: float, count: int) -> None:
 def main(argv: List[str] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('drivers', nargs='*', default=['servo', 'parachute'],
-                        choices=['servo', 'parachute'])
+                        choices=['servo', 'parachute', 'handset'])
     parser.add_argument('--seconds', type=float, default=20.0)
     parser.add_argument('--top', type=int, default=8)
     a = parser.parse_args(argv)
