@@ -81,6 +81,7 @@ def profile(driver: str, seconds: float, count: int) -> None:
 
 
 def main(argv: List[str] = None) -> int:
+    """Profile the drivers named on the command line."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('drivers', nargs='*', default=['servo', 'parachute'],
                         choices=['servo', 'parachute', 'handset'])
