@@ -276,7 +276,7 @@ def plan_cycle(now: float, servos: Sequence[_Servo]) -> List[Tuple[_Servo, int]]
 
     Every servo that is not offline, and the offline ones due for their probe (one every
     REPROBE_PERIOD_S, whose time is set here, a plain position READ); where its telemetry period
-    has come, the wide READ and the state READ after it.
+    has come, the state READ and the wide READ after it.
     """
     plan = []
     for s in servos:
@@ -286,8 +286,10 @@ def plan_cycle(now: float, servos: Sequence[_Servo]) -> List[Tuple[_Servo, int]]
             s.next_probe = now + REPROBE_PERIOD_S
             plan.append((s, READ_POSITION))
         elif now >= s.next_telemetry:
-            plan.append((s, READ_WIDE))
+            # The state READ first: a cycle ends with a position, so it is published as soon
+            # as its newest position is in.
             plan.append((s, READ_STATE))
+            plan.append((s, READ_WIDE))
         else:
             plan.append((s, READ_POSITION))
     return plan

@@ -184,15 +184,16 @@ def test_a_cycle_reads_every_servo_and_telemetry_is_spread_over_its_period(rig):
     assert [s.online for s in snap.servos] == [True] * 3
     assert all(s.temperature_c == pytest.approx(25, abs=1) for s in snap.servos)
     # The first cycle read the telemetry of each; then they come one third apart, each as the
-    # position READ run on to the temperature (0x38, 8) and the torque/current block (0x28, 8).
+    # torque/current block (0x28, 8) and the position READ run on to the temperature (0x38, 8),
+    # last, so that a cycle ends with a position.
     mark = rig.tap.mark()
     for _ in range(3):
         rig.cycle(1.0 / 3 + 0.001)
     blocks = [(r.servo_id, r.params[0], r.params[1]) for r in rig.tap.requests(mark)]
     wide, state = (0x38, 8), (0x28, 8)
-    assert blocks == [(1, *wide), (1, *state), (2, 0x38, 4), (3, 0x38, 4),
-                      (1, 0x38, 4), (2, *wide), (2, *state), (3, 0x38, 4),
-                      (1, 0x38, 4), (2, 0x38, 4), (3, *wide), (3, *state)]
+    assert blocks == [(1, *state), (1, *wide), (2, 0x38, 4), (3, 0x38, 4),
+                      (1, 0x38, 4), (2, *state), (2, *wide), (3, 0x38, 4),
+                      (1, 0x38, 4), (2, 0x38, 4), (3, *state), (3, *wide)]
     assert rig.core.cycle_count == 4 and len(rig.cycles) >= 1
 
 
