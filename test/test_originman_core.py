@@ -20,7 +20,11 @@ from uav_serial_common.process import wait_for
 
 class Rig:
     def __init__(self, tmp_path, board_kwargs=None, **config):
-        self.board = VirtualBoard(str(tmp_path / 'board'), **(board_kwargs or {})).start()
+        self.board = VirtualBoard(str(tmp_path / 'board'), **(board_kwargs or {}))
+        # Off until the core holds the port: what the board sent before would be flushed at the
+        # open, and silence() counts on every byte of the board reaching the core.
+        self.model.power_off()
+        self.board.start()
         self.clock = FakeClock()
         self.events = {k: [] for k in ('imu', 'battery', 'button', 'sbus', 'gamepad', 'asr',
                                        'states', 'online')}
@@ -33,6 +37,9 @@ class Rig:
             on_bus_servo_states=self.events['states'].append,
             on_online_change=lambda online, why: self.events['online'].append((online, why)))
         self.core.start(worker=False)
+        assert self.core.link.wait_connected(5), 'the core did not open the port'
+        with self.board.locked():
+            self.model.power_on()
 
     @property
     def model(self):
