@@ -181,12 +181,14 @@ class _ReadChain:
             self.retry = entry
             frame = bus._next_posted()
             return frame, None, wire_time(len(frame), bus.baud) + IDLE_GUARD_S
+        stats = bus.link.stats
         if entry is None:
             item = self.plan.next_read()
             if item is None:
                 return None
             entry = [item, 0, None]
-        stats = bus.link.stats
+        else:
+            stats.retries += 1  # counted as it goes out: one that yields the bus never does
         entry[2] = (stats.bytes_in, stats.frames_in)
         self.sent.append(entry)
         frame, servo_id, nparams = entry[0][:3]
@@ -200,7 +202,6 @@ class _ReadChain:
             self.bus._note_silence(item[1], entry[2])
         if reply is None and entry[1] < item[3]:
             entry[1] += 1
-            self.bus.link.stats.retries += 1
             self.retry = entry
             return
         self._settle(item, reply)
