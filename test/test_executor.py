@@ -6,6 +6,7 @@ blocks in the pool, a publisher and a client in the test's `ros` harness.
 
 from __future__ import annotations
 
+import gc
 import threading
 
 import pytest
@@ -117,3 +118,49 @@ def test_an_exception_in_an_inline_callback_ends_spinning_as_rclpys_executors_do
     pub.publish(Int32(data=3))
     wait_for(lambda: driver.errors, 5, what='the failure raised out of spin_once')
     assert 'callback failed on 3' in str(driver.errors[0])
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_round2_9_a_callback_queued_for_the_pool_at_shutdown_prints_nothing(capfd):
+    """Issue 21 item 9: "exception was never retrieved" on a clean exit, made deterministic.
+
+    A timer's callback holds the only pool thread, a second timer's handler is queued behind it,
+    and the executor shuts down (as `run_node` does on SIGINT). rclpy's shutdown destroyed its
+    guard condition at once; the queued handler then ran and failed on it, and its task's
+    exception was printed when the task was collected.
+    """
+    context = Context()
+    rclpy.init(context=context)
+    node = Node('shutdown_under_test', context=context)
+    holding = threading.Event()
+    release = threading.Event()
+    ran = []
+
+    def hold() -> None:
+        ran.append('hold')
+        holding.set()
+        release.wait(10.0)
+
+    node.create_timer(0.01, hold, callback_group=MutuallyExclusiveCallbackGroup())
+    node.create_timer(0.01, lambda: ran.append('queued'),
+                      callback_group=MutuallyExclusiveCallbackGroup())
+    executor = DriverExecutor(num_threads=1, context=context)
+    executor.add_node(node)
+    try:
+        while not holding.is_set():
+            executor.spin_once(timeout_sec=1.0)
+        # The other timer is taken now and queued behind the held pool thread.
+        executor.spin_once(timeout_sec=5.0)
+        executor.shutdown(timeout_sec=0)
+        release.set()
+        executor._workers.shutdown(wait=True)  # whatever was queued has run (or was dropped)
+    finally:
+        release.set()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    del executor, node
+    gc.collect()
+    err = capfd.readouterr().err
+    assert 'never retrieved' not in err, err
+    assert 'Traceback' not in err, err
+    assert ran.count('hold') == 1 and 'queued' not in ran, ran

@@ -9,18 +9,28 @@ topic only hands the message to its device core, which never waits on the device
 callback group is an `InlineCallbackGroup`: its callbacks run on the spin thread as soon as they
 are taken. Everything else (services that wait for the device, timers) goes to the pool as
 before, so the executor is never blocked by serial I/O.
+
+Shutdown (issue 21 item 9): rclpy's ``Executor.shutdown`` destroys its guard condition without
+waiting for the callbacks in flight (its wait on the work tracker sits behind a condition that is
+never true in Jazzy), and a pool task taken just before it then fails in rclpy's own handler on
+that guard ("cannot use Destroyable because destruction was requested"); nobody reads that
+task's result, so its exception is printed as "never retrieved" when the task is collected, on a
+clean exit. ``DriverExecutor.shutdown`` drops the handlers still queued for the pool, waits for
+the running ones, and reads the result of every task that ends after shutdown began.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+import sys
 import threading
-from typing import Callable, List, Optional
+from typing import Callable, List, Optional, Tuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import (ConditionReachedException, Executor, ExternalShutdownException,
                              ShutdownException, TimeoutException)
+from rclpy.exceptions import InvalidHandle
 from rclpy.task import Task
 
 
@@ -35,7 +45,9 @@ class DriverExecutor(Executor):
         super().__init__(context=context)
         # Names of their own: rclpy's Executor keeps its coroutine tasks in self._tasks.
         self._workers = ThreadPoolExecutor(num_threads, thread_name_prefix='callback')
-        self._pool_tasks: List[Task] = []
+        self._pool_tasks: List[Tuple[Task, Future]] = []
+        self._pool_lock = threading.Lock()
+        self._closing = False
         self._start_pool(num_threads)
 
     def _start_pool(self, threads: int) -> None:
@@ -71,11 +83,64 @@ class DriverExecutor(Executor):
             handler()
             handler.result()  # raises what the callback raised, as rclpy's executors do
             return
-        self._workers.submit(handler)
-        self._pool_tasks.append(handler)
-        for task in [t for t in self._pool_tasks if t.done()]:
-            self._pool_tasks.remove(task)
+        with self._pool_lock:
+            if self._closing:
+                _drop(handler)  # shutting down: a callback taken now never runs
+                return
+            self._pool_tasks.append((handler, self._workers.submit(self._run_pooled, handler)))
+            finished = [pair for pair in self._pool_tasks if pair[0].done()]
+            for pair in finished:
+                self._pool_tasks.remove(pair)
+        for task, _ in finished:
             task.result()
+
+    def _run_pooled(self, handler: Task) -> None:
+        handler()
+        if self._closing:
+            _settle(handler)  # nobody else reads it once shutdown has begun
+
+    def shutdown(self, timeout_sec: Optional[float] = None) -> bool:
+        """Stop taking callbacks, let the running ones finish, then release rclpy's resources.
+
+        Handlers queued for the pool and not started are dropped; running ones get up to
+        ``timeout_sec`` (None: no limit) before the guard condition they signal is destroyed,
+        and the outcome of each is read here or when it ends, so none is reported as "never
+        retrieved". Returns whether every running callback finished in time.
+        """
+        with self._pool_lock:
+            self._closing = True
+            pending = list(self._pool_tasks)
+            self._pool_tasks.clear()
+        self._workers.shutdown(wait=False, cancel_futures=True)
+        running = [future for _, future in pending if not future.cancelled()]
+        finished = not running or not wait(running, timeout_sec).not_done
+        # rclpy yields a task again while it waits for a thread, so one task may have several
+        # submissions: it never ran only if every one of them was cancelled.
+        started = {id(task) for task, future in pending if not future.cancelled()}
+        for task, _ in pending:
+            if id(task) not in started:
+                task.cancel()  # closes its coroutine, so none is reported "never awaited"
+            elif task.done():
+                _settle(task)
+        return super().shutdown(timeout_sec=0) and finished
+
+
+def _drop(task: Task) -> None:
+    """Close a task that will not run, so its coroutine is not reported "never awaited"."""
+    if not task.executing() and not task.done():
+        try:
+            task.cancel()
+        except ValueError:
+            pass  # a pool thread started it meanwhile: it ends, and is read, there
+
+
+def _settle(task: Task) -> None:
+    """Read a finished task's outcome; report a failure other than the shutdown's own."""
+    if not task.done():
+        return
+    exc = task.exception()
+    if exc is not None and not isinstance(exc, InvalidHandle):
+        print(f'callback failed during shutdown: {exc!r}', file=sys.stderr, flush=True)
 
 
 def _pass(gate: threading.Barrier) -> None:
