@@ -10,8 +10,9 @@ Threads, and what each one owns:
   Accepted frames update the state and reach ``on_setpoint`` / ``on_auxiliary`` from that thread
   before the next read, never batched on a timer: a stick frame is delivered within the read that
   completed it (H7). Frames of one read may share one setpoint update (``updated`` names them).
-- The core's timer thread (``start()``) sleeps until the next deadline (link loss after
-  ``link_timeout_s`` without a valid frame, H8; a partial frame's 0.1 s, H3) and calls ``poll()``.
+- The core's timer thread (``start()``) sleeps until the next deadline (link loss when a stick
+  setpoint is ``link_timeout_s`` old, H8; a stale battery reading; a partial frame's 0.1 s, H3)
+  and calls ``poll()``.
 - The owner's threads (a node's executor) call ``on_battery()`` and the snapshot getters.
 
 State lives under ``_lock``, held briefly and never during a callback. Every change runs, with
@@ -19,6 +20,10 @@ its callbacks, under ``_emit_lock``, so two threads never deliver failsafe chang
 Callbacks must not block; they may call the getters. A callback that raises is logged, never
 propagated. With ``start(run_threads=False)`` nothing runs on its own: the caller drives
 ``feed()`` and ``poll()`` with its own (fake) clock.
+
+The failsafe decisions (link loss by the sticks, battery hysteresis and staleness) are
+``rules.HandsetRules``: pure, fed here with each event and its time; this class decodes, keeps
+the setpoints and counters, and carries the rules' outputs out as callbacks.
 """
 
 from __future__ import annotations
@@ -34,13 +39,12 @@ from typing import Any, Callable, Deque, Optional
 
 from handset_link_ros import protocol as p
 from handset_link_ros.link import ModemLink, Received
+from handset_link_ros.rules import (ACTION_NONE, ACTION_RETURN_TO_HOME,  # noqa: F401 (API)
+                                    BATTERY_CLEAR_MARGIN, Failsafe, FailsafeChanged,
+                                    HandsetRules, LinkChanged, Log, Output)
 from uav_serial_common.logs import Throttle
 from uav_serial_common.records import evolve
 
-ACTION_NONE = 'NONE'
-ACTION_RETURN_TO_HOME = 'RETURN_TO_HOME'
-BATTERY_CLEAR_MARGIN = 0.05
-"""A low battery clears this far above ``low_battery_fraction`` (H9: 20 % → 25 %)."""
 REJECTION_LOG_PERIOD_S = 1.0
 """Rejected frames are logged at most once per type per second (H6)."""
 BITS_PER_BYTE = 10
@@ -63,7 +67,8 @@ AUX_FIELDS: dict[int, str] = {
 """Auxiliary command type to its ``Auxiliary`` field."""
 
 NAN = math.nan
-RUNTIME_FIELDS = frozenset({'link_timeout_s', 'expected_rate_hz', 'low_battery_fraction'})
+RUNTIME_FIELDS = frozenset({'link_timeout_s', 'expected_rate_hz', 'low_battery_fraction',
+                            'battery_timeout_s'})
 """``HandsetConfig`` fields ``reconfigure()`` may change while the link runs."""
 
 
@@ -77,13 +82,16 @@ class HandsetConfig:
     expected_rate_hz: float = 50.0
     low_battery_fraction: float = 0.20
     rate_window_s: float = 1.0
+    battery_timeout_s: float = 10.0
+    """A battery reading older than this is stale: the battery is unknown (issue 21 item 8)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.port, str) or not self.port:
             raise ValueError(f'port must be a device path or pyserial URL, got {self.port!r}')
         if isinstance(self.baud, bool) or not isinstance(self.baud, int) or self.baud <= 0:
             raise ValueError(f'baud must be a positive integer, got {self.baud!r}')
-        for name in ('link_timeout_s', 'expected_rate_hz', 'rate_window_s'):
+        for name in ('link_timeout_s', 'expected_rate_hz', 'rate_window_s',
+                     'battery_timeout_s'):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f'{name} must be a positive number, got {value!r}')
@@ -122,7 +130,8 @@ class Auxiliary:
 class LinkState:
     """Health of the handset link at ``stamp``.
 
-    ``connected``: a valid frame came within ``link_timeout_s`` (false before the first one).
+    ``connected``: every stick setpoint was refreshed by a valid frame within ``link_timeout_s``
+    (false before all four came; ``rules.py``).
     ``frame_rate_hz``: valid frames per second; ``command_rate_hz``: those of the most frequent
     type (the handset's tick rate), both over the last ``rate_window_s``.
     ``last_frame_age_s``: NaN before the first valid frame.
@@ -139,18 +148,8 @@ class LinkState:
     frames_rejected_recently: int
     last_frame_age_s: float
     stamp: float
-
-
-@dataclass(frozen=True)
-class Failsafe:
-    """The failsafe conditions (H8, H9) and the action requested while either holds (H10)."""
-
-    link_lost: bool
-    battery_low: bool
-    action: str
-    reason: str
-    battery_fraction: float
-    stamp: float
+    stick_age_s: float = NAN
+    """Age of the oldest stick setpoint, the one the link is judged by; NaN until all four."""
 
 
 @dataclass
@@ -191,16 +190,10 @@ class HandsetCore:
         self._aux = Auxiliary()
         self._sp_pending = _Pending()
         self._aux_pending = _Pending()
-        self._started_at = clock()
+        self._rules = HandsetRules(config.link_timeout_s, config.low_battery_fraction,
+                                   config.battery_timeout_s, clock())
         self._last_valid: Optional[float] = None
-        self._connected = False
-        self._link_lost = False
         self._port_open = False
-        self._battery = NAN
-        self._battery_low = False
-        self._battery_range_logged = False
-        self.battery_out_of_range = 0
-        """Battery percentages outside 0..1 received (ignored, H9)."""
         self.frames_accepted = 0
         self.frames_malformed = 0
         self.frames_out_of_range = 0
@@ -225,10 +218,11 @@ class HandsetCore:
         """
         with self._emit_lock:
             with self._lock:
-                self._started_at = self._clock()
+                now = self._clock()
+                self._rules.start(now)
                 # H15: not connected before the first valid frame, not lost before the timeout.
-                emits = [(self._on_link, self._link_state(self._started_at)),
-                         (self._on_failsafe, self._failsafe(self._started_at))]
+                emits = [(self._on_link, self._link_state(now)),
+                         (self._on_failsafe, self._rules.failsafe(now))]
             self._emit(emits)
         if run_threads and self._timer is None:
             self._stop.clear()
@@ -252,41 +246,36 @@ class HandsetCore:
         self.link.feed(data)
 
     def poll(self) -> None:
-        """Let time pass: settle a quiet partial frame (H3), declare a lost link (H8)."""
+        """Let time pass: settle a quiet partial frame (H3), a lost link (H8), a stale battery."""
         self.link.poll()
         with self._emit_lock:
             with self._lock:
                 emits: list = []
-                self._check_link(self._clock(), emits)
+                now = self._clock()
+                self._carry(self._rules.tick(now), now, emits)
             self._emit(emits)
 
     def on_battery(self, percentage: float) -> None:
         """Take the aircraft's battery charge, 0..1 (``sensor_msgs/BatteryState.percentage``).
 
         Below ``low_battery_fraction`` is low, cleared at 5 points above (H9). NaN says nothing;
-        a value outside 0..1 says nothing either and is logged once.
+        a value outside 0..1 says nothing either and is logged once. A reading older than
+        ``battery_timeout_s`` is stale: the battery is unknown (``rules.py``).
         """
         with self._emit_lock:
             emits: list = []
             with self._lock:
                 now = self._clock()
-                if isinstance(percentage, bool) or not isinstance(percentage, (int, float)) \
-                        or math.isnan(percentage):
-                    return
-                if not 0.0 <= percentage <= 1.0:
-                    self.battery_out_of_range += 1
-                    if not self._battery_range_logged:
-                        self._battery_range_logged = True
-                        emits.append(('WARN', f'battery percentage {percentage!r} is outside '
-                                              f'0..1 and says nothing about the battery; '
-                                              f'ignored (logged once)'))
-                else:
-                    self._battery = float(percentage)
-                    self._update_battery(now, emits)
+                self._carry(self._rules.battery_reading(percentage, now), now, emits)
             self._emit(emits)
 
+    @property
+    def battery_out_of_range(self) -> int:
+        """Battery percentages outside 0..1 received (ignored, H9)."""
+        return self._rules.battery_out_of_range
+
     def reconfigure(self, **changes: Any) -> None:
-        """Change ``link_timeout_s``, ``expected_rate_hz`` or ``low_battery_fraction`` at runtime.
+        """Change the ``RUNTIME_FIELDS`` (timeouts, rate, battery threshold) at runtime.
 
         Raises ValueError naming a bad value (nothing changes then). The rules are applied to the
         new values at once: a shorter timeout can declare the link lost, a higher threshold the
@@ -300,9 +289,9 @@ class HandsetCore:
             with self._lock:
                 self.config = replace(self.config, **changes)
                 now = self._clock()
-                self._check_link(now, emits)
-                if not math.isnan(self._battery):
-                    self._update_battery(now, emits)
+                self._carry(self._rules.reconfigure(
+                    now, **{k: v for k, v in changes.items() if k != 'expected_rate_hz'}),
+                    now, emits)
             self._emit(emits)
 
     # -- snapshots ------------------------------------------------------------------------------
@@ -317,6 +306,14 @@ class HandsetCore:
         with self._lock:
             return replace(self._aux, updated=())
 
+    def battery_last(self) -> tuple[float, float]:
+        """Return the last usable battery reading and its age (NaN, NaN before the first)."""
+        with self._lock:
+            at = self._rules.battery_at
+            if at is None:
+                return NAN, NAN
+            return self._rules.battery, max(0.0, self._clock() - at)
+
     def link_state(self) -> LinkState:
         """Return the link's health now (rates over the last ``rate_window_s``)."""
         with self._lock:
@@ -325,7 +322,7 @@ class HandsetCore:
     def failsafe(self) -> Failsafe:
         """Return the failsafe conditions and the requested action now."""
         with self._lock:
-            return self._failsafe(self._clock())
+            return self._rules.failsafe(self._clock())
 
     # -- reader thread --------------------------------------------------------------------------
 
@@ -378,22 +375,12 @@ class HandsetCore:
         self._window.append(now)
         self._window_by_type[cmd.type].append(now)
         self._last_valid = now
-        if not self._connected:
-            self._connected = True
-            if self._link_lost:
-                self._link_lost = False
-                failsafe = self._failsafe(now)
-                # H24: a failsafe change is a WARN at least, the clearing included.
-                emits.append(('WARN', f'handset link regained (H8); failsafe now '
-                                      f'{failsafe.action}: {failsafe.reason}'))
-                emits.append((self._on_failsafe, failsafe))
-            else:
-                emits.append(('INFO', 'handset heard: link up'))
-            emits.append((self._on_link, self._link_state(now)))
         # The last byte of this frame arrived before the bytes read after it (H16).
         stamp = now - cmd.bytes_after * BITS_PER_BYTE / self.config.baud
         name = STICK_FIELDS.get(cmd.type)
         if name is not None:
+            # Only a stick frame keeps the link (issue 21 item 8): auxiliary ones never do.
+            self._carry(self._rules.stick(name, now), now, emits)
             pending = self._sp_pending
             if name in pending.values:
                 self._flush_setpoint(emits)  # the same field twice: one update per frame
@@ -439,58 +426,15 @@ class HandsetCore:
 
     # -- rules ----------------------------------------------------------------------------------
 
-    def _check_link(self, now: float, emits: list) -> None:
-        if self._link_lost:
-            return
-        since = self._last_valid if self._last_valid is not None else self._started_at
-        if now - since < self.config.link_timeout_s:
-            return
-        self._link_lost = True
-        self._connected = False
-        heard = 'since start-up' if self._last_valid is None else 'since the last one'
-        emits.append(('ERROR', f'handset link lost: no valid frame for '
-                               f'{self.config.link_timeout_s:g} s {heard}; requesting return to '
-                               f'home (H8)'))
-        emits.append((self._on_failsafe, self._failsafe(now)))
-        emits.append((self._on_link, self._link_state(now)))
-
-    def _update_battery(self, now: float, emits: list) -> None:
-        low = self.config.low_battery_fraction
-        clear = low + BATTERY_CLEAR_MARGIN
-        level = self._battery
-        if not self._battery_low and level < low:
-            self._battery_low = True
-            emits.append(('WARN', f'battery low: {level * 100:.1f} % < {low * 100:.0f} %; '
-                                  f'requesting return to home (H9)'))
-            emits.append((self._on_failsafe, self._failsafe(now)))
-        elif self._battery_low and level >= clear - 1e-9:
-            # H20: 0.20 + 0.05 is 0.25000000000000006 in binary, and 25 % must clear.
-            self._battery_low = False
-            failsafe = self._failsafe(now)
-            emits.append(('WARN', f'battery back at {level * 100:.1f} % (>= {clear * 100:.0f} '
-                                  f'%): low-battery condition cleared (H9); failsafe now '
-                                  f'{failsafe.action}: {failsafe.reason}'))
-            emits.append((self._on_failsafe, failsafe))
-
-    def _failsafe(self, now: float) -> Failsafe:
-        reasons = []
-        if self._link_lost:
-            heard = ' since start-up' if self._last_valid is None else ''
-            reasons.append(f'link lost: no valid handset frame for '
-                           f'{self.config.link_timeout_s:g} s{heard}')
-        if self._battery_low:
-            reasons.append(f'battery low: {self._battery * 100:.1f} % < '
-                           f'{self.config.low_battery_fraction * 100:.0f} %')
-        action = ACTION_RETURN_TO_HOME if reasons else ACTION_NONE
-        if not reasons:
-            link = 'handset link up' if self._connected else \
-                f'waiting for the handset (lost after {self.config.link_timeout_s:g} s ' \
-                f'without a valid frame)'
-            battery = 'battery not reported' if math.isnan(self._battery) else \
-                f'battery {self._battery * 100:.1f} %'
-            reasons = [link, battery]
-        return Failsafe(self._link_lost, self._battery_low, action, '; '.join(reasons),
-                        self._battery, now)
+    def _carry(self, outputs: list[Output], now: float, emits: list) -> None:
+        """Turn the rules' outputs into log lines and callbacks, in their order."""
+        for output in outputs:
+            if isinstance(output, Log):
+                emits.append((output.level, output.text))
+            elif isinstance(output, FailsafeChanged):
+                emits.append((self._on_failsafe, output.failsafe))
+            elif isinstance(output, LinkChanged):
+                emits.append((self._on_link, self._link_state(now)))
 
     def _prune(self, now: float) -> None:
         """Forget frame times older than the rate window (bounded memory under any input)."""
@@ -506,12 +450,13 @@ class HandsetCore:
         busiest = max(len(t) for t in self._window_by_type.values())
         age = NAN if self._last_valid is None else max(0.0, now - self._last_valid)
         return LinkState(
-            connected=self._connected, port_open=self._port_open,
+            connected=self._rules.connected, port_open=self._port_open,
             frame_rate_hz=len(self._window) / window, command_rate_hz=busiest / window,
             frames_accepted=self.frames_accepted, frames_malformed=self.frames_malformed,
             frames_out_of_range=self.frames_out_of_range,
             frames_unknown_type=self.frames_unknown_type,
-            frames_rejected_recently=len(self._rejections), last_frame_age_s=age, stamp=now)
+            frames_rejected_recently=len(self._rejections), last_frame_age_s=age, stamp=now,
+            stick_age_s=self._rules.stick_age(now))
 
     # -- timer thread ---------------------------------------------------------------------------
 
@@ -526,16 +471,24 @@ class HandsetCore:
 
     def _next_wait(self) -> float:
         now = self._clock()
+        due = self.next_deadline()
+        wait = (now + MAX_TIMER_SLEEP_S if due is None else due) - now
+        return min(MAX_TIMER_SLEEP_S, max(0.001, wait))
+
+    def next_deadline(self) -> Optional[float]:
+        """When ``poll()`` next has something to do (clock time), None if nothing is due.
+
+        The timer thread sleeps until then; a caller on a fake clock polls then.
+        """
         deadlines = []
         idle = self.link.idle_deadline()
         if idle is not None:
             deadlines.append(idle)
         with self._lock:
-            if not self._link_lost:
-                since = self._last_valid if self._last_valid is not None else self._started_at
-                deadlines.append(since + self.config.link_timeout_s)
-        wait = min(deadlines, default=now + MAX_TIMER_SLEEP_S) - now
-        return min(MAX_TIMER_SLEEP_S, max(0.001, wait))
+            due = self._rules.next_deadline()
+        if due is not None:
+            deadlines.append(due)
+        return min(deadlines, default=None)
 
     # -- callbacks ------------------------------------------------------------------------------
 

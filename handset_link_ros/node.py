@@ -36,7 +36,7 @@ from uav_serial_common.params import declare_and_check, ParameterBinding, ParamS
 LOW_RATE_FRACTION = 0.8
 """A measured command rate below this share of ``expected_rate_hz`` is a warning."""
 LINK_PERIOD_S = 1.0
-RUNTIME = ('link_timeout_s', 'expected_rate_hz', 'low_battery_fraction')
+RUNTIME = ('link_timeout_s', 'expected_rate_hz', 'low_battery_fraction', 'battery_timeout_s')
 """Parameters the core takes while running (``HandsetCore.reconfigure``)."""
 
 
@@ -57,14 +57,18 @@ SPECS = (
     ParamSpec('baud', 115200, 'baud rate of the radio modem', read_only=True,
               int_range=(1, 4_000_000)),
     ParamSpec('frame_id', 'handset', 'header.frame_id of published messages'),
-    ParamSpec('link_timeout_s', 5.0, 'no valid frame for this long = link lost (H8) [s]',
-              float_range=(0.1, 3600.0)),
+    ParamSpec('link_timeout_s', 5.0, 'a stick setpoint (yaw, pitch, roll, altitude) not '
+              'refreshed by a valid frame for this long = link lost (H8); auxiliary frames do '
+              'not count [s]', float_range=(0.1, 3600.0)),
     ParamSpec('expected_rate_hz', 50.0, "the handset's frame rate; a measured command rate "
               'below 80 % of it is a diagnostics warning [Hz]', float_range=(0.1, 1000.0)),
     ParamSpec('battery_topic', 'battery', 'sensor_msgs/BatteryState of the aircraft (H9); '
               'empty = no battery check', startup_only=True, check=_topic_problem),
     ParamSpec('low_battery_fraction', 0.20, 'battery below this fraction is low (H9); it '
               'clears 0.05 above', float_range=(0.0, 0.95)),
+    ParamSpec('battery_timeout_s', 10.0, 'a battery reading older than this is stale: the '
+              'battery is unknown (diagnostics WARN; no return to home by itself, a low battery '
+              'stays low) [s]', float_range=(0.1, 3600.0)),
 )
 
 
@@ -108,7 +112,8 @@ class HandsetLinkNode(Node):
         battery = self.resolve_topic_name(self.battery_topic) if self.battery_topic else 'off'
         self.get_logger().info(
             f'handset link on {config.port} at {config.baud} baud (read only, H11); link lost '
-            f'after {config.link_timeout_s:g} s without a valid frame; battery: {battery}')
+            f'when a stick setpoint is {config.link_timeout_s:g} s old; battery: {battery} '
+            f'(unknown after {config.battery_timeout_s:g} s without a reading)')
 
     # -- core callbacks (reader, timer or executor thread) -------------------------------------
 
@@ -185,6 +190,7 @@ class HandsetLinkNode(Node):
                            ('frames_unknown_type', state.frames_unknown_type),
                            ('frames_rejected_last_second', state.frames_rejected_recently),
                            ('last_frame_age_s', f'{state.last_frame_age_s:.3f}'),
+                           ('stick_age_s', f'{state.stick_age_s:.3f}'),
                            ('link_timeout_s', f'{config.link_timeout_s:g}'),
                            ('port_error', port_error)):
             stat.add(key, value)
@@ -194,12 +200,13 @@ class HandsetLinkNode(Node):
             port = '; bytes arrive but not one valid handset frame: wrong baud rate? check the ' \
                 '`baud` parameter against the modem'
         if failsafe.link_lost:
-            stat.summary(ERROR, f'link lost: no valid handset frame for '
-                                f'{config.link_timeout_s:g} s; requesting return to home{port}')
+            stat.summary(ERROR, f'link lost: a stick setpoint not refreshed by a valid handset '
+                                f'frame for {config.link_timeout_s:g} s; requesting return to '
+                                f'home{port}')
             return
         if not state.connected:
-            stat.summary(WARN, f'waiting for the first valid handset frame (link lost after '
-                               f'{config.link_timeout_s:g} s){port}')
+            stat.summary(WARN, f'waiting for the four stick setpoints of the handset (link lost '
+                               f'after {config.link_timeout_s:g} s){port}')
             return
         stat.summary(OK, f'receiving {state.command_rate_hz:.1f} commands/s')
         if not state.port_open:
@@ -222,11 +229,22 @@ class HandsetLinkNode(Node):
         stat.add('low_battery_fraction', f'{low:g}')
         stat.add('messages_received', received)
         stat.add('percentages_outside_0_1', self.core.battery_out_of_range)
+        last, age = self.core.battery_last()
+        timeout = self.core.config.battery_timeout_s
+        stat.add('battery_age_s', f'{age:.3f}')
+        stat.add('battery_timeout_s', f'{timeout:g}')
+        stat.add('battery_stale', failsafe.battery_stale)
         if not self.battery_topic:
             stat.summary(OK, 'no battery check (battery_topic is empty)')
         elif failsafe.battery_low:
-            stat.summary(WARN, f'battery low: {failsafe.battery_fraction * 100:.1f} % < '
-                               f'{low * 100:.0f} %; requesting return to home')
+            stale = f' (no reading for {age:.1f} s)' if failsafe.battery_stale else ''
+            stat.summary(WARN, f'battery low: {last * 100:.1f} % < {low * 100:.0f} %{stale}; '
+                               f'requesting return to home')
+        elif failsafe.battery_stale:
+            topic = self.resolve_topic_name(self.battery_topic)
+            stat.summary(WARN, f'battery unknown: no usable BatteryState on {topic} for '
+                               f'{age:.1f} s (> {timeout:g} s; last {last * 100:.1f} %): the '
+                               f'low-battery failsafe cannot act')
         elif math.isnan(failsafe.battery_fraction):
             topic = self.resolve_topic_name(self.battery_topic)
             what = 'no BatteryState received' if not received else \

@@ -470,3 +470,100 @@ def test_pty_a_truncated_frame_and_silence_are_one_malformed_frame(pty_rig):
     with runner.locked():
         sim.send_raw(p.encode_set_yaw(90))
     wait_for(lambda: core.setpoint().yaw_deg == 90.0, 3, what='the next frame whole')
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 21 item 8: the sticks judge the link; a battery reading that stops is unknown
+# ---------------------------------------------------------------------------------------------
+
+def _advance(rig: Rig, seconds: float) -> None:
+    """Let time pass as the core's timer thread would: a poll at each of its deadlines."""
+    end = rig.clock.t + seconds
+    while (due := rig.core.next_deadline()) is not None and due <= end:
+        rig.clock.t = max(rig.clock.t, due)
+        rig.core.poll()
+    rig.clock.t = end
+    rig.core.poll()
+
+
+def _quiet_for(rig: Rig, seconds: float, every: float, frames: bytes) -> None:
+    """Let `seconds` pass with only `frames` arriving every `every` s (the model silent)."""
+    end = rig.clock.t + seconds
+    while rig.clock.t + every <= end + 1e-9:
+        _advance(rig, every)
+        rig.feed(frames)
+    _advance(rig, end - rig.clock.t)
+
+
+def test_round2_8_auxiliary_frames_do_not_keep_a_dead_stick_link(rig):
+    rig.run(1.0)
+    last_stick = rig.clock.t
+    assert rig.core.link_state().connected
+    rig.sim.set_radio_link(False)
+    lights = p.encode_set_lights(40) + p.encode_set_camera_angle(10.0)
+    _quiet_for(rig, 12.0, 1.0, lights)  # lights and camera at 1 Hz, no stick
+    lost = [f for f in rig.seen.failsafes if f.link_lost]
+    assert lost and lost[0].action == ACTION_RETURN_TO_HOME
+    assert lost[0].stamp - last_stick == pytest.approx(5.0, abs=1e-6)
+    assert rig.core.failsafe().link_lost and not rig.core.link_state().connected
+    assert rig.core.auxiliary().lights_percent == 40  # the auxiliary frames were taken
+    assert any('handset link lost' in t for t in rig.seen.logs_at('ERROR'))
+
+
+def test_round2_8_a_valid_auxiliary_frame_every_4_s_is_a_lost_link():
+    rig = Rig()
+    _quiet_for(rig, 12.0, 4.0, p.encode_set_lights(10))
+    assert rig.core.failsafe().link_lost
+    assert rig.seen.failsafes[1].stamp == pytest.approx(START + 5.0)
+
+
+def test_round2_8_each_stick_must_be_fresh_one_stale_stick_is_a_lost_link(rig):
+    # Yaw, pitch and roll every 10 ms, the altitude not since the radio went: the aircraft would
+    # fly an altitude nobody confirms.
+    rig.run(1.0)
+    last_altitude = rig.clock.t
+    rig.sim.set_radio_link(False)
+    three = p.encode_set_yaw(5.0) + p.encode_set_pitch(1.0) + p.encode_set_roll(2.0)
+    _quiet_for(rig, 6.0, 0.01, three)
+    lost = next(f for f in rig.seen.failsafes if f.link_lost)
+    assert lost.stamp - last_altitude == pytest.approx(5.0, abs=1e-6)
+    assert any('altitude_m' in t for t in rig.seen.logs_at('ERROR'))
+    # The link comes back with the altitude, the four fresh again.
+    rig.feed(p.encode_set_altitude(12.0))
+    assert not rig.core.failsafe().link_lost and rig.core.link_state().connected
+
+
+def test_round2_8_all_four_sticks_every_4_s_keep_the_link_of_a_5_s_timeout():
+    rig = Rig()
+    sticks = p.encode_set_yaw(1.0) + p.encode_set_pitch(1.0) + p.encode_set_roll(1.0) + \
+        p.encode_set_altitude(3.0)
+    _quiet_for(rig, 20.0, 4.0, sticks)
+    assert [f.link_lost for f in rig.seen.failsafes] == [False]
+    assert rig.core.link_state().stick_age_s == pytest.approx(0.0)
+
+
+def test_round2_8_a_battery_reading_that_stops_is_unknown_after_battery_timeout_s():
+    rig = Rig(battery_timeout_s=3.0)
+    rig.run(0.5)
+    rig.core.on_battery(0.5)
+    rig.run(2.9)
+    assert rig.core.failsafe().battery_fraction == 0.5
+    rig.run(0.2)
+    state = rig.core.failsafe()
+    assert state.battery_stale and math.isnan(state.battery_fraction)
+    assert state.action == ACTION_NONE  # unknown is no return to home by itself
+    published = rig.seen.failsafes[-1]
+    assert 'battery unknown' in published.reason and published.battery_stale
+    assert any('battery unknown' in t for t in rig.seen.logs_at('WARN'))
+    rig.core.on_battery(0.45)
+    state = rig.core.failsafe()
+    assert not state.battery_stale and state.battery_fraction == 0.45
+    assert rig.seen.failsafes[-1].battery_fraction == 0.45
+    # A low battery that goes silent stays low: only a reading clears it.
+    rig.core.on_battery(0.1)
+    rig.run(3.1)
+    state = rig.core.failsafe()
+    assert state.battery_low and state.battery_stale and state.action == ACTION_RETURN_TO_HOME
+    assert math.isnan(state.battery_fraction)
+    rig.core.on_battery(0.3)
+    assert not rig.core.failsafe().battery_low
