@@ -162,7 +162,7 @@ class HandsetRules:
     # -- state ----------------------------------------------------------------------------------
 
     def oldest_stick(self) -> float:
-        """The time of the oldest stick value; start-up for a stick never received."""
+        """Return the time of the oldest stick value (start-up for a stick never received)."""
         return min(self.stick_at.get(name, self.started_at) for name in STICKS)
 
     def stick_age(self, now: float) -> float:
@@ -172,7 +172,7 @@ class HandsetRules:
         return max(0.0, now - self.oldest_stick())
 
     def next_deadline(self) -> Optional[float]:
-        """The next time ``tick()`` may change something by itself, None if nothing is due."""
+        """Return when ``tick()`` may next change something by itself (None: nothing due)."""
         deadlines = []
         if not self.link_lost:
             deadlines.append(self.oldest_stick() + self.link_timeout_s)

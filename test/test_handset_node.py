@@ -304,3 +304,31 @@ def test_under_a_namespace_names_carry_it(ros, launch, tmp_path):
     pub = ros.publisher(BatteryState, '/uav3/battery')
     wait_for(lambda: pub.publish(BatteryState(percentage=0.1)) or
              h.failsafes.last.battery_low, 10, interval=0.2, what='battery of /uav3')
+
+
+def test_round2_8_node_auxiliary_frames_keep_no_link_and_a_silent_battery_is_unknown(
+        ros, launch, tmp_path):
+    h = Handset(ros, launch, tmp_path, link_timeout_s=1.0, battery_timeout_s=1.0)
+    h.links.wait(lambda m: m.connected, 10, what='the link up')
+    # The radio carries lights only (send_raw goes out with the radio link down, H22).
+    h.radio(False)
+    start = len(h.failsafes)
+
+    def lights_until_lost():
+        h.send_raw(p.encode_set_lights(30))
+        return any(m.link_lost for m in h.failsafes.messages[start:])
+    wait_for(lights_until_lost, 10, interval=0.2, what='link lost while lights frames arrive')
+    assert h.failsafes.last.action == Failsafe.ACTION_RETURN_TO_HOME
+    h.radio(True)
+    h.failsafes.wait(lambda m: not m.link_lost, 10, what='link regained', start=start)
+    # A battery that stops reporting is unknown after battery_timeout_s: WARN, no return home.
+    pub = ros.publisher(BatteryState, '/battery')
+    wait_for(lambda: pub.publish(BatteryState(percentage=0.5)) or
+             _diag_value(h, 'battery_fraction') == '0.500', 10, interval=0.2,
+             what='50 % taken')
+    unknown = h.failsafes.wait(lambda m: 'battery unknown' in m.reason, 10,
+                               what='the battery unknown', start=start)
+    assert unknown.action == Failsafe.ACTION_NONE and math.isnan(unknown.battery_fraction)
+    diag = h.diagnostic('battery', lambda s: 'battery unknown' in s.message, 'stale WARN')
+    assert diag.level == DiagnosticStatus.WARN and 'last 50.0 %' in diag.message
+    assert h.log_line('WARN', ['battery unknown', 'no reading for 1 s'])
