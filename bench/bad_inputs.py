@@ -454,7 +454,10 @@ def handset(observe_s: float = 1.0) -> Dict:
     accepted: List[str] = []
     errors: List[str] = []
     cases = handset_frame_cases()
-    with workdir() as directory, HandsetRig(directory) as rig, \
+    # The sentinels are yaw frames only, which keep no link (H26): a long link timeout, so
+    # that no lost link changes the failsafe while the bad battery messages must not.
+    with workdir() as directory, \
+            HandsetRig(directory, parameters={'link_timeout_s': 600.0}) as rig, \
             ros_client('bench_bad_inputs_handset') as client:
         client.subscribe(HandsetSetpoint, '/handset_link/setpoint', setpoints.append, depth=200)
         client.subscribe(HandsetLink, '/handset_link/link', links.append)
