@@ -10,8 +10,9 @@ import signal
 
 import pytest
 
-EXITS = 8
-"""Exits per driver: at the old rate (about 1 in 5) all of them clean has a chance of 1 in 6."""
+EXITS = 6
+"""Exits per driver. The old code failed 4 of 8 on the servo bus, 3 of 12 on the handset; the
+deterministic test of the cause is test_executor.py's, this one keeps the whole exit honest."""
 NOISE = ('never retrieved', 'never awaited', 'Traceback', 'InvalidHandle', 'failed')
 
 DRIVERS = {
