@@ -31,7 +31,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
-from dps_parachute_ros.report import analyse, build_report, main as report_main
+from parachute_blackbox.report import analyse, build_report, main as report_main
 from dps_parachute_ros.session import ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import SessionConfig
@@ -830,7 +830,7 @@ def test_no_ros_is_needed_to_make_a_report(normal_run, tmp_path):
     code = ('import sys\n'
             'for name in ("rclpy", "uav_serial_drivers", "std_msgs", "sensor_msgs"):\n'
             '    sys.modules[name] = None\n'
-            'from dps_parachute_ros.report import main\n'
+            'from parachute_blackbox.report import main\n'
             'sys.exit(main(sys.argv[1:]))\n')
     result = subprocess.run([sys.executable, '-c', code, normal_run, '-o',
                              str(tmp_path / 'plain.html')], capture_output=True, text=True,

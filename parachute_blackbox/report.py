@@ -32,9 +32,9 @@ import sys
 import time
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
-from dps_parachute_ros.blackbox_events import (BANDS, Deployment, Event, FlightAnalysis,
-                                               LANE_TITLES, LANES, SETTING_NAMES)
-from dps_parachute_ros.blackbox_read import FileInfo, FlightFiles
+from parachute_blackbox.analysis import (BANDS, Deployment, Event, FlightAnalysis,
+                                         LANE_TITLES, LANES, SETTING_NAMES)
+from parachute_blackbox.read import FileInfo, FlightFiles
 
 ProgressArg = Union[None, bool, Callable[[int, int], None]]
 DESIRED_PARAMETERS = ('attitude_threshold_deg', 'freefall_threshold_g', 'freefall_time_s',
