@@ -16,10 +16,9 @@ What a record means is looked up in tables: ``records.RULES`` by the record's ``
 below it ``decisions.DECISIONS`` by ``what``, ``records.STATE_FIELDS`` by field
 (``STATE_EVENTS`` by a state's ``event``), ``frames.RX_MESSAGES`` by the type
 ``protocol.decode_module_frame`` gives a received frame and ``frames.TX_COMMANDS`` by the
-command code of a sent one. Adding a kind is one entry in ``RULES`` (``names.generic_rule``
-covers a kind that only needs showing). A kind or a field that no table knows is counted and
-listed, never fatal. The records of the present driver are in ``docs/protocols.md`` (D10, D12,
-D17, D18). No ROS here.
+command code of a sent one. Adding a kind is one entry in ``RULES``. A kind or a field that no
+table knows is counted and listed, never fatal. The records are in ``docs/protocols.md`` (D10,
+D12, D17, D18). No ROS here.
 """
 
 from __future__ import annotations

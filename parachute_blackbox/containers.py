@@ -82,12 +82,6 @@ class Series(_Buckets):
         """Return the number of samples added."""
         return sum(b[3] for b in self.data.values())
 
-    def extent(self) -> Optional[Tuple[float, float]]:
-        """Return the smallest and largest value, None if empty."""
-        if not self.data:
-            return None
-        return (min(b[0] for b in self.data.values()), max(b[1] for b in self.data.values()))
-
 
 class Density(_Buckets):
     """How many events fell into each bucket."""

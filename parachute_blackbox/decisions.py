@@ -58,20 +58,6 @@ def _decision_send(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
              f'{attempt if attempt is not None else "?"}, on disk before the frame)')
 
 
-def _decision_unacked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    # An older driver said so itself. Its frame's request is over (lost) however soon it stops.
-    dep = _call_deployment(a, t)
-    before = a.counts['deploy frames unacknowledged']
-    a._expire(t, expect='DeployAck')
-    if a.counts['deploy frames unacknowledged'] == before:  # no request record of the frame
-        a.counts['deploy frames unacknowledged'] += 1
-        dep.step(t, 'noack', f'no acknowledgement of attempt {record.get("attempt", "?")}')
-        a.event(t, 'deploy', 'warn', f'deploy attempt {record.get("attempt", "?")} not '
-                'acknowledged')
-    if dep.outcome in ('requested', 'unknown'):
-        dep.outcome, dep.outcome_text = 'unknown', 'no acknowledgement: outcome not known'
-
-
 def _decision_acked(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     dep = _call_deployment(a, t)
     dep.latency_ms = finite(record.get('latency_ms'))
@@ -127,19 +113,6 @@ def _decision_deploy(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
             dep = current
     reason = _reason(record)
     outcome = record.get('outcome')
-    if outcome is None:
-        # An older driver: a call that did not succeed, its outcome not named.
-        if record.get('success') is not False:
-            a.event(t, 'deploy', 'info', f'deploy decision: {describe_fields(record)}')
-            return
-        if dep is None:
-            outcome = 'refused'
-        elif dep.outcome == 'refused':
-            outcome = 'refused'  # the module answered D4 00
-        elif dep.first('noack') is not None or dep.first('frame') is not None:
-            outcome = 'unknown'  # frames left, nothing came back, and it never asked
-        else:
-            outcome = 'failed'
     known, level = DEPLOY_OUTCOMES.get(str(outcome), (str(outcome), 'unknown'))
     if dep is None and known in ('refused', 'already deployed', 'failed'):
         # Nothing went out: a call answered, not a deployment.
@@ -192,7 +165,7 @@ def _decision_trigger_request(a: FlightAnalysis, record: Dict[str, Any], t: floa
     decision = str(record.get('decision', '?'))
     req = oldest_undecided(a, t)
     if req is None:
-        # A decision with no request frame before it (an older black box without frames).
+        # A decision with no request frame before it (its record was lost, D18).
         req = TriggerRequestSeen(t)
         a.requests.append(req)
         a.counts['trigger requests'] += 1
@@ -279,7 +252,6 @@ def decision_other(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 DECISIONS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = {
     'deploy: sending the deploy frame': _decision_send,
-    'deploy unacknowledged': _decision_unacked,
     'deploy acknowledged': _decision_acked,
     'deploy refused by module': _decision_module_refused,
     'deploy': _decision_deploy,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, Tuple, TYPE_CHECKING
+from typing import Any, Callable, Dict, TYPE_CHECKING
 
 from dps_parachute_ros import protocol as p
 
@@ -50,8 +50,6 @@ LANE_TITLES = {
     'module': 'module (reboots)', 'settings': 'settings', 'link': 'link',
     'blackbox': 'black box', 'other': 'unknown records',
 }
-LEVELS = ('ok', 'info', 'warn', 'bad', 'unknown')
-"""How an event is drawn: ok green, info grey-blue, warn orange, bad red, unknown purple."""
 BANDS = ('port', 'online', 'streaming', 'armed', 'triggered', 'blackbox')
 LINK_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects', 'frames_in',
                  'frames_out')
@@ -80,10 +78,9 @@ COMMAND_NAMES = {
 }
 SOURCE_BITS = ((p.SOURCE_SERIAL, 'serial'), (p.SOURCE_ATTITUDE, 'attitude'),
                (p.SOURCE_PWM, 'PWM'), (p.SOURCE_FREEFALL, 'free fall'))
-VIA_NAMES = {0: 'the deploy acknowledgement', 1: 'the status (triggered flag)',
-             2: 'a new trigger record', 'deploy_ack': 'the deploy acknowledgement',
-             'status': 'the status (triggered flag)', 'record': 'a new trigger record'}
-"""``trigger_event.via``: a number in older black boxes, a name in the present driver's."""
+VIA_NAMES = {'deploy_ack': 'the deploy acknowledgement', 'status': 'the status (triggered flag)',
+             'record': 'a new trigger record'}
+"""``trigger_event.via``: how the driver learned of the deployment."""
 COMMON_FIELDS = frozenset({'t', 'mono', 'kind'})
 
 
@@ -133,11 +130,3 @@ class Rule:
     kind: str
     fields: frozenset
     handler: Handler
-
-
-def generic_rule(kind: str, lane: str, title: str, level: str = 'info',
-                 fields: Tuple[str, ...] = ()) -> Rule:
-    """Make the rule of a kind that only needs showing: '<title>: field=value, ...'."""
-    def handler(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-        a.event(t, lane, level, f'{title}: {describe_fields(record)}')
-    return Rule(kind, frozenset(fields), handler)

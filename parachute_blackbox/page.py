@@ -252,9 +252,9 @@ def page_html(summary: ReportSummary, a: FlightAnalysis, timeline: bytes,
     if not (a.unknown_kinds or a.unknown_fields or a.unknown_whats):
         out.append('<p>None: every record kind and field is known to this version.</p>')
     else:
-        out.append('<p>From a newer (or a much older) driver. They are shown on the timeline '
-                   'in the lane "unknown records" and counted here; nothing else depends on '
-                   'them.</p>')
+        out.append('<p>From another version of the driver, or damaged. They are shown on the '
+                   'timeline in the lane "unknown records" and counted here; nothing else '
+                   'depends on them.</p>')
         rows = [('kind', k, v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])
                 for k, v in a.unknown_kinds.items()]
         rows += [('field', field_name(k), v[0], f'{summary.files[v[1]].name}:{v[2]}', v[3])

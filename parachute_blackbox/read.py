@@ -1,7 +1,7 @@
 """Reading black-box files: JSON lines, streamed with bounded memory, whatever state they are in.
 
 A black box (``blackbox.py``) may be cut short by a crash or a full disk (a partial last line, a
-tail of zero bytes), hold lines from an older or a newer driver, or be hundreds of megabytes
+tail of zero bytes), hold lines from another version of the driver, or be hundreds of megabytes
 long. ``FlightFiles`` puts the files of one flight in order (by their first record) and yields
 their records one at a time, each with one time in seconds since the epoch; every file gets a
 ``FileInfo`` that says how many lines it had, which could not be read (a bounded sample), where
@@ -9,8 +9,8 @@ it ends and whether it ends cleanly. No ROS here.
 
 Time base: a record carries ``t`` (wall clock) and ``mono`` (monotonic). Within one file the
 time of a record is its ``mono`` plus the file's ``t - mono`` at its first record, so a wall
-clock stepped by NTP during the run does not reorder anything; records from an older driver
-that lack ``mono`` use ``t``.
+clock stepped by NTP during the run does not reorder anything; a record that lacks ``mono``
+(a hand-made or damaged line) uses ``t``.
 """
 
 from __future__ import annotations

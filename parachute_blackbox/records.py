@@ -7,7 +7,7 @@ from typing import Any, Callable, Dict, Optional, Tuple, TYPE_CHECKING
 from dps_parachute_ros import protocol as p
 from parachute_blackbox.decisions import decision_other, DECISIONS, finite
 from parachute_blackbox.names import (BANDS, COMMON_FIELDS, DEPLOYMENT_WINDOW_S, describe_fields,
-                                      generic_rule, LINK_COUNTERS, record_text, REPLY_TIMEOUT_S,
+                                      LINK_COUNTERS, record_text, REPLY_TIMEOUT_S,
                                       Rule, short, VIA_NAMES)
 
 if TYPE_CHECKING:
@@ -145,8 +145,6 @@ STATE_FIELDS: Tuple[Tuple[str, Callable[[FlightAnalysis, Dict[str, Any], float],
 
 def _kind_start(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     params = record.get('config')
-    if not isinstance(params, dict):
-        params = record.get('parameters')  # older drivers
     run = {'t': t, 'port': record.get('port'), 'baud': record.get('baud'),
            'parameters': dict(params) if isinstance(params, dict) else {},
            'file': a.file}
@@ -228,10 +226,8 @@ def _kind_parameter(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None
     accepted = record.get('accepted')
     reason = str(record.get('reason') or '')
     changes = record.get('changes')
-    if isinstance(changes, dict):
-        what = ', '.join(f'{k} := {short(v, 30)}' for k, v in changes.items()) or 'nothing'
-    else:  # an older driver: one record per parameter
-        what = f'{record.get("name", "?")} := {short(record.get("value", "?"), 30)}'
+    what = (', '.join(f'{k} := {short(v, 30)}' for k, v in changes.items()) or 'nothing'
+            if isinstance(changes, dict) else '?')
     a.counts['parameter changes' if accepted else 'parameter changes refused'] += 1
     a.event(t, 'calls', 'ok' if accepted else 'bad',
             f'parameters {short(what, 100)}: {"accepted" if accepted else "REFUSED"}'
@@ -309,12 +305,11 @@ def _kind_link(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 def _kind_blackbox(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     """Read the black box's own health: an outage it recovered from, the records it lost."""
-    lost = _int_field(record, ('lost', 'lost_records', 'records_lost', 'dropped',
-                               'dropped_records', 'errors'))
+    lost = _int_field(record, ('lost',))
     if lost is not None and lost > a._bb_lost:
         a.counts['black-box records lost'] += lost - a._bb_lost
         a._bb_lost = lost
-    error = short(record.get('error') or record.get('reason') or '', 120)
+    error = short(record.get('error') or '', 120)
     a.counts['black-box write failures'] += 1
     if record.get('event') != 'writing again':
         a.event(t, 'blackbox', 'bad', f'black-box problem: {describe_fields(record)}')
@@ -333,7 +328,7 @@ def _kind_blackbox(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 
 RULES: Dict[str, Rule] = {rule.kind: rule for rule in (
-    Rule('start', frozenset({'port', 'baud', 'config', 'parameters'}), _kind_start),
+    Rule('start', frozenset({'port', 'baud', 'config'}), _kind_start),
     Rule('stop', frozenset(), _kind_stop),
     Rule('frame', frozenset({'dir', 'hex'}), _kind_frame),
     Rule('request', frozenset({'hex', 'expect', 'what', 'token_ok', 'arm_if_locked', 'values',
@@ -344,19 +339,10 @@ RULES: Dict[str, Rule] = {rule.kind: rule for rule in (
          _kind_decision),
     Rule('state', frozenset({'port_open', 'reason', 'online', 'armed', 'via', 'triggered',
                              'event', 'boot_count', 'mismatch', 'success'}), _kind_state),
-    Rule('parameter', frozenset({'changes', 'accepted', 'reason', 'name', 'value'}),
-         _kind_parameter),
+    Rule('parameter', frozenset({'changes', 'accepted', 'reason'}), _kind_parameter),
     Rule('trigger_event', frozenset({'source', 'via', 'record'}), _kind_trigger_event),
     Rule('link', frozenset(LINK_COUNTERS), _kind_link),
-    Rule('blackbox', frozenset({'event', 'error', 'failed_at', 'lost', 'lost_in_outage',
-                                'errors', 'lost_records', 'what', 'reason'}), _kind_blackbox),
-    # Kinds no driver wrote yet, with the names a newer one would likely use.
-    Rule('blackbox_error', frozenset({'error', 'errors', 'lost', 'lost_records'}),
+    Rule('blackbox', frozenset({'event', 'error', 'failed_at', 'lost', 'lost_in_outage'}),
          _kind_blackbox),
-    generic_rule('preflight', 'calls', 'preflight check',
-                 fields=('check', 'ok', 'result', 'message', 'checks')),
-    generic_rule('settings', 'settings', 'settings', fields=('written', 'verified', 'values')),
-    generic_rule('policy', 'settings', 'policy', 'warn', fields=('policy', 'reason', 'by')),
-    generic_rule('note', 'other', 'note', fields=('text', 'message')),
 )}
-"""Record kind -> rule. Add a kind here (``generic_rule`` when it only needs showing)."""
+"""Record kind -> rule: the kinds the driver writes (a new kind is one entry here)."""
