@@ -30,7 +30,7 @@ from parachute_blackbox.analysis import FlightAnalysis
 from parachute_blackbox.names import LANES
 from parachute_blackbox.page import run_facts, field_name, page_html, warnings_of
 from parachute_blackbox.plots import timeline_png, zoom_png
-from parachute_blackbox.read import FlightFiles
+from parachute_blackbox.read import FlightFiles, not_a_blackbox
 from parachute_blackbox.summary import (deployment_paragraph, DeploymentSummary,
                                         PROGRESS_MIN_BYTES, ProgressArg, ReportSummary, span, wall)
 
@@ -166,6 +166,30 @@ def build_report(paths: Sequence[str], output_html: Optional[str] = None,
     return summary
 
 
+def runs_in(directory: str, limit: int = 10) -> str:
+    """List the black-box files (``*.jsonl``) in a directory, newest last, to pick from."""
+    try:
+        names = [n for n in os.listdir(directory) if n.endswith('.jsonl')]
+    except OSError as exc:
+        return f'  (cannot list it: {exc.strerror or exc})'
+    if not names:
+        return '  it holds no black-box file (*.jsonl)'
+    paths = sorted((os.path.join(directory, n) for n in names), key=_mtime)
+    lines = [f'  it holds {len(paths)} black-box file(s); give one, or several of one flight'
+             + (f' (the {limit} newest):' if len(paths) > limit else ':')]
+    for path in paths[-limit:]:
+        size = os.path.getsize(path) if os.path.isfile(path) else 0
+        lines.append(f'    {path}  ({size} bytes, last written {wall(_mtime(path), ms=False)})')
+    return '\n'.join(lines)
+
+
+def _mtime(path: str) -> float:
+    try:
+        return os.path.getmtime(path)
+    except OSError:
+        return 0.0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run ``blackbox_report``; return the exit code."""
     parser = argparse.ArgumentParser(
@@ -188,9 +212,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         end = argv.index('--', start) + 1 if '--' in argv[start:] else len(argv)
         argv = argv[:start] + argv[end:]
     args = parser.parse_args(argv)
-    missing = [f for f in args.files if not os.path.isfile(f)]
-    if missing:
-        print(f'blackbox_report: no such file: {", ".join(missing)}', file=sys.stderr)
+    refused = False
+    for path in args.files:
+        why = not_a_blackbox(path)
+        if why:
+            refused = True
+            print(f'blackbox_report: {path} {why}', file=sys.stderr)
+            if why == 'is a directory':
+                print(runs_in(path), file=sys.stderr)
+    if refused:
+        # Nothing is written: a report of something that is no black box would only mislead.
         return 2
     try:
         summary = build_report(args.files, args.output, args.png, args.progress)

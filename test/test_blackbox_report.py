@@ -818,6 +818,54 @@ def test_the_console_script_writes_the_report_beside_the_file(normal_run, tmp_pa
     assert (tmp_path / 'ros.png').is_file()
 
 
+def _run_report(*args):
+    result = subprocess.run([executable_path('blackbox_report'), *map(str, args)],
+                            capture_output=True, text=True, timeout=60)
+    return result.returncode, result.stdout + result.stderr
+
+
+def test_round2_10_a_path_that_is_no_black_box_is_named_and_fails(normal_run, tmp_path):
+    # A black-box folder: said to be one, its runs listed to pick from; nothing written.
+    folder = tmp_path / 'blackbox'
+    folder.mkdir()
+    runs = [folder / 'parachute-20260101T000000Z-1.jsonl',
+            folder / 'parachute-20260102T000000Z-2.jsonl']
+    for run in runs:
+        run.write_bytes(Path(normal_run).read_bytes())
+    code, said = _run_report(folder)
+    assert code != 0, said
+    assert f'{folder} is a directory' in said and 'no such file' not in said
+    assert all(str(run) in said for run in runs), said
+    assert not list(tmp_path.rglob('*-report.html')) and not list(tmp_path.rglob('*.png'))
+    # Binary data (zero bytes among others), text, JSON that is no record: not a black box, and
+    # never blamed on a crash or a full disk; no report.
+    cases = {'firmware.bin': bytes(range(256)) * 40 + b'\0' * 300,
+             'notes.txt': b'take-off 12:03\nlanding 12:41\n',
+             'package.json': b'{"name": "x", "version": 1}\n[1, 2]\n'}
+    for name, data in cases.items():
+        path = tmp_path / name
+        path.write_bytes(data)
+        code, said = _run_report(path, '-o', tmp_path / f'{name}.html')
+        assert code != 0, (name, said)
+        assert f'{path} ' in said and 'not a black-box file' in said, (name, said)
+        assert 'crash or a full disk' not in said, (name, said)
+        assert not (tmp_path / f'{name}.html').exists(), name
+    # A black box among them is still refused as a whole: one of the files is not of the flight.
+    code, said = _run_report(runs[0], tmp_path / 'notes.txt', '-o', tmp_path / 'mixed.html')
+    assert code != 0 and 'notes.txt is text but not JSON lines' in said, said
+    assert str(runs[0]) not in said.replace(f'{runs[0]}-report', '')
+    # A file whose records all went to zero bytes says so (that one is a crash or a full disk).
+    zeros = tmp_path / 'zeroed.jsonl'
+    zeros.write_bytes(b'\0' * 8192)
+    code, said = _run_report(zeros)
+    assert code != 0 and 'only zero bytes' in said, said
+    # A black box, however damaged, still gives its report.
+    damaged = tmp_path / 'damaged.jsonl'
+    damaged.write_bytes(Path(normal_run).read_bytes() + bytes(range(256)) + b'\0' * 300)
+    code, said = _run_report(damaged)
+    assert code == 0, said
+
+
 def test_no_ros_is_needed_to_make_a_report(normal_run, tmp_path):
     # Any import of rclpy or of the generated interfaces fails in this process.
     code = ('import sys\n'
