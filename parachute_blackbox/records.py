@@ -305,6 +305,15 @@ def _kind_link(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
 
 def _kind_blackbox(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     """Read the black box's own health: an outage it recovered from, the records it lost."""
+    if record.get('event') == 'file removed':
+        # The run's earlier file went under the writer (D14): its records are not in this one.
+        gone = _int_field(record, ('lost',)) or 0
+        a.counts['black-box files removed under the driver'] += 1
+        a.counts['black-box records lost'] += gone
+        a.event(t, 'blackbox', 'bad', f'the run\'s earlier black-box file was removed while it '
+                f'was written: {short(record.get("path", "?"), 120)} ({gone} records lost '
+                'with it); this file goes on from here')
+        return
     lost = _int_field(record, ('lost',))
     if lost is not None and lost > a._bb_lost:
         a.counts['black-box records lost'] += lost - a._bb_lost
@@ -342,7 +351,8 @@ RULES: Dict[str, Rule] = {rule.kind: rule for rule in (
     Rule('parameter', frozenset({'changes', 'accepted', 'reason'}), _kind_parameter),
     Rule('trigger_event', frozenset({'source', 'via', 'record'}), _kind_trigger_event),
     Rule('link', frozenset(LINK_COUNTERS), _kind_link),
-    Rule('blackbox', frozenset({'event', 'error', 'failed_at', 'lost', 'lost_in_outage'}),
+    Rule('blackbox', frozenset({'event', 'error', 'failed_at', 'lost', 'lost_in_outage',
+                                'path'}),
          _kind_blackbox),
 )}
 """Record kind -> rule: the kinds the driver writes (a new kind is one entry here)."""

@@ -22,6 +22,7 @@ from dps_parachute_ros.session import ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
+from parachute_blackbox.report import analyse
 from support import FakeClock
 from uav_serial_common.process import wait_for
 
@@ -182,6 +183,10 @@ def test_round2_5_a_file_removed_under_the_writer_is_noticed_and_replaced(tmp_pa
         assert any(r['kind'] == 'request' and r.get('what') == 'lock' for r in records)
         # The run still holds its deployment: the new file has the marker too.
         assert Path(status.path + DEPLOYED_SUFFIX).exists()
+        # The report of the new file says what became of the old one.
+        analysis, _ = analyse([status.path], progress=False)
+        assert not analysis.unknown_fields and not analysis.unknown_kinds
+        assert analysis.counts['black-box files removed under the driver'] == 1
     finally:
         session.stop()
         runner.stop()
