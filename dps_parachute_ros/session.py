@@ -377,6 +377,10 @@ class ParachuteSession:
         self._schedule('init', force=True)
         self._emit_status()
         self.listener.on_diagnostics()
+        with self._lock:
+            # The second heartbeat of this power-up may have waited (in the port) for all of
+            # this to finish, long on a loaded host: the 0.2 s run from here, not from before.
+            self._last_boot_heartbeat = max(self._last_boot_heartbeat, self.clock())
 
     def _on_status(self, status: p.Status, via: str, epoch: Optional[int] = None) -> None:
         # A status frame tells armed and triggered as they are now: a re-read (D15).

@@ -32,10 +32,10 @@ from parachute_blackbox.containers import (Deployment, Event, EventLog, Pending,
 from parachute_blackbox.frames import RX_MESSAGES, TX_COMMANDS
 from parachute_blackbox.names import (BANDS, COMMAND_NAMES, COMMON_FIELDS, DEPLOYMENT_WINDOW_S,
                                       describe_fields, KEEP_EVENTS, LANES, MAX_DEPLOYMENTS,
-                                      MAX_RECORDS_KEPT, MAX_ZOOMS, REBOOT_SAME_S, RECORD_GAP_S,
-                                      record_text, REPLY_MARGIN_S, REPLY_TIMEOUT_S, SETTING_NAMES,
-                                      short, source_text, ZOOM_AFTER_S, ZOOM_BEFORE_S,
-                                      ZOOM_MAX_SAMPLES)
+                                      MAX_RECORDS_KEPT, MAX_ZOOMS, REBOOT_RECORD_DELAY_S,
+                                      REBOOT_SAME_S, RECORD_GAP_S, record_text, REPLY_MARGIN_S,
+                                      REPLY_TIMEOUT_S, SETTING_NAMES, short, source_text,
+                                      ZOOM_AFTER_S, ZOOM_BEFORE_S, ZOOM_MAX_SAMPLES)
 from parachute_blackbox.records import RULES
 
 
@@ -93,6 +93,8 @@ class FlightAnalysis:
         self._prev_file = -1
         self._port_seen = False
         self._reboots_unread = 0
+        self._heartbeat_at: Optional[float] = None    # first power-up heartbeat not yet claimed
+        self._last_heartbeat: Optional[float] = None  # the last unsolicited heartbeat frame
 
     # -- input ------------------------------------------------------------------------------
 
@@ -328,17 +330,39 @@ class FlightAnalysis:
                 elif len(zoom.samples) < ZOOM_MAX_SAMPLES:
                     zoom.samples.append(sample)
 
-    def note_reboot(self, t: float, evidence: str, level: str = 'warn') -> None:
-        """Evidence of a module reboot; evidence close to the last reboot is the same reboot."""
-        if self.reboots and abs(t - self.reboots[-1]) < REBOOT_SAME_S:
-            return
+    def power_up_heartbeat(self, t: float) -> None:
+        """Note an unsolicited heartbeat frame (P5): where the driver's reboot record points.
+
+        It is not counted as a reboot here: the driver judges which heartbeats are one power-up
+        (two, 50 ms apart) and records each reboot once, after handling the frame; how long
+        after depends on the host's load. Its first frame only places that record in time.
+        """
+        self.counts['unsolicited heartbeats'] += 1
+        previous, self._last_heartbeat = self._last_heartbeat, t
+        if previous is None or t - previous >= REBOOT_SAME_S:
+            self._heartbeat_at = t
+
+    def driver_saw_reboot(self, t: float) -> None:
+        """Take the driver's record of a reboot: one per reboot, at its heartbeat's time (D3)."""
+        at, self._heartbeat_at = self._heartbeat_at, None
+        if at is not None and not 0.0 <= t - at <= REBOOT_RECORD_DELAY_S:
+            at = None  # no heartbeat frame just before it (a lost record): the record's time
+        self.note_reboot(t, 'the driver saw the power-up heartbeat', at=at)
+
+    def note_reboot(self, t: float, evidence: str, level: str = 'warn',
+                    at: Optional[float] = None) -> None:
+        """Note a module reboot (the driver's record of one, or a boot count beyond those seen).
+
+        ``at``: when it happened, if before the record at ``t`` that tells of it.
+        """
+        when = t if at is None else at
         self._reboots_unread += 1
-        self.reboots.append(t)
+        self.reboots.append(when)
         if len(self.reboots) > 1000:
             del self.reboots[:500]
         self.counts['reboots'] += 1
         self._reread_why = 'the reboot'
-        self.event(t, 'module', level, f'module rebooted ({evidence})')
+        self.event(when, 'module', level, f'module rebooted ({evidence})')
         self.band('streaming', t, False)
         self.band('armed', t, False)
         self.band('triggered', t, False)

@@ -30,8 +30,7 @@ def _rx_heartbeat(a: FlightAnalysis, msg: p.Heartbeat, t: float,
     if req is not None:
         return  # the answer to our heartbeat
     # P5: a heartbeat nobody asked for is the module powering up (two, 50 ms apart).
-    a.counts['unsolicited heartbeats'] += 1
-    a.note_reboot(t, 'power-up heartbeat')
+    a.power_up_heartbeat(t)
 
 
 def _rx_trigger_request(a: FlightAnalysis, msg: p.TriggerRequest, t: float,

@@ -37,8 +37,10 @@ module waits 1 s, P10; the driver decides within its defer timeout or at its sto
 DEPLOYMENT_WINDOW_S = 10.0
 """Triggered flags, acknowledgements and trigger events this close belong to one deployment."""
 REBOOT_SAME_S = 0.2
-"""Evidence of a reboot this close to the last one is the same reboot (two heartbeats 50 ms
-apart, P5, and the driver's record of the first one)."""
+"""Unsolicited heartbeat frames this close are one power-up (two, 50 ms apart, P5)."""
+REBOOT_RECORD_DELAY_S = 5.0
+"""The driver's reboot record belongs to the heartbeat frame before it if it came at most this
+long after it (the driver records it once it handled the frame: later on a loaded host)."""
 RECORD_GAP_S = 2.0
 """No record at all for this long while online and streaming: the black box lost records."""
 MAX_RECORDS_KEPT = 64

@@ -82,8 +82,6 @@ def _state_event(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     handler = STATE_EVENTS.get(text)
     if handler is not None:
         handler(a, record, t)
-    elif 'reboot' in text:
-        a.note_reboot(t, text)
     else:
         a.event(t, 'module', 'info', f'{text}' + (
             f' ({describe_fields(record, COMMON_FIELDS | {"event"})})'
@@ -107,7 +105,7 @@ def _state_initialized(a: FlightAnalysis, record: Dict[str, Any], t: float) -> N
 
 
 def _state_reboot(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
-    a.note_reboot(t, 'the driver saw the power-up heartbeat')
+    a.driver_saw_reboot(t)
 
 
 def _state_zeroed(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:

@@ -33,9 +33,10 @@ from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.session import ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
-from dps_parachute_ros.state import SessionConfig
+from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_blackbox.report import analyse, build_report, main as report_main
+from support import FakeClock
 from uav_serial_common.process import executable_path, LaunchedProcesses, wait_for
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
@@ -435,6 +436,106 @@ def test_reboots_are_shown_when_they_happened(deployment_report, bench):
     assert len(rereads) == 2
     for (seconds, *_), reboot in zip(rereads, summary.reboots):
         assert reboot < seconds < reboot + 2.0
+
+
+def test_round2_11b_a_reboot_recorded_late_by_a_loaded_driver_is_counted_once(tmp_path):
+    # What a loaded host writes: the driver's reader thread records the power-up heartbeat as
+    # it decodes it, and its own record of the reboot only once it has handled the frame (log
+    # line, status, diagnostics) - here 0.35 s later. The report judged "same reboot" by a
+    # 0.2 s window between the two and counted three reboots for these two.
+    heartbeat = p.encode_module_heartbeat().hex(' ')
+    query = p.encode_boot_count_query().hex(' ')
+
+    def boot(n):
+        return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
+
+    _jsonl(tmp_path / 'late.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
+        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        ('state', 0.2, {'event': 'initialized', 'boot_count': 5, 'mismatch': []}),
+        # Reboot 1, on a loaded host: the record 0.35 s after the first heartbeat.
+        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 10.05, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 10.35, {'event': 'module reboot (unsolicited heartbeat)'}),
+        ('request', 10.4, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 10.4, {'dir': 'tx', 'hex': query}),
+        ('frame', 10.41, {'dir': 'rx', 'hex': boot(6)}),
+        ('state', 10.5, {'event': 'initialized', 'boot_count': 6, 'mismatch': []}),
+        # Reboot 2, the second heartbeat decoded after the record (the reader caught up).
+        ('frame', 20.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 20.001, {'event': 'module reboot (unsolicited heartbeat)'}),
+        ('frame', 20.3, {'dir': 'rx', 'hex': heartbeat}),
+        ('request', 20.4, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 20.4, {'dir': 'tx', 'hex': query}),
+        ('frame', 20.41, {'dir': 'rx', 'hex': boot(7)}),
+        ('state', 20.5, {'event': 'initialized', 'boot_count': 7, 'mismatch': []}),
+        ('stop', 30.0, {}),
+    ])
+    summary, _ = report(tmp_path, tmp_path / 'late.jsonl')
+    assert summary.counts['reboots'] == 2, summary.reboots
+    # Each where its first heartbeat was decoded, not where the record was written.
+    assert [round(t - 10.0 * n, 3) for n, t in enumerate(summary.reboots, 1)] == [0.0, 0.0]
+    assert len(events_of(summary, 'module', 'module rebooted')) == 2
+    assert summary.counts['unsolicited heartbeats'] == 4
+    assert summary.facts['Module boot count'].endswith('(2 changes)')
+
+
+class _StalledOnReboot(Listener):
+    """A reader thread that a loaded host holds up while it handles a power-up heartbeat."""
+
+    def __init__(self, clock, stall_s):
+        self.clock, self.stall_s = clock, stall_s
+
+    def on_log(self, level, text):
+        if 'unsolicited heartbeat' in text:
+            self.clock.advance(self.stall_s)  # its log line (rclpy) took this long
+
+
+def test_round2_11b_the_driver_records_one_reboot_per_power_up_however_slow_its_reader(
+        tmp_path):
+    # The module's two power-up heartbeats come 50 ms apart (P5); the driver took the second
+    # for a new reboot when handling the first took it longer than 0.2 s: the time it compared
+    # was read before that handling, and the second heartbeat waited in the port meanwhile.
+    sim = VirtualParachute(now=time.monotonic() - 1.0)
+    sim.step(time.monotonic())
+    runner = create_runner(sim, str(tmp_path / 'vpara'), baud=0).start()
+    clock = FakeClock()
+    directory = tmp_path / 'bb'
+    session = ParachuteSession(SessionConfig(port=runner.path, blackbox_dir=str(directory),
+                                             request_timeout_s=0.3),
+                               _StalledOnReboot(clock, 0.35), clock)
+    heartbeat = p.encode_module_heartbeat().hex(' ')
+
+    def records():
+        assert session.blackbox.sync(5.0)
+        return [json.loads(line) for line in Path(session.blackbox.status().path)
+                .read_text().splitlines()]
+
+    try:
+        session.start()
+        wait_for(lambda: session.snapshot.initialized and session.snapshot.boot_count == 1, 10,
+                 what='the session initialized')
+        clock.advance(1.0)
+        with runner.locked():
+            sim.power_cycle()
+        wait_for(lambda: sum(r.get('hex') == heartbeat for r in records()) == 2, 10,
+                 what='both power-up heartbeats in the black box')
+        # A query answered through the same reader thread: the second heartbeat was handled.
+        session.preflight_check()
+        wait_for(lambda: session.snapshot.initialized and session.snapshot.boot_count == 2, 10,
+                 what='the session initialized after the reboot')
+        reboots = [r for r in records() if r['kind'] == 'state'
+                   and r.get('event') == 'module reboot (unsolicited heartbeat)']
+        assert len(reboots) == 1, reboots
+    finally:
+        session.stop()
+        runner.stop()
+    analysis, _ = analyse([str(path) for path in directory.glob('parachute-*.jsonl')],
+                          progress=False)
+    assert analysis.counts['reboots'] == 1
 
 
 def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_path):
