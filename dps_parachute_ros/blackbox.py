@@ -150,12 +150,6 @@ class BlackBox:
             return self._records
 
     @property
-    def errors(self) -> int:
-        """Records lost so far (kept for older callers: read `status().lost`)."""
-        with self._lock:
-            return self._lost
-
-    @property
     def last_error(self) -> str:
         """The last write error, '' while writing works."""
         with self._lock:
