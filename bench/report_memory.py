@@ -164,7 +164,7 @@ def hwm_mb():
             if line.startswith('VmHWM:'):
                 return int(line.split()[1]) / 1024
 t0 = time.monotonic()
-from dps_parachute_ros.report import build_report
+from parachute_blackbox.report import build_report
 s = build_report([sys.argv[1]], sys.argv[2], progress=sys.argv[3] == '1')
 print(json.dumps({'seconds': time.monotonic() - t0,
                   'peak_mb': hwm_mb(),

@@ -14,8 +14,27 @@ make records lost. Lost records are counted, the problem is reported through ``o
 (the driver logs it, throttled, and keeps its diagnostics ERROR) and writing is retried, so the
 box recovers by itself when the disk does; the file then says so itself, in a ``blackbox``
 record ``{"event": "writing again", "error", "failed_at", "lost", "lost_in_outage"}`` (D18).
-``max_bytes`` bounds the directory: the oldest runs are removed first, never the current one
-(decision D14 in ``docs/protocols.md``). No ROS here.
+``max_bytes`` bounds the directory: the oldest runs are removed first, never a run being
+written, by this instance or any other, and runs that hold a deployment only once no routine
+run is left (decision D14 in ``docs/protocols.md``):
+
+- the writer holds an exclusive ``flock`` on its open file for the whole run; a pruner (every
+  instance prunes the same directory: they all default to it) removes a run only while it holds
+  that lock itself, taken without waiting, so a run whose writer is alive is never removed, and
+  a run whose writer died (the kernel drops the lock) can be. ``flock`` works between processes
+  and between two writers of one process (each opens its own file); on a file system without
+  it (some network mounts) nothing is removed.
+- a run that holds a deployment (a trigger event, a deploy frame sent, a trigger request
+  confirmed, the module reporting TRIGGERED) gets a marker beside it, ``<run>.jsonl.deployed``,
+  written by the writer when the first such record is written: the pruner sees it in the
+  same directory listing, without opening any run.
+- a file removed from under the writer anyway (by hand, by an older driver, a cleaner) is
+  noticed at the next flush or ``sync()``: the problem is reported (sticky for the run:
+  ``status().file_removed``, diagnostics ERROR, preflight FAIL), its records are counted lost
+  and a new file is started, beginning with the run's first record (the ``start`` record) and a
+  ``blackbox`` record ``{"event": "file removed", "path", "lost"}``.
+
+No ROS here.
 """
 
 from __future__ import annotations
@@ -23,6 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from collections import deque
 import errno
+import fcntl
 import json
 import os
 import threading
@@ -39,6 +59,8 @@ BUDGET_CHECK_BYTES = 1 << 18
 """The size bound is checked again after this much was written (and at start)."""
 WAKE_RECORDS = 512
 """The writer is woken before its period when this many records wait."""
+DEPLOYED_SUFFIX = '.deployed'
+"""Marker beside a run that holds a deployment: ``<run>.jsonl.deployed`` (pruned last)."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +79,7 @@ class BlackBoxStatus:
     max_bytes: Optional[int]
     removed_runs: int           # old runs removed to stay within max_bytes
     over_budget: bool           # this run alone is larger than max_bytes
+    file_removed: str = ''      # sticky: an earlier file of this run that was removed under us
 
 
 class _Sync:
@@ -104,6 +127,11 @@ class BlackBox:
         self._buf_bytes = 0
         self._next_open = 0.0
         self._since_check = 0
+        self._first_line = b''          # the run's first record, the head of a replacement file
+        self._deployed = False          # this run holds a deployment (its marker is written)
+        self._file_removed = ''         # why an earlier file of this run is gone ('' if none)
+        self._lost_with_files = 0       # records written to files removed under the writer
+        self._gone: set = set()         # paths of this run's files removed under the writer
         self._open()
         self._enforce_budget()
         # Records (dicts), frames (_Frame tuples) and markers, in order; deque appends and pops
@@ -120,12 +148,6 @@ class BlackBox:
         """Records written so far."""
         with self._lock:
             return self._records
-
-    @property
-    def errors(self) -> int:
-        """Records lost so far (kept for older callers: read `status().lost`)."""
-        with self._lock:
-            return self._lost
 
     @property
     def last_error(self) -> str:
@@ -150,7 +172,8 @@ class BlackBox:
                 error=self._error, open_failed=self._open_failed, records=self._records,
                 lost=self._lost, run_bytes=self._run_bytes, total_bytes=self._total_bytes,
                 max_bytes=max_bytes, removed_runs=self._removed,
-                over_budget=max_bytes is not None and self._run_bytes > max_bytes)
+                over_budget=max_bytes is not None and self._run_bytes > max_bytes,
+                file_removed=self._file_removed)
 
     def record(self, kind: str, **fields: Any) -> None:
         """Queue one record; ``t`` (wall, s) and ``mono`` (monotonic, s) are added here."""
@@ -216,6 +239,7 @@ class BlackBox:
                             self._fd = None
                         return
                     if isinstance(item, _Sync):
+                        self._check_file()
                         item.ok = self._flush() and self._fsync() and self.status().writing
                         item.event.set()
                         last_flush = time.monotonic()
@@ -232,6 +256,7 @@ class BlackBox:
             try:
                 now = time.monotonic()
                 if now - last_flush >= FLUSH_PERIOD_S - 0.005:  # the wait's own jitter
+                    self._check_file()
                     self._flush()
                     last_flush = now
                 with self._lock:
@@ -247,8 +272,12 @@ class BlackBox:
             item = {'dir': direction, 'hex': data.hex(' '), **extra, 't': t, 'mono': mono,
                     'kind': 'frame'}
         line = (json.dumps(item, default=str, separators=(',', ':')) + '\n').encode()
+        if not self._first_line:
+            self._first_line = line
         self._buf.append(line)
         self._buf_bytes += len(line)
+        if not self._deployed and holds_deployment(item):
+            self._mark_deployed()
 
     def _open(self) -> bool:
         """Create this run's file (or open the fixed path); False when it cannot be."""
@@ -260,6 +289,9 @@ class BlackBox:
             else:
                 os.makedirs(self.directory, exist_ok=True)
                 self._fd = self._create_run_file()
+                if self._deployed:
+                    self._deployed = False
+                    self._mark_deployed()
         except OSError as exc:
             with self._lock:
                 self._open_failed = True
@@ -276,11 +308,19 @@ class BlackBox:
             suffix = f'-{n}' if n else ''
             name = f'{self.prefix}-{stamp}-{os.getpid()}{suffix}.jsonl'
             path = os.path.join(self.directory, name)
+            if path in self._gone:
+                continue  # a new name: the removed file's would say it is still there
             try:
                 # O_EXCL: never append to (or clobber) another run's file.
                 fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
             except FileExistsError:
                 continue
+            try:
+                # Held for the whole run (released when the fd closes or the process dies):
+                # every pruner leaves a locked run alone.
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                pass  # no flock here (or a pruner's lock this instant): pruners keep off too
             self.path = path
             return fd
         raise FileExistsError(17, 'no free black-box file name', self.directory)
@@ -349,36 +389,140 @@ class BlackBox:
         if self.on_problem is not None:
             self.on_problem(text, True)
 
+    def _check_file(self) -> None:
+        """Notice this run's file removed (or replaced) under the writer; start a new one."""
+        if self._fd is None or self._fixed_path:
+            return
+        try:
+            mine = os.fstat(self._fd)
+            there = os.stat(self.path)
+            gone = mine.st_nlink == 0 or \
+                (there.st_dev, there.st_ino) != (mine.st_dev, mine.st_ino)
+        except FileNotFoundError:
+            gone = True
+        except OSError:
+            return  # cannot tell (the directory is unreadable): the writes will say
+        if not gone:
+            return
+        old = self.path
+        self._gone.add(old)
+        with self._lock:
+            lost = self._records - self._lost_with_files
+            self._lost_with_files = self._records
+            self._lost += lost
+            self._run_bytes = 0
+            self._file_removed = (f'this run\'s file {old} was removed while it was written '
+                                  f'(by hand, a cleaner or an older driver): {lost} records '
+                                  'lost with it')
+            problem = self._file_removed
+        try:
+            os.close(self._fd)
+        except OSError:
+            pass
+        self._fd = None
+        # The new file begins as the run did (its start record) and says what became of the
+        # old one; the records not yet written follow.
+        now = time.time()
+        note = {'event': 'file removed', 'path': old, 'lost': lost, 't': now,
+                'mono': time.monotonic(), 'kind': 'blackbox'}
+        head = [self._first_line] if self._first_line else []
+        head.append((json.dumps(note, separators=(',', ':')) + '\n').encode())
+        self._buf[:0] = head
+        self._buf_bytes += sum(len(line) for line in head)
+        if self.on_problem is not None:
+            self.on_problem(problem, False)
+        self._open()  # on failure the next flush counts the batch lost and retries later
+
+    def _mark_deployed(self) -> None:
+        """Write the marker that makes pruners keep this run until no routine run is left."""
+        self._deployed = True
+        if self._fixed_path or not self.path:
+            return
+        try:
+            os.close(os.open(self.path + DEPLOYED_SUFFIX, os.O_WRONLY | os.O_CREAT, 0o644))
+        except OSError:
+            pass  # then it is pruned as a routine run: the run itself is still written
+
     def _enforce_budget(self) -> None:
-        """Remove the oldest runs until the directory fits in max_bytes (never this run)."""
+        """Remove the oldest runs until the directory fits in max_bytes.
+
+        Never a run being written (its writer's lock is held: this one's or another
+        instance's); runs without a deployment first, oldest first, then those with one.
+        """
         with self._lock:
             self._since_check = 0
             max_bytes = self._max_bytes
         if self._fixed_path:
             return
         try:
-            runs = []
-            for name in os.listdir(self.directory):
-                if name.startswith(self.prefix + '-') and name.endswith('.jsonl'):
-                    path = os.path.join(self.directory, name)
-                    st = os.stat(path)
-                    runs.append((st.st_mtime, path, st.st_size))
+            names = set(os.listdir(self.directory))
         except OSError:
             return
-        total = sum(size for _, _, size in runs)
+        runs = []
+        for name in names:
+            if name.startswith(self.prefix + '-') and name.endswith('.jsonl'):
+                path = os.path.join(self.directory, name)
+                try:
+                    st = os.stat(path)
+                except OSError:
+                    continue  # removed meanwhile
+                runs.append((name + DEPLOYED_SUFFIX in names, st.st_mtime, path, st.st_size))
+            elif name.endswith('.jsonl' + DEPLOYED_SUFFIX) and name[:-len(DEPLOYED_SUFFIX)] \
+                    not in names and name.startswith(self.prefix + '-'):
+                _unlink(os.path.join(self.directory, name))  # its run is gone
+        total = sum(size for *_, size in runs)
         removed = 0
         if max_bytes is not None:
-            for _, path, size in sorted(runs):
+            for deployed, _, path, size in sorted(runs):
                 if total <= max_bytes:
                     break
-                if path == self.path:
+                if path == self.path or not _remove_unless_written(path):
                     continue
-                try:
-                    os.unlink(path)
-                except OSError:
-                    continue
+                if deployed:
+                    _unlink(path + DEPLOYED_SUFFIX)
                 total -= size
                 removed += 1
         with self._lock:
             self._total_bytes = total
             self._removed += removed
+
+
+def holds_deployment(record: Any) -> bool:
+    """Whether a record is evidence of a deployment (its run is pruned last)."""
+    if not isinstance(record, dict):
+        return False
+    kind = record.get('kind')
+    if kind == 'trigger_event':
+        return True
+    if kind == 'state':
+        return record.get('triggered') is True
+    if kind == 'decision':
+        what = record.get('what')
+        return what == 'deploy: sending the deploy frame' or (
+            what == 'trigger request' and record.get('decision') == 'confirmed')
+    return False
+
+
+def _remove_unless_written(path: str) -> bool:
+    """Remove a run unless a writer holds its lock; return whether it was removed."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return False  # being written (or no flock here: then nothing is removed)
+        # Removed while the lock is held: its writer cannot have started meanwhile.
+        return _unlink(path)
+    finally:
+        os.close(fd)
+
+
+def _unlink(path: str) -> bool:
+    try:
+        os.unlink(path)
+    except OSError:
+        return False
+    return True

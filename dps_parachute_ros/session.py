@@ -377,6 +377,10 @@ class ParachuteSession:
         self._schedule('init', force=True)
         self._emit_status()
         self.listener.on_diagnostics()
+        with self._lock:
+            # The second heartbeat of this power-up may have waited (in the port) for all of
+            # this to finish, long on a loaded host: the 0.2 s run from here, not from before.
+            self._last_boot_heartbeat = max(self._last_boot_heartbeat, self.clock())
 
     def _on_status(self, status: p.Status, via: str, epoch: Optional[int] = None) -> None:
         # A status frame tells armed and triggered as they are now: a re-read (D15).
@@ -1594,15 +1598,19 @@ class ParachuteSession:
         ]
 
     def _blackbox_check(self) -> Tuple[bool, str, str]:
-        synced = self.blackbox.sync(SAFETY_SYNC_S)
+        synced = self.blackbox.sync(SAFETY_SYNC_S)  # also notices a file removed under it
         status = self.blackbox.status()
-        if synced and status.writing:
+        problem = self.blackbox_problem(status)
+        if synced and not problem:
             return (True, 'black box writable', status.path)
-        return (False, 'black box writable', self.blackbox_problem(status) or 'fsync failed')
+        return (False, 'black box writable', problem or 'fsync failed')
 
     def blackbox_problem(self, status: Optional[Any] = None) -> str:
         """Why the black box does not record, naming the parameter; '' when it does."""
         status = status or self.blackbox.status()
+        if status.file_removed:
+            # Part of this run's record is gone for good: said until the driver restarts.
+            return f'{status.file_removed}; writing on in {status.path}'
         if status.writing:
             return ''
         where = f'blackbox_dir {self.config.blackbox_dir!r}: ' if status.open_failed else ''

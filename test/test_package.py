@@ -11,8 +11,8 @@ from catkin_pkg.package import parse_package
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros', 'originman_board_ros',
-           'handset_link_ros']
+MODULES = ['uav_serial_common', 'dps_parachute_ros', 'parachute_blackbox', 'desheng_servo_ros',
+           'originman_board_ros', 'handset_link_ros']
 CONTRACT_MESSAGES = {
     'ParachuteStatus': ['header', 'online', 'armed', 'triggered', 'tilt_deg', 'accel_g',
                         'streaming', 'light_level_v', 'bay_open', 'charging', 'cell_voltage_v',
@@ -228,12 +228,21 @@ def test_failsafe_actions_are_constants_of_the_message():
 # Everything below each node: the device cores, their links, protocols, units, state, the black
 # box and the device models. None may import ROS (the layers are tested, and usable, without it).
 ROS_FREE = {
-    'dps_parachute_ros': ['protocol', 'link', 'state', 'session', 'blackbox', 'simulation',
-                          'blackbox_read', 'blackbox_events'],
+    'dps_parachute_ros': ['protocol', 'link', 'state', 'session', 'blackbox', 'simulation'],
+    'parachute_blackbox': ['read', 'analysis', 'report'],
     'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],
     'handset_link_ros': ['protocol', 'link', 'core', 'simulation'],
     'originman_board_ros': ['protocol', 'link', 'core', 'simulation'],
 }
+
+
+def test_no_driver_module_imports_matplotlib():
+    # The plots belong to the black-box report (parachute_blackbox), a tool for after a flight.
+    drivers = [m for m in MODULES if m != 'parachute_blackbox']
+    found = [str(path.relative_to(ROOT)) for m in drivers for path in (ROOT / m).rglob('*.py')
+             if 'matplotlib' in set(_imports(path))
+             or re.search(r'^\s*(from|import) matplotlib', path.read_text(), re.M)]
+    assert not found, found
 
 
 @pytest.mark.parametrize('package', sorted(ROS_FREE))

@@ -389,7 +389,7 @@ def run_mission(m: Mission, procs: Processes) -> str:
 
 def write_report(blackbox: Path, earlier_runs: set) -> str:
     """Write the black-box report of this run (blackbox_report) beside its file."""
-    from dps_parachute_ros.report import build_report
+    from parachute_blackbox.report import build_report
     runs = sorted(set(blackbox.glob('parachute-*.jsonl')) - earlier_runs)
     if not runs:
         raise DemoFailure(f'the driver wrote no black box in {blackbox}')

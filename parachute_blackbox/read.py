@@ -1,7 +1,7 @@
 """Reading black-box files: JSON lines, streamed with bounded memory, whatever state they are in.
 
 A black box (``blackbox.py``) may be cut short by a crash or a full disk (a partial last line, a
-tail of zero bytes), hold lines from an older or a newer driver, or be hundreds of megabytes
+tail of zero bytes), hold lines from another version of the driver, or be hundreds of megabytes
 long. ``FlightFiles`` puts the files of one flight in order (by their first record) and yields
 their records one at a time, each with one time in seconds since the epoch; every file gets a
 ``FileInfo`` that says how many lines it had, which could not be read (a bounded sample), where
@@ -9,8 +9,8 @@ it ends and whether it ends cleanly. No ROS here.
 
 Time base: a record carries ``t`` (wall clock) and ``mono`` (monotonic). Within one file the
 time of a record is its ``mono`` plus the file's ``t - mono`` at its first record, so a wall
-clock stepped by NTP during the run does not reorder anything; records from an older driver
-that lack ``mono`` use ``t``.
+clock stepped by NTP during the run does not reorder anything; a record that lacks ``mono``
+(a hand-made or damaged line) uses ``t``.
 """
 
 from __future__ import annotations
@@ -169,6 +169,65 @@ def _parse(raw: bytes) -> Tuple[Optional[Dict[str, Any]], str]:
     if not isinstance(value, dict):
         return None, f'JSON {type(value).__name__}, not a record'
     return value, ''
+
+
+def is_record(value: Optional[Dict[str, Any]]) -> bool:
+    """Whether a parsed line is a black-box record (the writer gives each a kind and a t)."""
+    return (value is not None and isinstance(value.get('kind'), str)
+            and _number(value.get('t')) is not None)
+
+
+def not_a_blackbox(path: str) -> str:
+    """Say why ``path`` is no black-box file ('' when it holds at least one record).
+
+    A directory, a missing path, a device, an empty file, binary data, text that is not JSON
+    lines, or JSON lines none of which is a record. The whole file is read if need be (in
+    bounded pieces): one record anywhere makes it a black box, however damaged the rest.
+    """
+    if os.path.isdir(path):
+        return 'is a directory'
+    if not os.path.exists(path):
+        return 'no such file or directory'
+    if not os.path.isfile(path):
+        return 'is not a regular file'
+    lines = json_lines = binary = zeros = 0
+    try:
+        with open(path, 'rb') as handle:
+            for _, raw, complete in _lines(handle):
+                lines += 1
+                if not complete:
+                    binary += 1
+                    continue
+                record, reason = _parse(raw)
+                if is_record(record):
+                    return ''
+                if record is not None or reason.startswith('JSON '):
+                    json_lines += 1
+                elif raw.strip(b'\0\n') == b'':
+                    zeros += 1
+                elif b'\0' in raw or _binary(raw):
+                    binary += 1
+    except OSError as exc:
+        return f'cannot be read: {exc.strerror or exc}'
+    if lines == 0:
+        return 'is empty: not a black-box file (it holds no record)'
+    if zeros == lines:
+        return ('holds only zero bytes: no record reached the disk (a crash or a full disk '
+                'leaves these)')
+    if binary:
+        return 'is binary data, not a black-box file (it holds no record of the driver)'
+    if json_lines:
+        return ('holds JSON but no black-box record (each has a "kind" and a "t"): not a '
+                'black-box file')
+    return 'is text but not JSON lines: not a black-box file (it holds no record)'
+
+
+def _binary(raw: bytes) -> bool:
+    try:
+        text = raw.decode('utf-8')
+    except UnicodeDecodeError:
+        return True
+    return any(ord(c) < 32 and c not in '\t\r\n' for c in text)
 
 
 def first_time(path: str) -> Optional[float]:
