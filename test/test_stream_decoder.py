@@ -1,0 +1,214 @@
+"""The shared stream decoder (issue 22, item 5): resync, garbage, split frames, counters.
+
+A toy protocol exercises the base alone: ``A5 5A LEN PAYLOAD[LEN] SUM`` with ``SUM`` the low
+byte of the sum of LEN and the payload; LEN over 16 is no frame. A second toy adds a header of
+the other direction (``5B 5B``, fixed 4-byte frames) to exercise the two-header loop.
+"""
+
+from hypothesis import given, settings, strategies as st
+import pytest
+
+from uav_serial_common import stream_decoder as sd
+
+HEADER = b'\xa5\x5a'
+OTHER = b'\x5b\x5b'
+
+
+def frame(payload: bytes) -> bytes:
+    """A toy frame carrying ``payload``."""
+    body = bytes([len(payload)]) + payload
+    return HEADER + body + bytes([sum(body) & 0xFF])
+
+
+def other(value: int) -> bytes:
+    """A toy frame of the second header: ``5B 5B VALUE ~VALUE``."""
+    return OTHER + bytes([value, ~value & 0xFF])
+
+
+class Toy(sd.StreamDecoder):
+    """The toy protocol's decoder: delivers each frame's raw bytes."""
+
+    headers = (HEADER,)
+
+    def _candidate(self, buf, pos, n, final, out):
+        if n - pos < 3:
+            return sd.WAIT
+        length = buf[pos + 2]
+        if length > 16:
+            return sd.DROP
+        end = pos + length + 4
+        if end > n:
+            return sd.WAIT
+        if sum(buf[pos + 2:end - 1]) & 0xFF != buf[end - 1]:
+            return sd.BAD_CHECKSUM
+        out.append(bytes(buf[pos:end]))
+        return end - pos
+
+
+class TwoHeaders(Toy):
+    """The toy decoder that also takes the second header's frames."""
+
+    headers = (HEADER, OTHER)
+
+    def _candidate(self, buf, pos, n, final, out):
+        if buf[pos] == HEADER[0]:
+            return super()._candidate(buf, pos, n, final, out)
+        if n - pos < 4:
+            return sd.WAIT
+        if buf[pos + 2] ^ buf[pos + 3] != 0xFF:
+            return sd.BAD_CHECKSUM
+        out.append(bytes(buf[pos:pos + 4]))
+        return 4
+
+
+FRAMES = [frame(b''), frame(b'\x01\x02\x03'), frame(bytes(range(16))), frame(HEADER * 3)]
+
+
+def feed_all(decoder, chunks):
+    out = []
+    for chunk in chunks:
+        out += decoder.feed(chunk)
+    return out
+
+
+def accounted(decoder, frames, total):
+    """Every byte fed is in a frame, discarded or still pending."""
+    return sum(len(f) for f in frames) + decoder.bytes_discarded + decoder.pending == total
+
+
+def test_clean_frames_are_delivered_in_order_with_nothing_discarded():
+    dec = Toy()
+    stream = b''.join(FRAMES)
+    assert dec.feed(stream) == FRAMES
+    assert (dec.frames_decoded, dec.checksum_errors, dec.bytes_discarded, dec.pending) == \
+        (4, 0, 0, 0)
+
+
+def test_garbage_between_frames_is_counted_and_skipped():
+    dec = Toy()
+    noise = [b'\x00\x11', b'\xa5\xa5\x00', b'\x5a\x5a\xff', b'\xa5']
+    stream = b''.join(n + f for n, f in zip(noise, FRAMES))
+    assert dec.feed(stream) == FRAMES
+    assert dec.bytes_discarded == sum(len(n) for n in noise)
+    assert dec.checksum_errors == 0 and accounted(dec, FRAMES, len(stream))
+
+
+def test_a_trailing_first_header_byte_is_held_for_the_next_chunk():
+    dec = Toy()
+    assert dec.feed(b'\x00\x00' + HEADER[:1]) == []
+    assert dec.pending == 1 and dec.bytes_discarded == 2
+    assert dec.feed(FRAMES[1][1:]) == [FRAMES[1]]
+    assert dec.pending == 0
+
+
+@pytest.mark.parametrize('decoder', [Toy, TwoHeaders])
+def test_issue22_5_split_frames_decode_the_same_at_every_byte_boundary(decoder):
+    stream = b'\x00' + FRAMES[1] + b'\xa5' + FRAMES[2] + b'\x5a\xa5' + FRAMES[3] + FRAMES[0]
+    whole = decoder().feed(stream)
+    assert whole == [FRAMES[1], FRAMES[2], FRAMES[3], FRAMES[0]]
+    for cut in range(len(stream) + 1):
+        dec = decoder()
+        assert feed_all(dec, [stream[:cut], stream[cut:]]) == whole, cut
+        assert dec.bytes_discarded == 4 and dec.pending == 0, cut
+    dec = decoder()
+    assert feed_all(dec, [bytes([b]) for b in stream]) == whole
+    assert dec.bytes_discarded == 4
+
+
+def test_issue22_5_resync_after_a_bad_checksum_finds_the_frame_behind_it():
+    dec = Toy()
+    bad = bytearray(FRAMES[2])
+    bad[-1] ^= 0xFF
+    stream = bytes(bad) + FRAMES[1]
+    assert dec.feed(stream) == [FRAMES[1]]
+    assert dec.checksum_errors == 1
+    assert dec.bytes_discarded == len(bad)
+    assert accounted(dec, [FRAMES[1]], len(stream))
+
+
+def test_a_frame_hidden_inside_a_false_candidate_is_found():
+    # The false header says LEN 9: its checksum fails once the real frame inside completes it.
+    dec = Toy()
+    false = HEADER + b'\x09'
+    stream = false + FRAMES[1] + b'\x00' * 6
+    assert dec.feed(stream) == [FRAMES[1]]
+    assert dec.checksum_errors == 1 and dec.bytes_discarded == len(false) + 6
+
+
+def test_an_impossible_length_is_dropped_at_once_without_a_checksum_error():
+    dec = Toy()
+    stream = HEADER + b'\xff' + FRAMES[0]
+    assert dec.feed(stream) == [FRAMES[0]]
+    assert dec.checksum_errors == 0 and dec.bytes_discarded == 3
+
+
+def test_flush_abandons_a_waiting_candidate_and_finds_what_it_hid():
+    dec = Toy()
+    # A false candidate (LEN 12) that the line leaves incomplete, holding a whole frame.
+    stream = HEADER + b'\x0c' + FRAMES[0] + b'\x01'
+    assert dec.feed(stream) == []
+    assert dec.pending == len(stream)
+    assert dec.flush() == [FRAMES[0]]
+    assert dec.pending == 0 and dec.bytes_discarded == 4
+    assert dec.flush() == []
+
+
+def test_flush_discards_a_trailing_half_header():
+    dec = Toy()
+    dec.feed(HEADER[:1])
+    assert dec.pending == 1
+    assert dec.flush() == [] and dec.pending == 0 and dec.bytes_discarded == 1
+
+
+def test_reset_forgets_held_bytes_and_keeps_the_counters():
+    dec = Toy()
+    dec.feed(b'\x00' + FRAMES[1][:4])
+    dec.reset()
+    assert dec.pending == 0 and dec.bytes_discarded == 1
+    assert dec.feed(FRAMES[1]) == [FRAMES[1]] and dec.frames_decoded == 1
+
+
+def test_input_that_is_not_bytes_is_ignored():
+    dec = Toy()
+    assert dec.feed(None) == [] and dec.pending == 0
+
+
+def test_a_decoder_without_headers_is_refused():
+    class NoHeader(sd.StreamDecoder):
+        pass
+
+    with pytest.raises(ValueError):
+        NoHeader()
+
+
+def test_two_headers_interleave_in_wire_order():
+    dec = TwoHeaders()
+    stream = other(1) + FRAMES[1] + b'\x5b' + other(2) + FRAMES[0] + b'\x5b\x5b\x03\x03' + other(4)
+    assert dec.feed(stream) == [other(1), FRAMES[1], other(2), FRAMES[0], other(4)]
+    # The lone 5B makes a false candidate (5B 5B 5B 02) before the real one behind it.
+    assert dec.checksum_errors == 2 and dec.bytes_discarded == 1 + 4
+
+
+chunks = st.lists(st.integers(1, 40), min_size=1, max_size=30)
+pieces = st.lists(st.tuples(st.binary(max_size=8), st.sampled_from(FRAMES)), max_size=12)
+
+
+@settings(max_examples=150, deadline=None)
+@given(pieces, st.binary(max_size=5), chunks)
+def test_any_chunking_of_noise_and_frames_loses_no_byte(pieces, tail, cuts):
+    stream = b''.join(n + f for n, f in pieces) + tail
+    dec = Toy()
+    out = []
+    pos = 0
+    for size in cuts * (len(stream) // max(sum(cuts), 1) + 1):
+        out += dec.feed(stream[pos:pos + size])
+        pos += size
+    out += dec.feed(stream[pos:])
+    assert accounted(dec, out, len(stream))
+    out += dec.flush()
+    assert dec.pending == 0
+    assert sum(len(f) for f in out) + dec.bytes_discarded == len(stream)
+    # Noise can start a false candidate (and, rarely, complete one); noise that cannot start
+    # one leaves every real frame to be found, whole and in order.
+    if all(HEADER[0] not in n for n, _ in pieces):
+        assert out[:len(pieces)] == [f for _, f in pieces]
