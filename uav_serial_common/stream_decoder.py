@@ -45,6 +45,9 @@ class StreamDecoder:
         self._buf = bytearray()
         # A trailing byte that could be the first half of a header is kept for the next chunk.
         self._first_bytes = bytes({h[0] for h in self.headers if len(h) > 1})
+        # The loop, chosen once: _run(final) takes every frame the buffer holds and, with
+        # final, abandons what still waits.
+        self._run = self._scan_one if len(self.headers) == 1 else self._scan_two
         self.frames_decoded = 0
         """Frames delivered (accepted by ``_candidate``)."""
         self.checksum_errors = 0
@@ -80,10 +83,12 @@ class StreamDecoder:
         ``out``; or :data:`WAIT`, :data:`DROP` or :data:`BAD_CHECKSUM`. ``final`` is True under
         ``flush()``: a WAIT then abandons the candidate. A subclass may append other results
         to ``out`` (the handset reports each rejected candidate) before it returns DROP.
+        A subclass may instead set ``self._candidate`` in ``__init__`` to a plain function of
+        the same arguments, a closure over its tables: the hot loop then reads no attributes.
         """
         raise NotImplementedError
 
-    def _run(self, final: bool) -> list:
+    def _scan_one(self, final: bool) -> list:
         buf = self._buf
         n = len(buf)
         out: list = []
@@ -92,68 +97,81 @@ class StreamDecoder:
         decoded = 0
         candidate = self._candidate
         find = buf.find
-        if len(self.headers) == 1:
-            header = self.headers[0]
-            while True:
-                start = find(header, pos)
-                if start < 0:
-                    pos, discarded = self._garbage_tail(buf, pos, n, final, discarded)
-                    break
-                discarded += start - pos
-                length = candidate(buf, start, n, final, out)
-                if length > 0:
-                    pos = start + length
-                    decoded += 1
-                    continue
-                if length == WAIT and not final:
-                    pos = start
-                    break
-                if length == BAD_CHECKSUM:
-                    self.checksum_errors += 1
-                discarded += 1
-                pos = start + 1
-        else:
-            # Two headers: the next position of each is cached, so a stream of one kind of
-            # frame does not search the whole buffer for the other at every frame.
-            first, second = self.headers
-            next_a = find(first)
-            next_b = find(second)
-            while True:
-                if next_a != -1 and next_a < pos:
-                    next_a = find(first, pos)
-                if next_b != -1 and next_b < pos:
-                    next_b = find(second, pos)
-                if next_a == -1:
-                    start = next_b
-                    if start == -1:
-                        pos, discarded = self._garbage_tail(buf, pos, n, final, discarded)
-                        break
-                elif next_b == -1 or next_a < next_b:
-                    start = next_a
-                else:
-                    start = next_b
-                discarded += start - pos
-                length = candidate(buf, start, n, final, out)
-                if length > 0:
-                    pos = start + length
-                    decoded += 1
-                    continue
-                if length == WAIT and not final:
-                    pos = start
-                    break
-                if length == BAD_CHECKSUM:
-                    self.checksum_errors += 1
-                discarded += 1
-                pos = start + 1
+        header = self.headers[0]
+        while True:
+            start = find(header, pos)
+            if start < 0:
+                # No header from pos on: all garbage but a last byte that may be the first
+                # half of a header arriving in the next chunk.
+                end = n - 1 if not final and n > pos and buf[n - 1] in self._first_bytes else n
+                discarded += end - pos
+                pos = end
+                break
+            discarded += start - pos
+            length = candidate(buf, start, n, final, out)
+            if length > 0:
+                pos = start + length
+                decoded += 1
+                continue
+            if length == WAIT and not final:
+                pos = start
+                break
+            if length == BAD_CHECKSUM:
+                self.checksum_errors += 1
+            discarded += 1
+            pos = start + 1
         if pos:
             del buf[:pos]
         self.bytes_discarded += discarded
         self.frames_decoded += decoded
         return out
 
-    def _garbage_tail(self, buf: bytearray, pos: int, n: int, final: bool,
-                      discarded: int) -> Tuple[int, int]:
-        # No header from pos on: all of it is garbage but a last byte that may be the first
-        # half of a header arriving in the next chunk.
-        end = n - 1 if not final and n > pos and buf[n - 1] in self._first_bytes else n
-        return end, discarded + end - pos
+    def _scan_two(self, final: bool) -> list:
+        # The next position of each header is cached, so a stream of one kind of frame does
+        # not search the rest of the buffer for the other at every frame.
+        buf = self._buf
+        n = len(buf)
+        out: list = []
+        pos = 0
+        discarded = 0
+        decoded = 0
+        candidate = self._candidate
+        find = buf.find
+        first, second = self.headers
+        next_a = find(first)
+        next_b = find(second)
+        while True:
+            if next_a != -1 and next_a < pos:
+                next_a = find(first, pos)
+            if next_b != -1 and next_b < pos:
+                next_b = find(second, pos)
+            if next_a == -1:
+                start = next_b
+                if start == -1:
+                    end = n - 1 if not final and n > pos and buf[n - 1] in self._first_bytes \
+                        else n
+                    discarded += end - pos
+                    pos = end
+                    break
+            elif next_b == -1 or next_a < next_b:
+                start = next_a
+            else:
+                start = next_b
+            discarded += start - pos
+            length = candidate(buf, start, n, final, out)
+            if length > 0:
+                pos = start + length
+                decoded += 1
+                continue
+            if length == WAIT and not final:
+                pos = start
+                break
+            if length == BAD_CHECKSUM:
+                self.checksum_errors += 1
+            discarded += 1
+            pos = start + 1
+        if pos:
+            del buf[:pos]
+        self.bytes_discarded += discarded
+        self.frames_decoded += decoded
+        return out
