@@ -212,3 +212,73 @@ def test_any_chunking_of_noise_and_frames_loses_no_byte(pieces, tail, cuts):
     # one leaves every real frame to be found, whole and in order.
     if all(HEADER[0] not in n for n, _ in pieces):
         assert out[:len(pieces)] == [f for _, f in pieces]
+
+
+def test_issue22_5_every_driver_decoder_is_one_base_with_one_set_of_counter_names():
+    from desheng_servo_ros import protocol as servo
+    from dps_parachute_ros import protocol as dps
+    from handset_link_ros import protocol as handset
+    from originman_board_ros import protocol as originman
+    for decoder in (dps.StreamDecoder('from_module'), dps.StreamDecoder('from_host'),
+                    servo.StreamDecoder('reply'), servo.StreamDecoder('request'),
+                    originman.StreamDecoder(), handset.StreamDecoder()):
+        assert isinstance(decoder, sd.StreamDecoder), decoder
+        for name in ('frames_decoded', 'checksum_errors', 'bytes_discarded', 'pending'):
+            assert getattr(decoder, name) == 0, (decoder, name)
+        for old in ('crc_errors', 'buffered'):
+            assert not hasattr(decoder, old), (decoder, old)
+        assert decoder.feed(b'') == [] and decoder.flush() == []
+
+
+def _driver_streams():
+    """Per driver: (decoder factory, good frames, a frame to corrupt, the checksum byte index)."""
+    from desheng_servo_ros import protocol as servo
+    from dps_parachute_ros import protocol as dps
+    from handset_link_ros import protocol as handset
+    from originman_board_ros import protocol as originman
+    return {
+        'dps': (lambda: dps.StreamDecoder('from_module'),
+                [dps.encode_status_frame(12, 3, False, True), dps.module_frame(dps.CMD_ARMED, 1),
+                 dps.encode_trigger_request(dps.HOST_HEADER),
+                 dps.module_frame(dps.CMD_CELL_VOLTAGE, 0x2A)],
+                dps.module_frame(dps.CMD_BOOT_COUNT, 7), -1),
+        'servo': (lambda: servo.StreamDecoder('reply'),
+                  [servo.encode_reply(1, 0, b'\x08\x00'), servo.encode_reply(12, 0x20),
+                   servo.encode_reply(3, 0, bytes(range(10)))],
+                  servo.encode_reply(2, 0, b'\x01\x02'), -1),
+        'originman': (originman.StreamDecoder,
+                      [originman.encode_imu_report([0.1, -0.2, 1.0], [1.0, 2.0, -3.0]),
+                       originman.encode_battery_report(7400),
+                       originman.encode_key_report(originman.KEY_IDS[0],
+                                                   list(originman.KeyEvent)[0])],
+                      originman.encode_battery_report(8000), -1),
+        'handset': (handset.StreamDecoder,
+                    [handset.encode_command(handset.CommandType.SET_YAW, 90),
+                     handset.encode_command(handset.CommandType.SET_PITCH, -12.5, 'float32'),
+                     handset.encode_command(handset.CommandType.SET_LIGHTS, 40, 'int8')],
+                    handset.encode_command(handset.CommandType.SET_ROLL, 5, 'int16'), -2),
+    }
+
+
+def _frames_of(results):
+    # The handset also reports rejected candidates (Malformed, no type): they are no frames.
+    return [r.raw for r in results if not (type(r).__name__ == 'Malformed' and r.type is None)]
+
+
+@pytest.mark.parametrize('driver', ['dps', 'servo', 'originman', 'handset'])
+def test_issue22_5_every_driver_resyncs_and_splits_the_same_on_the_base(driver):
+    make, good, victim, check = _driver_streams()[driver]
+    bad = bytearray(victim)
+    bad[check] ^= 0x5A
+    stream = b'\x00\x13' + good[0] + bytes(bad) + good[1] + b'\x07' * 3 + good[2] + good[0]
+    whole = make()
+    frames = _frames_of(whole.feed(stream) + whole.flush())
+    assert frames == [good[0], good[1], good[2], good[0]]
+    assert whole.checksum_errors == 1 and whole.frames_decoded == 4
+    assert whole.bytes_discarded == 2 + len(bad) + 3 and whole.pending == 0
+    for cut in range(1, len(stream)):
+        dec = make()
+        out = dec.feed(stream[:cut]) + dec.feed(stream[cut:]) + dec.flush()
+        assert _frames_of(out) == frames, cut
+        assert (dec.checksum_errors, dec.frames_decoded, dec.bytes_discarded, dec.pending) == \
+            (1, 4, whole.bytes_discarded, 0), cut
