@@ -840,6 +840,7 @@ class StreamDecoder(BaseStreamDecoder):
         if avail < 3:
             return WAIT
         code = buf[pos + 2]
+        checked = False
         if buf[pos] == 0x41:  # MODULE_HEADER, only looked for from the module
             if code == CMD_STATUS:
                 length = STATUS_FRAME_LEN
@@ -847,6 +848,7 @@ class StreamDecoder(BaseStreamDecoder):
                 length = self._record_or_voltage(buf, pos, avail, final)
                 if length <= 0:
                     return length
+                checked = True
             else:
                 length = FRAME_LEN
             known = code in MODULE_CODES
@@ -856,7 +858,7 @@ class StreamDecoder(BaseStreamDecoder):
         if avail < length:
             return WAIT
         end = pos + length
-        if code == CMD_TRIGGER_RECORDS or sum(buf[pos + 2:end - 1]) & 0xFF == buf[end - 1]:
+        if checked or sum(buf[pos + 2:end - 1]) & 0xFF == buf[end - 1]:
             raw = bytes(buf[pos:end])
             out.append(Frame(raw[:2], code, raw[3:-1], raw))
             if not known:

@@ -282,3 +282,53 @@ def test_issue22_5_every_driver_resyncs_and_splits_the_same_on_the_base(driver):
         assert _frames_of(out) == frames, cut
         assert (dec.checksum_errors, dec.frames_decoded, dec.bytes_discarded, dec.pending) == \
             (1, 4, whole.bytes_discarded, 0), cut
+
+
+def _parsers():
+    """Per driver: (decoder factory, the headers it hunts, its one-frame parser)."""
+    from desheng_servo_ros import protocol as servo
+    from dps_parachute_ros import protocol as dps
+    from handset_link_ros import protocol as handset
+    from originman_board_ros import protocol as originman
+
+    def handset_parse(raw):
+        result = handset.decode_frame(raw)
+        assert not isinstance(result, handset.Malformed) or result.type is not None, result
+
+    return {
+        'dps_from_module': (lambda: dps.StreamDecoder('from_module'),
+                            [dps.MODULE_HEADER, dps.HOST_HEADER], dps.parse_frame),
+        'dps_from_host': (lambda: dps.StreamDecoder('from_host'), [dps.HOST_HEADER],
+                          dps.parse_frame),
+        'servo_reply': (lambda: servo.StreamDecoder('reply'), [servo.REPLY_HEADER],
+                        servo.parse_reply),
+        'servo_request': (lambda: servo.StreamDecoder('request'), [servo.REQUEST_HEADER],
+                          servo.parse_request),
+        'originman': (originman.StreamDecoder, [originman.HEADER], originman.parse_frame),
+        'handset': (handset.StreamDecoder, [bytes([handset.START])], handset_parse),
+    }
+
+
+# Header-started junk: a header, then a code/length byte from the ones that matter, then bytes.
+_junk = st.tuples(st.integers(0, 1), st.sampled_from([0x01, 0x02, 0x05, 0x32, 0x34, 0x35, 0x39]),
+                  st.binary(max_size=18))
+
+
+@pytest.mark.parametrize('driver', ['dps_from_module', 'dps_from_host', 'servo_reply',
+                                    'servo_request', 'originman', 'handset'])
+@settings(max_examples=60, deadline=None)
+@given(pieces=st.lists(_junk, max_size=25), cut=st.integers(1, 64))
+def test_issue22_5_every_frame_a_driver_decoder_delivers_is_one_its_parser_accepts(driver, pieces,
+                                                                                   cut):
+    make, headers, parse = _parsers()[driver]
+    stream = b''.join(headers[h % len(headers)] + bytes([code]) + rest
+                      for h, code, rest in pieces)
+    dec = make()
+    out = []
+    for i in range(0, len(stream), cut):
+        out += dec.feed(stream[i:i + cut])
+    out += dec.flush()
+    frames = _frames_of(out)
+    for raw in frames:
+        parse(raw)
+    assert sum(len(raw) for raw in frames) + dec.bytes_discarded == len(stream)
