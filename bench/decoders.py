@@ -1,10 +1,11 @@
 """Throughput of the streaming decoders on a mixed stream with 10 % garbage.
 
-The stream is what a driver reads: the module's / the servos' / the OriginMan board's frames (a
-realistic mix of lengths) with random noise bursts in between amounting to 10 % of the bytes. It
-is fed in chunks of ``chunk`` bytes (the driver reads whatever the port holds; 64 bytes is a few
-milliseconds of a 115200 baud line). Throughput is stream bytes / CPU-bound wall time of the
-``feed`` calls; the ratio is against a 1 Mbit/s 8N1 wire (100 000 bytes/s).
+The stream is what a driver reads: the module's / the servos' / the OriginMan board's / the
+handset's frames (a realistic mix of lengths) with random noise bursts in between amounting to
+10 % of the bytes. It is fed in chunks of ``chunk`` bytes (the driver reads whatever the port
+holds; 64 bytes is a few milliseconds of a 115200 baud line). Throughput is stream bytes /
+CPU-bound wall time of the ``feed`` calls; the ratio is against a 1 Mbit/s 8N1 wire (100 000
+bytes/s).
 """
 
 from __future__ import annotations
@@ -95,6 +96,28 @@ def originman_frames(rng: random.Random, count: int) -> List[bytes]:
     return frames
 
 
+def handset_frames(rng: random.Random, count: int) -> List[bytes]:
+    """Return `count` handset frames: mostly sticks, every type and encoding (H5)."""
+    from handset_link_ros import protocol as hp
+    types = list(hp.SPECS)
+    weights = [20, 20, 20, 20, 4, 4, 4]
+    out = []
+    for type_ in rng.choices(types, weights, k=count):
+        spec = hp.SPECS[type_]
+        encoding = rng.choice(hp.ENCODINGS)
+        if spec.whole or encoding in ('int8', 'int16'):
+            lo, hi = int(spec.lo), int(spec.hi)
+            if encoding == 'int8':
+                lo, hi = max(lo, -128), min(hi, 127)
+            value = rng.randint(lo, hi)
+        else:
+            value = round(rng.uniform(spec.lo, spec.hi), rng.choice((0, 1, 3)))
+        if encoding == 'float32':
+            value = float(value)
+        out.append(hp.encode_command(type_, value, encoding))
+    return out
+
+
 def mixed_stream(frames: List[bytes], rng: random.Random,
                  garbage_fraction: float = 0.10) -> Tuple[bytes, int]:
     """Interleave `frames` with random noise bursts; return (stream, garbage bytes)."""
@@ -114,7 +137,7 @@ def mixed_stream(frames: List[bytes], rng: random.Random,
 
 
 def _throughput(make_decoder: Callable, stream: bytes, chunk: int,
-                repeats: int) -> Tuple[float, int]:
+                repeats: int, count_frames: Callable = len) -> Tuple[float, int]:
     best = float('inf')
     frames = 0
     for _ in range(repeats):
@@ -123,7 +146,7 @@ def _throughput(make_decoder: Callable, stream: bytes, chunk: int,
         count = 0
         t0 = time.perf_counter()
         for i in range(0, len(stream), chunk):
-            count += len(feed(stream[i:i + chunk]))
+            count += count_frames(feed(stream[i:i + chunk]))
         elapsed = time.perf_counter() - t0
         best = min(best, elapsed)
         frames = count
@@ -132,18 +155,25 @@ def _throughput(make_decoder: Callable, stream: bytes, chunk: int,
 
 def run(n_frames: int = 40_000, chunk: int = 64, repeats: int = 3,
         seed: int = 1) -> Dict[str, float]:
-    """Measure both decoders; return figures (MB/s = 10^6 bytes/s, best of `repeats`)."""
+    """Measure the four decoders; return figures (MB/s = 10^6 bytes/s, best of `repeats`)."""
     from desheng_servo_ros.protocol import StreamDecoder as ServoDecoder
     from dps_parachute_ros.protocol import StreamDecoder as DpsDecoder
+    from handset_link_ros import protocol as hp
     from originman_board_ros.protocol import StreamDecoder as OriginManDecoder
+
+    def sound(results: list) -> int:
+        # The handset reports each rejected candidate as a Malformed result: not a frame.
+        return sum(1 for r in results if not (isinstance(r, hp.Malformed) and r.type is None))
+
     rng = random.Random(seed)
     out: Dict[str, float] = {}
-    for name, frames, factory in (
-            ('dps', dps_frames(rng, n_frames), lambda: DpsDecoder('from_module')),
-            ('servo', servo_frames(rng, n_frames), lambda: ServoDecoder('reply')),
-            ('originman', originman_frames(rng, n_frames), OriginManDecoder)):
+    for name, frames, factory, count in (
+            ('dps', dps_frames(rng, n_frames), lambda: DpsDecoder('from_module'), len),
+            ('servo', servo_frames(rng, n_frames), lambda: ServoDecoder('reply'), len),
+            ('originman', originman_frames(rng, n_frames), OriginManDecoder, len),
+            ('handset', handset_frames(rng, n_frames), hp.StreamDecoder, sound)):
         stream, garbage = mixed_stream(frames, rng)
-        mb_s, decoded = _throughput(factory, stream, chunk, repeats)
+        mb_s, decoded = _throughput(factory, stream, chunk, repeats, count)
         out[f'decoder_mb_s_{name}'] = round(mb_s, 2)
         out[f'decoder_x_1mbit_{name}'] = round(mb_s * 1e6 / WIRE_1M_BYTES_S, 1)
         out[f'decoder_garbage_pct_{name}'] = round(100.0 * garbage / len(stream), 1)

@@ -19,7 +19,7 @@ import random
 import time
 from typing import Callable, Dict, List, Tuple
 
-from bench.decoders import dps_frames, originman_frames, servo_frames
+from bench.decoders import dps_frames, handset_frames, originman_frames, servo_frames
 
 
 def _dps_host_frames(rng: random.Random, count: int) -> List[bytes]:
@@ -45,28 +45,6 @@ def _servo_requests(rng: random.Random, count: int) -> List[bytes]:
             targets = [(i, rng.randrange(4096), rng.randrange(1000))
                        for i in range(1, rng.randrange(2, 13))]
             out.append(sp.encode_sync_write_positions(targets))
-    return out
-
-
-def _handset_frames(rng: random.Random, count: int) -> List[bytes]:
-    """Handset frames as the handset sends them: mostly sticks, every type and encoding (H5)."""
-    from handset_link_ros import protocol as hp
-    types = list(hp.SPECS)
-    weights = [20, 20, 20, 20, 4, 4, 4]
-    out = []
-    for type_ in rng.choices(types, weights, k=count):
-        spec = hp.SPECS[type_]
-        encoding = rng.choice(hp.ENCODINGS)
-        if spec.whole or encoding in ('int8', 'int16'):
-            lo, hi = int(spec.lo), int(spec.hi)
-            if encoding == 'int8':
-                lo, hi = max(lo, -128), min(hi, 127)
-            value = rng.randint(lo, hi)
-        else:
-            value = round(rng.uniform(spec.lo, spec.hi), rng.choice((0, 1, 3)))
-        if encoding == 'float32':
-            value = float(value)
-        out.append(hp.encode_command(type_, value, encoding))
     return out
 
 
@@ -103,7 +81,7 @@ def _decoders() -> Dict[str, Tuple[Callable, Callable, List[bytes]]]:
         'servo_reply': (lambda: sp.StreamDecoder('reply'), servo_frames, [sp.REPLY_HEADER]),
         'servo_request': (lambda: sp.StreamDecoder('request'), _servo_requests,
                           [sp.REQUEST_HEADER]),
-        'handset': (_HandsetFuzzDecoder, _handset_frames, [b'\xaa']),
+        'handset': (_HandsetFuzzDecoder, handset_frames, [b'\xaa']),
         'originman_from_board': (op.StreamDecoder, originman_frames, [op.HEADER]),
     }
 

@@ -60,7 +60,7 @@ class Results:
 
 def bench_decoders(res: Results, a: argparse.Namespace) -> None:
     r = decoders.run(n_frames=5000 if a.quick else 40000)
-    for kind in ('dps', 'servo', 'originman'):
+    for kind in ('dps', 'servo', 'originman', 'handset'):
         x = r[f'decoder_x_1mbit_{kind}']
         res.add(f'decoder_mb_s_{kind}', r[f'decoder_mb_s_{kind}'])
         res.add(f'decoder_x_1mbit_{kind}', x, '>= 10', x >= 10)

@@ -14,6 +14,9 @@ from dataclasses import dataclass
 import enum
 from typing import Iterable, Sequence
 
+from uav_serial_common.stream_decoder import BAD_CHECKSUM, DROP, WAIT
+from uav_serial_common.stream_decoder import StreamDecoder as BaseStreamDecoder
+
 REQUEST_HEADER = b'\xff\xff'
 REPLY_HEADER = b'\xff\xf5'
 MIN_ID = 1
@@ -350,89 +353,51 @@ def _table(pred) -> bytes:
     return bytes(1 if pred(v) else 0 for v in range(256))
 
 
-class StreamDecoder:
+class StreamDecoder(BaseStreamDecoder):
     """Incremental frame decoder for a byte stream cut at arbitrary points.
 
     ``kind="reply"`` finds servo replies (``FF F5``), ``kind="request"`` host requests
     (``FF FF``). It never raises on input: garbage is skipped and counted, a candidate whose
     id, LEN or checksum is impossible is abandoned one byte at a time, so a real frame that
-    starts inside a false candidate is still found.
+    starts inside a false candidate is still found. Counters and ``pending`` are the base's.
     """
 
     def __init__(self, kind: str = 'reply') -> None:
         if kind == 'reply':
-            self._header = REPLY_HEADER
-            self._id_ok = _table(lambda v: MIN_ID <= v <= MAX_ID)
-            self._len_min = bytes([2] * 256)
-            self._len_max = bytes([MAX_REPLY_LEN] * 256)
-            self._make = Reply
+            self.headers = (REPLY_HEADER,)
+            id_ok = _table(lambda v: MIN_ID <= v <= MAX_ID)
+            len_min = bytes([2] * 256)
+            len_max = bytes([MAX_REPLY_LEN] * 256)
+            make = Reply
         elif kind == 'request':
-            self._header = REQUEST_HEADER
-            self._id_ok = _table(lambda v: MIN_ID <= v <= MAX_ID or v == BROADCAST_ID)
+            self.headers = (REQUEST_HEADER,)
+            id_ok = _table(lambda v: MIN_ID <= v <= MAX_ID or v == BROADCAST_ID)
             # Unknown instructions get an empty range (min 255 > max 0): no such frame exists.
-            self._len_min = bytes(REQUEST_LEN_BOUNDS.get(v, (255, 0))[0] for v in range(256))
-            self._len_max = bytes(REQUEST_LEN_BOUNDS.get(v, (255, 0))[1] for v in range(256))
-            self._make = Request
+            len_min = bytes(REQUEST_LEN_BOUNDS.get(v, (255, 0))[0] for v in range(256))
+            len_max = bytes(REQUEST_LEN_BOUNDS.get(v, (255, 0))[1] for v in range(256))
+            make = Request
         else:
             raise ValueError(f'kind must be "reply" or "request", got {kind!r}')
         self.kind = kind
-        self._buf = bytearray()
-        self.bytes_discarded = 0
-        self.checksum_errors = 0
-        self.frames_decoded = 0
+        super().__init__()
+        self._candidate = _candidate_judge(id_ok, len_min, len_max, make)
 
-    @property
-    def buffered(self) -> int:
-        """Bytes held back because they may be the start of a frame."""
-        return len(self._buf)
 
-    def reset(self) -> None:
-        """Forget buffered bytes (counters are kept)."""
-        self._buf.clear()
-
-    def feed(self, data: bytes) -> list:
-        """Add ``data`` and return the frames (Reply or Request) completed by it, in order."""
-        buf = self._buf
-        try:
-            buf += data
-        except TypeError:
-            return []
-        header = self._header
-        id_ok, len_min, len_max, make = self._id_ok, self._len_min, self._len_max, self._make
-        out = []
-        n = len(buf)
-        pos = 0
-        discarded = 0
-        while True:
-            i = buf.find(header, pos)
-            if i < 0:
-                # A trailing 0xFF may be the first byte of the next header.
-                end = n - 1 if n > pos and buf[n - 1] == 0xFF else n
-                discarded += end - pos
-                pos = end
-                break
-            discarded += i - pos
-            pos = i
-            if n - i < 5:
-                break
-            length = buf[i + 3]
-            code = buf[i + 4]
-            if not id_ok[buf[i + 2]] or length < len_min[code] or length > len_max[code]:
-                discarded += 1
-                pos = i + 1
-                continue
-            end = i + length + 4
-            if end > n:
-                break
-            if ~sum(buf[i + 2:end - 1]) & 0xFF != buf[end - 1]:
-                self.checksum_errors += 1
-                discarded += 1
-                pos = i + 1
-                continue
-            out.append(make(buf[i + 2], code, bytes(buf[i + 5:end - 1]), bytes(buf[i:end])))
-            pos = end
-        if pos:
-            del buf[:pos]
-        self.bytes_discarded += discarded
-        self.frames_decoded += len(out)
-        return out
+def _candidate_judge(id_ok: bytes, len_min: bytes, len_max: bytes, make: type):
+    """Return the decoder's ``_candidate``: a closure over its tables, the hot loop's call."""
+    def candidate(buf: bytearray, pos: int, n: int, final: bool, out: list) -> int:
+        if n - pos < 5:
+            return WAIT
+        length = buf[pos + 3]
+        code = buf[pos + 4]
+        if not id_ok[buf[pos + 2]] or length < len_min[code] or length > len_max[code]:
+            return DROP
+        end = pos + length + 4
+        if end > n:
+            return WAIT
+        raw = bytes(buf[pos:end])
+        if ~sum(raw[2:-1]) & 0xFF != raw[-1]:
+            return BAD_CHECKSUM
+        out.append(make(raw[2], code, raw[5:-1], raw))
+        return length + 4
+    return candidate

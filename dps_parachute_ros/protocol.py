@@ -12,6 +12,9 @@ from dataclasses import dataclass
 import math
 from typing import Literal, Union
 
+from uav_serial_common.stream_decoder import BAD_CHECKSUM, DROP, WAIT
+from uav_serial_common.stream_decoder import StreamDecoder as BaseStreamDecoder
+
 HOST_HEADER = b'\x42\x61'
 """Header of frames sent by the host (flight controller / companion computer)."""
 MODULE_HEADER = b'\x41\x75'
@@ -807,125 +810,70 @@ def reply_matches(command: bytes | Frame, reply: ModuleMessage | Frame) -> bool:
 # Stream decoder
 # ---------------------------------------------------------------------------------------------
 
-_WAIT = None
-_DROP = 0
-
-
-class StreamDecoder:
+class StreamDecoder(BaseStreamDecoder):
     """Incremental frame decoder for either direction of the link; never raises.
 
     ``from_module`` accepts module frames (6, 8 and 16 bytes) and 6-byte frames with the host
     header (the trigger request of P10, or echoes). ``from_host`` accepts 6-byte host frames.
     Frames are delimited by header, the length the command code dictates and the P1
     checksum; the 0x34/0x35 collision is settled per P3/P16. Call ``flush()`` when the line
-    has been idle for a few character times to settle a frame that could still grow.
+    has been idle for a few character times to settle a frame that could still grow (a 6-byte
+    0x35 voltage reply waiting for a possible 16-byte record is then delivered).
+
+    Counters: those of :class:`uav_serial_common.stream_decoder.StreamDecoder`
+    (``frames_decoded`` includes unknown codes; ``checksum_errors`` counts header-started
+    candidates whose checksum matched at no allowed length) and ``unknown_frames``.
     """
 
     def __init__(self, direction: Direction = 'from_module') -> None:
         if direction not in ('from_module', 'from_host'):
             raise ValueError(f"direction must be 'from_module' or 'from_host', got {direction!r}")
         self.direction = direction
-        self._buf = bytearray()
         self._from_module = direction == 'from_module'
-        self._first_bytes = b'\x41\x42' if self._from_module else b'\x42'
-        self.bytes_discarded = 0
-        """Bytes thrown away as garbage (outside frames, or the first byte of a bad header)."""
-        self.checksum_errors = 0
-        """Header-started candidates whose checksum did not match at any allowed length."""
-        self.frames_decoded = 0
-        """Frames delivered, unknown codes included."""
+        self.headers = (MODULE_HEADER, HOST_HEADER) if self._from_module else (HOST_HEADER,)
+        super().__init__()
         self.unknown_frames = 0
         """Delivered frames whose code (or header) this protocol does not define."""
 
-    @property
-    def pending(self) -> int:
-        """Number of bytes held back waiting for the rest of a frame."""
-        return len(self._buf)
-
-    def reset(self) -> None:
-        """Forget buffered bytes (e.g. after a reconnect); counters are kept."""
-        self._buf.clear()
-
-    def feed(self, data: bytes | bytearray) -> list[Frame]:
-        """Add received bytes and return every frame now complete, in wire order."""
-        self._buf += data
-        return self._run(final=False)
-
-    def flush(self) -> list[Frame]:
-        """Settle buffered bytes because the line went idle; incomplete candidates are dropped.
-
-        A 6-byte 0x35 voltage reply waiting for a possible 16-byte record is delivered.
-        """
-        return self._run(final=True)
-
-    def _run(self, final: bool) -> list[Frame]:
-        buf = self._buf
-        n = len(buf)
-        frames: list[Frame] = []
-        pos = 0
-        from_module = self._from_module
-        # Cached next positions of each header; -1 = none left in this buffer.
-        next_mod = buf.find(MODULE_HEADER) if from_module else -1
-        next_host = buf.find(HOST_HEADER)
-        while True:
-            if next_mod != -1 and next_mod < pos:
-                next_mod = buf.find(MODULE_HEADER, pos)
-            if next_host != -1 and next_host < pos:
-                next_host = buf.find(HOST_HEADER, pos)
-            if next_mod == -1:
-                start = next_host
-            elif next_host == -1:
-                start = next_mod
-            else:
-                start = min(next_mod, next_host)
-            if start == -1:
-                keep = n
-                if not final and n > pos and buf[n - 1] in self._first_bytes:
-                    keep = n - 1  # could be the first half of a header
-                self.bytes_discarded += keep - pos
-                pos = keep
-                break
-            self.bytes_discarded += start - pos
-            pos = start
-            length = self._candidate(buf, pos, n, start == next_mod, final)
-            if length is _WAIT:
-                break
-            if length == _DROP:
-                pos += 1
-                self.bytes_discarded += 1
-                continue
-            end = pos + length
-            raw = bytes(buf[pos:end])
-            header = raw[:2]
-            code = raw[2]
-            frames.append(Frame(header, code, raw[3:-1], raw))
-            if header == MODULE_HEADER:
-                if code not in MODULE_CODES:
-                    self.unknown_frames += 1
-            elif code not in HOST_CODES or (from_module and code != CMD_TRIGGER_REQUEST):
-                self.unknown_frames += 1
-            pos = end
-        if pos:
-            del buf[:pos]
-        self.frames_decoded += len(frames)
-        return frames
-
-    def _candidate(self, buf: bytearray, pos: int, n: int, module: bool,
-                   final: bool) -> int | None:
-        """Return the frame length at ``pos``, ``_WAIT`` for more bytes or ``_DROP``."""
+    def _candidate(self, buf: bytearray, pos: int, n: int, final: bool, out: list) -> int:
         avail = n - pos
         if avail < 3:
-            return _DROP if final else _WAIT
-        if not module:
-            return self._fixed(buf, pos, avail, FRAME_LEN, final)
+            return WAIT
         code = buf[pos + 2]
-        if code == CMD_STATUS:
-            return self._fixed(buf, pos, avail, STATUS_FRAME_LEN, final)
-        if code != CMD_TRIGGER_RECORDS:
-            return self._fixed(buf, pos, avail, FRAME_LEN, final)
-        # P3/P16: 0x35 is a 16-byte record or a 6-byte voltage reply, by checksum and length.
+        checked = False
+        if buf[pos] == 0x41:  # MODULE_HEADER, only looked for from the module
+            if code == CMD_STATUS:
+                length = STATUS_FRAME_LEN
+            elif code == CMD_TRIGGER_RECORDS:
+                length = self._record_or_voltage(buf, pos, avail, final)
+                if length <= 0:
+                    return length
+                checked = True
+            else:
+                length = FRAME_LEN
+            known = code in MODULE_CODES
+        else:
+            length = FRAME_LEN
+            known = code in HOST_CODES and (not self._from_module or code == CMD_TRIGGER_REQUEST)
+        if avail < length:
+            return WAIT
+        end = pos + length
+        if checked or sum(buf[pos + 2:end - 1]) & 0xFF == buf[end - 1]:
+            raw = bytes(buf[pos:end])
+            out.append(Frame(raw[:2], code, raw[3:-1], raw))
+            if not known:
+                self.unknown_frames += 1
+            return length
+        return BAD_CHECKSUM
+
+    @staticmethod
+    def _record_or_voltage(buf: bytearray, pos: int, avail: int, final: bool) -> int:
+        """P3/P16: 0x35 is a 16-byte record or a 6-byte voltage reply, by checksum and length.
+
+        Returns the checked length, or WAIT / BAD_CHECKSUM.
+        """
         if avail < FRAME_LEN:
-            return _DROP if final else _WAIT
+            return WAIT
         ok6 = sum(buf[pos + 2:pos + 5]) & 0xFF == buf[pos + 5]
         if avail >= RECORD_FRAME_LEN:
             ok16 = sum(buf[pos + 2:pos + 15]) & 0xFF == buf[pos + 15]
@@ -933,22 +881,12 @@ class StreamDecoder:
                 return RECORD_FRAME_LEN
             if ok6:
                 return FRAME_LEN
-            self.checksum_errors += 1
-            return _DROP
+            return BAD_CHECKSUM
         if ok6 and (final or not _record_plausible(buf, pos, avail)):
             return FRAME_LEN
         if final:
-            return _DROP
-        return _WAIT
-
-    def _fixed(self, buf: bytearray, pos: int, avail: int, length: int,
-               final: bool) -> int | None:
-        if avail < length:
-            return _DROP if final else _WAIT
-        if sum(buf[pos + 2:pos + length - 1]) & 0xFF == buf[pos + length - 1]:
-            return length
-        self.checksum_errors += 1
-        return _DROP
+            return DROP
+        return WAIT
 
 
 def _record_plausible(buf: bytearray, pos: int, avail: int) -> bool:

@@ -20,6 +20,9 @@ from operator import xor
 import struct
 from typing import Literal, Optional, Union
 
+from uav_serial_common.stream_decoder import BAD_CHECKSUM, DROP, WAIT
+from uav_serial_common.stream_decoder import StreamDecoder as BaseStreamDecoder
+
 START = 0xAA
 """First byte of every frame."""
 END = 0x55
@@ -436,7 +439,7 @@ def _frame_problem(buf: Union[bytes, bytearray], pos: int, end: int) -> Optional
 # Stream decoder
 # ---------------------------------------------------------------------------------------------
 
-class StreamDecoder:
+class StreamDecoder(BaseStreamDecoder):
     """Incremental decoder for the handset's byte stream (H3); never raises on input.
 
     ``feed(data, now)`` returns a ``Result`` for every frame settled by ``data``, in wire order:
@@ -451,41 +454,38 @@ class StreamDecoder:
     frames behind it.
 
     Counters: ``frames_accepted``, ``frames_malformed``, ``frames_out_of_range``,
-    ``frames_unknown_type`` and ``bytes_discarded`` (bytes outside sound frames, the start byte
-    of each rejected candidate included).
+    ``frames_unknown_type``, and the base's ``frames_decoded`` (sound frames, whatever their
+    payload), ``checksum_errors`` (complete candidates whose end byte is right and checksum
+    wrong) and ``bytes_discarded`` (bytes outside sound frames, the start byte of each rejected
+    candidate included, and bytes forgotten by ``reset``).
     """
 
+    headers = (bytes([START]),)
+
     def __init__(self, idle_timeout_s: float = IDLE_TIMEOUT_S) -> None:
+        super().__init__()
         self.idle_timeout_s = idle_timeout_s
-        self._buf = bytearray()
         self._last_rx: Optional[float] = None
         self.frames_accepted = 0
         self.frames_malformed = 0
         self.frames_out_of_range = 0
         self.frames_unknown_type = 0
-        self.bytes_discarded = 0
-
-    @property
-    def pending(self) -> int:
-        """Number of bytes held back as a possible partial frame."""
-        return len(self._buf)
 
     def reset(self) -> None:
         """Forget held bytes (e.g. the port closed); they count as discarded, not malformed."""
         self.bytes_discarded += len(self._buf)
-        self._buf.clear()
+        super().reset()
 
     def feed(self, data: Union[bytes, bytearray], now: Optional[float] = None) -> list[Result]:
         """Add received bytes (read at ``now``, seconds) and return every result now settled."""
-        out: list[Result] = []
+        settled: list[Result] = []
         if now is not None:
             if self._buf and self._last_rx is not None and \
                     now - self._last_rx >= self.idle_timeout_s - _TIME_EPS:
-                out += self._scan(final=True)
+                settled = self._run(True)
             self._last_rx = now
-        self._buf += data
-        out += self._scan(final=False)
-        return out
+        out = super().feed(data)
+        return settled + out if settled else out
 
     def flush(self, now: Optional[float] = None) -> list[Result]:
         """Settle a held partial frame as malformed because the line went quiet (H3).
@@ -497,7 +497,7 @@ class StreamDecoder:
         if now is not None and self._last_rx is not None and \
                 now - self._last_rx < self.idle_timeout_s - _TIME_EPS:
             return []
-        return self._scan(final=True)
+        return self._run(True)
 
     def idle_deadline(self) -> Optional[float]:
         """Return when ``flush(now)`` would settle the held bytes, None if nothing is held."""
@@ -505,55 +505,45 @@ class StreamDecoder:
             return None
         return self._last_rx + self.idle_timeout_s
 
-    def _scan(self, final: bool) -> list[Result]:
-        buf = self._buf
-        n = len(buf)
-        pos = 0
-        out: list[Result] = []
-        while pos < n:
-            start = buf.find(START, pos)
-            if start < 0:
-                self.bytes_discarded += n - pos
-                pos = n
-                break
-            self.bytes_discarded += start - pos
-            pos = start
-            avail = n - pos
-            if avail < 2:
-                if not final:
-                    break
-                out.append(self._reject(pos, n, 1, 'truncated frame: a start byte, then '
-                                                   'silence'))
-                pos += 1
-                continue
-            length = buf[pos + 1]
-            if length < MIN_LEN:
-                out.append(self._reject(pos, n, 2, f'LEN {length} < {MIN_LEN}'))
-                pos += 1
-                continue
-            total = length + 3
-            if avail < total:
-                if final:
-                    reason = f'truncated frame: {avail} of {total} bytes, then silence'
-                elif self._sound_frame_within(pos + 1, n):
-                    reason = (f'truncated frame: {avail} of {total} bytes, and a complete frame '
-                              f'starts inside it')
-                else:
-                    break
-                out.append(self._reject(pos, n, total, reason))
-                pos += 1
-                continue
-            end = pos + total
-            problem = _frame_problem(buf, pos, end)
-            if problem is not None:
-                out.append(self._reject(pos, n, total, problem))
-                pos += 1
-                continue
-            out.append(self._count(_interpret(bytes(buf[pos:end]), n - end)))
-            pos = end
-        if pos:
-            del buf[:pos]
-        return out
+    def _candidate(self, buf: bytearray, pos: int, n: int, final: bool, out: list) -> int:
+        avail = n - pos
+        if avail < 2:
+            if not final:
+                return WAIT
+            out.append(self._reject(pos, n, 1, 'truncated frame: a start byte, then silence'))
+            return DROP
+        length = buf[pos + 1]
+        if length < MIN_LEN:
+            out.append(self._reject(pos, n, 2, f'LEN {length} < {MIN_LEN}'))
+            return DROP
+        total = length + 3
+        if avail < total:
+            if final:
+                reason = f'truncated frame: {avail} of {total} bytes, then silence'
+            elif self._sound_frame_within(pos + 1, n):
+                reason = (f'truncated frame: {avail} of {total} bytes, and a complete frame '
+                          f'starts inside it')
+            else:
+                return WAIT
+            out.append(self._reject(pos, n, total, reason))
+            return DROP
+        end = pos + total
+        raw = bytes(buf[pos:end])
+        if raw[-1] != END or reduce(xor, raw[:-2], 0) != raw[-2]:
+            out.append(self._reject(pos, n, total, _frame_problem(buf, pos, end) or ''))
+            return DROP if raw[-1] != END else BAD_CHECKSUM
+        result = _interpret(raw, n - end)
+        kind = type(result)
+        if kind is Command:
+            self.frames_accepted += 1
+        elif kind is OutOfRange:
+            self.frames_out_of_range += 1
+        elif kind is UnknownType:
+            self.frames_unknown_type += 1
+        else:
+            self.frames_malformed += 1
+        out.append(result)
+        return total
 
     def _sound_frame_within(self, pos: int, n: int) -> bool:
         """Whether a complete frame with a good end byte and checksum starts in buf[pos:n]."""
@@ -568,18 +558,7 @@ class StreamDecoder:
         return False
 
     def _reject(self, pos: int, n: int, total: int, reason: str) -> Malformed:
+        # The base counts the start byte as discarded when the candidate is abandoned.
         end = min(n, pos + total)
         self.frames_malformed += 1
-        self.bytes_discarded += 1
         return Malformed(reason, bytes(self._buf[pos:end]), None, n - end)
-
-    def _count(self, result: Result) -> Result:
-        if isinstance(result, Command):
-            self.frames_accepted += 1
-        elif isinstance(result, OutOfRange):
-            self.frames_out_of_range += 1
-        elif isinstance(result, UnknownType):
-            self.frames_unknown_type += 1
-        else:
-            self.frames_malformed += 1
-        return result

@@ -886,7 +886,7 @@ class OriginManCore:
                 last_frame_age_s=None if last is None else max(0.0, now - last),
                 battery_mv=battery, battery_low=battery is not None and battery < warn,
                 battery_warn_mv=warn, frames=decoder.frames_decoded,
-                crc_errors=decoder.crc_errors, bytes_discarded=decoder.bytes_discarded,
+                crc_errors=decoder.checksum_errors, bytes_discarded=decoder.bytes_discarded,
                 unknown_functions=decoder.unknown_functions, unknown_frames=link.unknown_frames,
                 unexpected_replies=link.unexpected_replies, reports=dict(self._reports),
                 reads=link.reads, read_timeouts=link.read_timeouts,

@@ -24,6 +24,9 @@ import math
 import struct
 from typing import Iterable, Optional, Sequence, Tuple, Union
 
+from uav_serial_common.stream_decoder import BAD_CHECKSUM, DROP, WAIT
+from uav_serial_common.stream_decoder import StreamDecoder as BaseStreamDecoder
+
 HEADER = b'\xaa\x55'
 FRAME_OVERHEAD = 5
 """Header (2), FUNCTION, LENGTH and CRC: a frame is LENGTH + 5 bytes long."""
@@ -887,81 +890,49 @@ def parse_frame(raw: Union[bytes, bytearray]) -> Frame:
     return Frame(raw[2], raw[4:-1], raw)
 
 
-class StreamDecoder:
+class StreamDecoder(BaseStreamDecoder):
     """The host's decoder of the board's byte stream (§2.4); never raises.
 
     It hunts for ``AA 55``, takes FUNCTION and LENGTH, waits for the rest and checks the CRC.
-    A CRC failure, or a LENGTH beyond ``max_length`` (O34), abandons the candidate one byte
-    after its start, so a real frame beginning inside a false one is still found. CRC-valid
-    frames with FUNCTION 0..12 are returned (12 = ASR, O2); one with a higher FUNCTION is
-    counted and abandoned like a CRC failure (O50). A trailing 0xAA is kept for the next chunk.
+    A CRC failure (counted in ``checksum_errors``), or a LENGTH beyond ``max_length`` (O34),
+    abandons the candidate one byte after its start, so a real frame beginning inside a false
+    one is still found. CRC-valid frames with FUNCTION 0..12 are returned (12 = ASR, O2); one
+    with a higher FUNCTION is counted in ``unknown_functions`` and abandoned like a CRC failure
+    (O50). A trailing 0xAA is kept for the next chunk. The other counters are the base's.
     """
 
+    headers = (HEADER,)
+
     def __init__(self, max_length: int = MAX_BOARD_LENGTH) -> None:
+        super().__init__()
         self.max_length = max_length
-        self._buf = bytearray()
-        self.frames_decoded = 0
-        self.crc_errors = 0
-        self.bytes_discarded = 0
         self.unknown_functions = 0
+        """CRC-valid candidates abandoned because the board never sends their FUNCTION (O50)."""
 
-    @property
-    def buffered(self) -> int:
-        """Bytes held back because they may be the start of a frame."""
-        return len(self._buf)
-
-    def reset(self) -> None:
-        """Forget buffered bytes (e.g. after a reconnect); counters are kept."""
-        self._buf.clear()
-
-    def feed(self, data: Union[bytes, bytearray]) -> list:
-        """Add received bytes and return the frames they complete, in wire order."""
-        buf = self._buf
-        buf += data
-        n = len(buf)
-        out = []
-        pos = 0
-        discarded = 0
-        max_length = self.max_length
-        while True:
-            i = buf.find(HEADER, pos)
-            if i < 0:
-                end = n - 1 if n > pos and buf[n - 1] == 0xAA else n
-                discarded += end - pos
-                pos = end
-                break
-            discarded += i - pos
-            pos = i
-            if n - i < 4:
-                break
-            length = buf[i + 3]
-            if length > max_length:
-                discarded += 1
-                pos = i + 1
-                continue
-            end = i + length + FRAME_OVERHEAD
-            if end > n:
-                break
-            if crc8(buf[i + 2:end - 1]) != buf[end - 1]:
-                self.crc_errors += 1
-                discarded += 1
-                pos = i + 1
-                continue
-            function = buf[i + 2]
-            if function > HOST_FUNCTION_MAX:
-                # O50: the board never sends one; a CRC-valid "frame" of FUNCTION 13+ is noise
-                # that happens to check, so real frames inside it are still looked for.
-                self.unknown_functions += 1
-                discarded += 1
-                pos = i + 1
-                continue
-            out.append(Frame(function, bytes(buf[i + 4:end - 1]), bytes(buf[i:end])))
-            pos = end
-        if pos:
-            del buf[:pos]
-        self.bytes_discarded += discarded
-        self.frames_decoded += len(out)
-        return out
+    def _candidate(self, buf: bytearray, pos: int, n: int, final: bool, out: list) -> int:
+        if n - pos < 4:
+            return WAIT
+        length = buf[pos + 3]
+        if length > self.max_length:
+            return DROP
+        end = pos + length + FRAME_OVERHEAD
+        if end > n:
+            return WAIT
+        raw = bytes(buf[pos:end])
+        table = CRC8_TABLE
+        crc = 0
+        for b in raw[2:-1]:
+            crc = table[crc ^ b]
+        if crc != raw[-1]:
+            return BAD_CHECKSUM
+        function = raw[2]
+        if function > HOST_FUNCTION_MAX:
+            # O50: the board never sends one; a CRC-valid "frame" of FUNCTION 13+ is noise
+            # that happens to check, so real frames inside it are still looked for.
+            self.unknown_functions += 1
+            return DROP
+        out.append(Frame(function, raw[4:-1], raw))
+        return length + FRAME_OVERHEAD
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1016,7 +987,7 @@ class BoardParser:
         self._data = bytearray()
         self._raw = bytearray()
         self.frames_decoded = 0
-        self.crc_errors = 0
+        self.checksum_errors = 0
         self.functions_dropped = 0
         self.bytes_discarded = 0
 
@@ -1073,7 +1044,7 @@ class BoardParser:
                                          bytes(self._raw)))
                     self.frames_decoded += 1
                 else:
-                    self.crc_errors += 1
+                    self.checksum_errors += 1
                 self._state = self._START1
                 self._raw.clear()
         return out

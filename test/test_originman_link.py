@@ -57,7 +57,7 @@ def test_reports_reach_the_callback_from_the_reader_thread(rig):
     wait_for(lambda: len(keys()) == 3, 5, what='the three events of a click')
     assert keys() == [p.KeyEvent.PRESSED, p.KeyEvent.RELEASE_FROM_SHORT_PRESS, p.KeyEvent.CLICK]
     assert {name for name, _ in list(reports)} == {f'serial-reader {board.path}'}
-    assert link.last_frame_time is not None and link.decoder.crc_errors == 0
+    assert link.last_frame_time is not None and link.decoder.checksum_errors == 0
 
 
 def test_bus_reads_return_the_addressed_servos_values(rig):
@@ -101,7 +101,7 @@ def test_o41_a_lost_or_corrupted_reply_is_retried(rig):
     board.runner.faults.corrupt_next = 1
     assert link.read_pwm_pulse(2) == 1500
     assert link.serial.stats.retries == retries + 2
-    assert link.decoder.crc_errors == 1
+    assert link.decoder.checksum_errors == 1
 
 
 def test_a_silent_board_times_out_after_every_retry(rig):
@@ -182,7 +182,7 @@ def test_o22_frames_from_many_threads_reach_the_board_whole(rig):
     wait_for(lambda: len(board.commands(mark)) == 200, 5, what='200 LED commands')
     assert sorted((c.on_ms, c.off_ms) for c in board.commands(mark)) == \
         sorted((i, 100 + k) for k in range(4) for i in range(50))
-    assert board.model.parser.crc_errors == 0 and board.model.parser.bytes_discarded == 0
+    assert board.model.parser.checksum_errors == 0 and board.model.parser.bytes_discarded == 0
 
 
 def test_write_only_commands_change_the_board(rig):

@@ -333,7 +333,7 @@ def test_o2_host_decoder_takes_function_12_as_asr_and_skips_higher_ones():
     dec = StreamDecoder()
     (frame,) = dec.feed(future + asr)
     assert p.decode_board_frame(frame) == p.AsrReport(b'\xbb\xcc\x01\x02\x03', asr)
-    assert dec.unknown_functions == 1 and dec.crc_errors == 0
+    assert dec.unknown_functions == 1 and dec.checksum_errors == 0
 
 
 def test_o50_a_crc_valid_function_13_is_noise_and_frames_inside_it_are_found():
@@ -343,7 +343,7 @@ def test_o50_a_crc_valid_function_13_is_noise_and_frames_inside_it_are_found():
     noise = p.HEADER + body + bytes([p.crc8(body)])
     dec = StreamDecoder()
     assert [f.raw for f in dec.feed(noise)] == [key]
-    assert dec.unknown_functions == 1 and dec.crc_errors == 0
+    assert dec.unknown_functions == 1 and dec.checksum_errors == 0
 
 
 def test_decoder_finds_frames_in_garbage_split_anywhere():
@@ -364,20 +364,20 @@ def test_decoder_resyncs_after_a_crc_failure_inside_the_bad_frame():
     dec = StreamDecoder()
     assert [f.raw for f in dec.feed(false + good + b'\x00' * 8)] == [good]
     # The false frame and the copy of the real header inside it: two candidates, two failures.
-    assert dec.crc_errors == 2 and dec.bytes_discarded == len(false) + 8
+    assert dec.checksum_errors == 2 and dec.bytes_discarded == len(false) + 8
 
 
 def test_o34_a_false_header_with_a_huge_length_does_not_hold_the_decoder():
     good = p.encode_battery_report(7400)
     dec = StreamDecoder()
     assert [f.raw for f in dec.feed(b'\xaa\x55\x00\xff' + good)] == [good]
-    assert dec.buffered == 0
+    assert dec.pending == 0
 
 
 def test_decoder_keeps_a_trailing_header_byte_and_reset_forgets_it():
     dec = StreamDecoder()
     frame = p.encode_key_report(1, 0x10)
-    assert dec.feed(frame[:1]) == [] and dec.buffered == 1
+    assert dec.feed(frame[:1]) == [] and dec.pending == 1
     assert [f.raw for f in dec.feed(frame[1:])] == [frame]
     dec.feed(frame[:5])
     dec.reset()
@@ -423,7 +423,7 @@ def test_o22_a_truncated_frame_swallows_the_next_one_and_a_bad_crc_is_silent():
     buzzer = p.encode_buzzer(2400, 100, 900, 1)
     parser = BoardParser()
     assert parser.feed(led[:6] + buzzer) == []
-    assert parser.crc_errors == 1
+    assert parser.checksum_errors == 1
     assert len(parser.feed(led)) == 1
 
 

@@ -163,7 +163,7 @@ def test_o22_quirks_lose_frames_and_nothing_is_ever_answered():
     assert ask(sim, p.encode_frame(12, b'\x05\x01')) == []         # FUNCTION 12 dropped
     assert ask(sim, read[:-1] + bytes([read[-1] ^ 1])) == []       # bad CRC: no NAK
     assert ask(sim, read[:4] + read) == []                         # truncated swallows next
-    assert sim.parser.crc_errors == 2 and sim.parser.functions_dropped == 1
+    assert sim.parser.checksum_errors == 2 and sim.parser.functions_dropped == 1
     assert sim.parser.idle
     assert ask(sim, read) == [p.PwmPulseReply(1, 1500, p.encode_pwm_pulse_reply(1, 1500))]
 

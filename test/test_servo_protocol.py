@@ -195,7 +195,7 @@ def test_decoder_byte_by_byte_and_garbage():
 def test_decoder_keeps_a_trailing_ff_for_the_next_chunk():
     dec = StreamDecoder('reply')
     assert dec.feed(b'\x00\x01\xff') == []
-    assert dec.buffered == 1 and dec.bytes_discarded == 2
+    assert dec.pending == 1 and dec.bytes_discarded == 2
     assert [f.raw for f in dec.feed(PING_REPLY[1:])] == [PING_REPLY]
 
 
@@ -268,9 +268,9 @@ def test_random_bytes_never_raise_and_buffer_stays_bounded(chunks, kind):
             # Anything reported is a frame the strict parser accepts.
             (p.parse_reply if kind == 'reply' else p.parse_request)(frame.raw)
             decoded += len(frame.raw)
-    assert dec.buffered <= 4 + p.MAX_LEN
+    assert dec.pending <= 4 + p.MAX_LEN
     # Every byte is accounted for: decoded, discarded, or still waiting.
-    assert dec.bytes_discarded + dec.buffered + decoded == total
+    assert dec.bytes_discarded + dec.pending + decoded == total
 
 
 replies = st.builds(

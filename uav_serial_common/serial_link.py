@@ -40,7 +40,13 @@ PORT_ERRORS = (serial.SerialException, OSError, termios.error, TypeError, Attrib
 
 
 class Decoder(Protocol):
-    """What the link needs of a streaming decoder."""
+    """What the link needs of a streaming decoder (``stream_decoder.StreamDecoder`` is one).
+
+    A decoder that can hold back a frame which could still grow also has ``pending`` (bytes
+    held) and ``flush()`` (settle them, returning frames as ``feed`` does): with ``idle_flush_s``
+    the link calls ``flush()`` once the line has been idle that long. The link looks both up
+    with getattr, so a decoder (or an owner's adapter around one) may leave them out.
+    """
 
     def feed(self, data: bytes) -> Iterable[Any]:
         """Consume bytes, return the complete frames found."""
