@@ -629,7 +629,7 @@ def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     assert all(line.startswith('OK   ') for line in lines)
     assert [line.split(':')[0][5:] for line in lines] == [
         'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
-        'auto triggers as desired', 'battery', 'black box writable']
+        'auto triggers as desired', 'battery', 'status stream', 'black box writable']
     sent = rig.wire.since(mark)
     assert sent and all(raw[3] == p.CTRL_QUERY for raw in sent), [r.hex(' ') for r in sent]
     # Behind the driver's back: locked, a setting changed, on a weak battery.
