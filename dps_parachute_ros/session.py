@@ -854,7 +854,7 @@ class ParachuteSession:
             if want:
                 self._stream_fallback('the module did not answer stream on (0x13)')
             else:
-                self._update(streaming=False)
+                self._update(streaming=False, stream_problem='')
             return
         if want and not acked:
             self._stream_fallback('the module answered stream on (0x13) with "off"')
@@ -1431,13 +1431,28 @@ class ParachuteSession:
         """
         if not snap.port_open:
             return snap
+        epoch = self._current_epoch()
         try:
-            epoch = self._note_boot_count(self._req(p.encode_boot_count_query()).count)
-            armed = self._req(p.encode_armed_query(), retries=1).armed
-            triggered = self._req(p.encode_triggered_query(), retries=1).triggered
+            # A reboot first (D15); a module silent to this one query is judged by the next.
+            epoch = self._note_boot_count(
+                self._req(p.encode_boot_count_query(), silence_ok=snap.online).count)
+        except LinkTimeout:
+            if not snap.online:
+                return self.snapshot  # silent: offline it is
         except LinkError:
             return self.snapshot
-        self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True)
+        try:
+            # Armed and triggered in one frame; the two queries if it does not answer that.
+            self._on_status(self._req(p.encode_status_query(), retries=1), 'query', epoch)
+        except LinkTimeout:
+            try:
+                armed = self._req(p.encode_armed_query(), retries=1).armed
+                triggered = self._req(p.encode_triggered_query(), retries=1).triggered
+            except LinkError:
+                return self.snapshot
+            self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True)
+        except LinkError:
+            pass
         return self.snapshot
 
     def _seen_triggered(self) -> str:
@@ -1473,8 +1488,8 @@ class ParachuteSession:
         if not snap.fresh:
             return self._deploy_end(
                 'refused', 'deploy refused: the module may have rebooted and has not been '
-                're-read (it did not answer the armed and triggered queries), so whether it is '
-                'armed is not known; nothing sent. Try again in a moment.')
+                're-read (it did not answer the status, armed or triggered query), so whether it '
+                'is armed is not known; nothing sent. Try again in a moment.')
         if snap.armed is not True:
             if not arm_if_locked:
                 return self._deploy_end(

@@ -469,7 +469,7 @@ def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(
     # A module that does not answer the re-read within the wait: refused, with the reason.
     rig.runner.faults.reply_delay_s = 0.0
     with rig.model():
-        rig.sim.lost_commands = {p.CMD_STREAMING, p.CMD_ARMED}
+        rig.sim.lost_commands = {p.CMD_STREAMING, p.CMD_ARMED, p.CMD_STATUS}
     rig.power_cycle()
     wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
     result = rig.session.deploy('DEPLOY', True)

@@ -134,6 +134,19 @@ def test_round2_2_lost_replies_in_the_reread_after_a_reboot_do_not_refuse_a_depl
         assert rig.sim.triggered
 
 
+def test_round2_2_a_module_silent_to_the_boot_count_query_is_deployed_after_a_reboot(rig):
+    # Its re-initialization fails at its first read, again and again; the deploy asks for
+    # what it needs (the status: armed and triggered) and goes ahead.
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_BOOT_COUNT}
+    rig.power_cycle()
+    wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
+    result = rig.session.deploy('DEPLOY', True)
+    assert result.ok, result.message
+    with rig.model():
+        assert rig.sim.triggered
+
+
 def test_round2_2_an_offline_verdict_never_refuses_a_module_that_answers(rig):
     # A stale verdict (the module answered nothing for a while, then answers again): a deploy
     # asks before it refuses.
