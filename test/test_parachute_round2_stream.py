@@ -1,7 +1,8 @@
 """Round two, items 2 and 3 of the parachute: a dead status stream, and what a deploy knew.
 
 The device core (`ParachuteSession`) against the virtual module on a pty, with the fake clock of
-``test_parachute_core`` (its rig): the time-based rules move only when a test moves the clock.
+``test_parachute_core`` (its rig): the time-based rules move only when a test moves the clock;
+the last test shows item 2 over ROS as a user sees it.
 Item 2: a module that answers queries is online and can be deployed, whatever single fault
 stops a part of its output (the stream, the heartbeat, an auxiliary query, a reply of the
 re-read after a reboot). Item 3: a deploy whose module was seen triggered is a deployment, and
@@ -12,11 +13,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import pytest
-
+from diagnostic_msgs.msg import DiagnosticStatus
 from dps_parachute_ros import protocol as p
+from parachute_rig import NODE, Rig as NodeRig
+import pytest
+from std_srvs.srv import SetBool, Trigger
 from test_parachute_core import in_thread, Rig
 from uav_serial_common.process import wait_for
+from uav_serial_drivers.msg import TriggerEvent
+from uav_serial_drivers.srv import Deploy
 
 
 @pytest.fixture
@@ -222,3 +227,34 @@ def test_round2_3_a_record_that_comes_later_amends_the_event_while_online(rig):
     quiet(rig)
     rig.session.get_trigger_records()
     assert len(rig.heard.events) == 2  # amended once
+
+
+# -- over ROS: what a user sees -------------------------------------------------------------------
+
+def test_round2_2_over_ros_a_dead_stream_is_reported_and_the_module_armed_and_deployed(tmp_path):
+    rig = NodeRig(tmp_path)
+    failed = True
+    try:
+        rig.wait_ready()
+        with rig.model():
+            rig.sim.set_tilt(50)
+            rig.sim.stream_dead = True
+        rig.status.wait(lambda m: m.online and not m.streaming and m.tilt_deg == 50, 10,
+                        what='~/status: online, polled (streaming false), tilt 50')
+        rig.diagnostics.wait(lambda m: any(
+            s.name == f'{NODE}: link' and s.level == DiagnosticStatus.WARN and
+            'status stream dead' in s.message for s in m.status), 10,
+            what='link diagnostics WARN: status stream dead')
+        check = rig.call(Trigger, 'preflight_check')
+        assert not check.success and 'FAIL status stream' in check.message, check.message
+        for _ in range(3):
+            reply = rig.call(SetBool, 'arm', SetBool.Request(data=True))
+            assert reply.success, reply.message
+        reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
+        assert reply.success, reply.message
+        event = rig.events.wait(lambda m: True, 5, what='the trigger event')
+        assert event.source == TriggerEvent.SOURCE_SERIAL and event.deployment_id == 1
+        assert not event.amends
+        failed = False
+    finally:
+        rig.close(failed)
