@@ -1667,7 +1667,12 @@ class ParachuteSession:
             if reply.armed != want:
                 return False, (f'module answered {reply.raw.hex(" ")} to {word}: '
                                f'it stays {"armed" if reply.armed else "locked"}')
-            state = self._req(p.encode_armed_query(), retries=1)
+            try:
+                state = self._req(p.encode_armed_query(), retries=1)
+            except LinkTimeout:
+                # The status frame tells armed too: a module silent to the armed query alone
+                # is still verified (and can be armed for a deploy).
+                state = self._req(p.encode_status_query(), retries=1)
         except LinkError as exc:
             return False, f'{word} not confirmed: {exc}'
         self._update_if(epoch, armed=state.armed)

@@ -152,6 +152,15 @@ def test_round2_2_a_module_silent_to_the_boot_count_query_is_deployed_after_a_re
         assert rig.sim.triggered
 
 
+def test_round2_2_a_module_silent_to_the_armed_query_is_armed_and_deployed(rig):
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_ARMED}  # the arm is verified by the status instead
+    result = rig.session.deploy('DEPLOY', True)
+    assert result.ok, result.message
+    with rig.model():
+        assert rig.sim.triggered
+
+
 def test_round2_2_an_offline_verdict_never_refuses_a_module_that_answers(rig):
     # A stale verdict (the module answered nothing for a while, then answers again): a deploy
     # asks before it refuses.
