@@ -870,8 +870,8 @@ class ParachuteSession:
         status = self._req(p.encode_status_query())
         if epoch != before or epoch != self._current_epoch():
             return
-        self._stream_fallback(f'no status frame for {silent:.1f} s although the module answers')
         self._on_status(status, via='poll', epoch=epoch)
+        self._stream_fallback(f'no status frame for {silent:.1f} s although the module answers')
 
     def _stream_fallback(self, why: str) -> None:
         """Poll the status instead of the stream, say so, and try the stream again later."""
