@@ -178,7 +178,8 @@ class VirtualParachuteNode(Node):
         with self.runner.locked():
             state = {
                 'powered': sim.powered, 'armed': sim.armed, 'triggered': sim.triggered,
-                'streaming': sim.streaming, 'protection': sim.protection,
+                'streaming': sim.streaming, 'stream_dead': sim.stream_dead,
+                'protection': sim.protection,
                 'external_power': sim.external_power, 'boot_count': sim.boot_count,
                 'tilt_deg': sim.tilt_deg, 'accel_g': sim.accel_g,
                 'light_level_v': sim.light_level_v, 'pending_request': sim.pending_request,
