@@ -410,7 +410,7 @@ class ParachuteSession:
                     self._stream_backoff = STREAM_RETRY_S[0]
                     self._snap = replace(self._snap, streaming=True, stream_problem='')
         if restored:
-            self._log('info', 'the status stream is back')
+            self._log('info', 'the status stream is back', key='stream-back', every_s=30.0)
             self.blackbox.record('state', event='status stream restored')
             self.listener.on_diagnostics()
         before = self._set_triggered(status.triggered, via, epoch, tilt_deg=float(status.tilt_deg),
