@@ -131,7 +131,8 @@ def record_msg(record: p.TriggerRecord) -> TriggerRecord:
 def event_msg(event: Deployment, stamp: Time, frame_id: str) -> TriggerEvent:
     """`~/trigger_event` for one deployment."""
     msg = TriggerEvent(source=event.source, source_name=source_name(event.source),
-                       via=VIA[event.via], record_known=event.record is not None)
+                       via=VIA[event.via], record_known=event.record is not None,
+                       deployment_id=event.deployment_id, amends=event.amends)
     if event.record is not None:
         msg.record = record_msg(event.record)
     return _header(msg, stamp, frame_id)

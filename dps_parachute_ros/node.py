@@ -262,7 +262,9 @@ class ParachuteNode(Node, Listener):
     def _diag_link(self, stat: Status) -> None:
         snap = self.session.snapshot
         config = self.session.config
-        if snap.online:
+        if snap.online and snap.stream_problem:
+            stat.summary(WARN, f'online; {snap.stream_problem}')
+        elif snap.online:
             stat.summary(OK, 'online')
         else:
             stat.summary(ERROR, f'offline: {self.session.link_problem()}')
@@ -273,6 +275,7 @@ class ParachuteNode(Node, Listener):
         for key, value in self.session.link_info().items():
             stat.add(key, value)
         stat.add('streaming', snap.streaming)
+        stat.add('stream_problem', snap.stream_problem)
 
     def _diag_state(self, stat: Status) -> None:
         snap = self.session.snapshot

@@ -63,6 +63,13 @@ LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
 DEPLOY_FRAME = p.encode_deploy()
+STREAM_GRACE = 0.5
+"""Without a stream frame for this share of `offline_timeout_s` the driver asks the module: an
+answer leaves time before the silence would make it offline, and means the stream stopped."""
+STREAM_RETRY_S = (2.0, 60.0)
+"""Back-off of the attempts to restore a stopped stream: first delay, longest delay."""
+RECORDS_RETRY_S = (1.0, 30.0)
+"""Back-off of the trigger-record fetch owed to a deployment of unknown source, while online."""
 IDLE_WAKE_S = 0.2
 """The worker and the monitor sleep until their next deadline, and at most this long (they see
 state changes nobody signals within it). Each wake-up costs CPU: they used to poll at 50 Hz."""
@@ -152,6 +159,17 @@ class ParachuteSession:
         self._unknown_boot: Optional[int] = None  # boot count when a deploy became unknown
         self._last_boot_heartbeat = -1e9
         self._last_status_time = -1e9
+        self._last_stream_time = -1e9       # last unsolicited status frame (the stream's)
+        self._stream_on_at = -1e9           # when the module last acknowledged stream on/off
+        self._stream_retry_at = 0.0
+        self._stream_backoff = STREAM_RETRY_S[0]
+        self._deploy_frame_at: Optional[float] = None
+        self._triggered_seen: Optional[Tuple[float, str]] = None  # (when, via) it rose
+        self._events: Dict[Optional[int], Deployment] = {}  # boot -> the event published
+        self._source_owed: Set[Optional[int]] = set()  # boots whose event said source unknown
+        self._records_retry_at = 0.0
+        self._deployment_seq = 0
+        self._records_backoff = RECORDS_RETRY_S[0]
         self._initialized_at = 0.0
         self._init_retry_at = 0.0
         self._flags_query_answered = False
@@ -335,6 +353,7 @@ class ParachuteSession:
         if data == DEPLOY_FRAME:
             with self._lock:
                 self._deploy_frame_left = True
+                self._deploy_frame_at = self.clock()
                 self._snap = replace(self._snap, unacked_deploys=self._snap.unacked_deploys + 1,
                                      failed_deploys=self._snap.failed_deploys + 1)
 
@@ -384,8 +403,20 @@ class ParachuteSession:
 
     def _on_status(self, status: p.Status, via: str, epoch: Optional[int] = None) -> None:
         # A status frame tells armed and triggered as they are now: a re-read (D15).
+        restored = False
         with self._lock:
             self._last_status_time = self.clock()
+            if via == 'status':
+                # Only the unsolicited frames are the stream; a poll's answer is not.
+                self._last_stream_time = self._last_status_time
+                if self._snap.stream_problem and self._config.stream_status:
+                    restored = True
+                    self._stream_backoff = STREAM_RETRY_S[0]
+                    self._snap = replace(self._snap, streaming=True, stream_problem='')
+        if restored:
+            self._log('info', 'the status stream is back', key='stream-back', every_s=30.0)
+            self.blackbox.record('state', event='status stream restored')
+            self.listener.on_diagnostics()
         before = self._set_triggered(status.triggered, via, epoch, tilt_deg=float(status.tilt_deg),
                                      accel_g=float(status.accel_g), armed=status.armed,
                                      fresh=True)
@@ -669,7 +700,9 @@ class ParachuteSession:
                 now = self.clock()
                 with self._lock:
                     retry_at, init_at = self._init_retry_at, self._initialized_at
-                    last_status = self._last_status_time
+                    last_stream = max(self._last_stream_time, self._stream_on_at)
+                    stream_retry_at = self._stream_retry_at
+                    records_at = self._records_retry_at if self._source_owed else None
                     config = self._config
                 if not snap.initialized:
                     if now >= retry_at:
@@ -677,23 +710,34 @@ class ParachuteSession:
                     else:
                         wait = min(wait, retry_at - now)
                     continue
-                stream_due = max(last_status, init_at) + config.offline_timeout_s
+                stream_due = max(last_stream, init_at) + config.offline_timeout_s * STREAM_GRACE
                 if snap.streaming and snap.online and now > stream_due:
-                    # The module answers but its stream stopped: it rebooted unnoticed (D3).
-                    self._log('warn', 'the status stream stopped; re-initializing')
-                    self._schedule('init', force=True)
+                    self._stream_stopped()
+                    continue
+                stream_wanted = config.stream_status and not snap.streaming and snap.online
+                if stream_wanted and now >= stream_retry_at:
+                    self._start_stream()
+                    continue
+                if records_at is not None and snap.online and now >= records_at:
+                    self._retry_records()
                     continue
                 if now >= next_aux:
                     next_aux = now + config.aux_poll_period_s
                     self._poll()
                 if not snap.streaming and now >= next_heartbeat:
                     next_heartbeat = now + config.heartbeat_period_s
-                    self._req(p.encode_heartbeat())
+                    # Its answer keeps nothing alive that the status poll does not: a module
+                    # that ignores it but answers the status is online (the poll judges that).
+                    self._req(p.encode_heartbeat(), silence_ok=True)
                 due = [next_aux]
                 if not snap.streaming:
                     due.append(next_heartbeat)
                 elif snap.online:
                     due.append(stream_due + 0.001)  # judged with '>'
+                if stream_wanted:
+                    due.append(stream_retry_at)
+                if records_at is not None:
+                    due.append(records_at)
                 wait = max(min(wait, min(due) - self.clock()), 0.001)
             except LinkError as exc:
                 if not self._stopping.is_set():
@@ -713,7 +757,9 @@ class ParachuteSession:
         elif job == 'records':
             self._fetch_records()
         elif job == 'stream' and self.snapshot.online:
-            self._set_streaming(self.config.stream_status)
+            with self._lock:
+                self._stream_backoff = STREAM_RETRY_S[0]
+            self._start_stream()
 
     def _initialize(self) -> None:
         """Read the module afresh and bring it to the desired settings (D2)."""
@@ -724,11 +770,13 @@ class ParachuteSession:
         try:
             epoch = self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count,
                                           reinit=False)
-            self._set_streaming(self.config.stream_status)
+            # Armed and triggered first: a deploy waiting for them never waits behind a stream
+            # the module does not turn on.
             armed = self._req(p.encode_armed_query(), retries=1).armed
             triggered = self._req(p.encode_triggered_query(), retries=1).triggered
             if self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True) is None:
                 return  # it rebooted meanwhile: that schedules another initialization
+            self._start_stream()
             with self._lock:
                 same_boot = self._unknown_boot in (None, self._snap.boot_count)
             if same_boot:
@@ -770,6 +818,11 @@ class ParachuteSession:
                 # A deployment reported before the first boot count read happened in this boot.
                 self._reported_boots.discard(None)
                 self._reported_boots.add(count)
+                if None in self._events:
+                    self._events[count] = self._events.pop(None)
+                if None in self._source_owed:
+                    self._source_owed.discard(None)
+                    self._source_owed.add(count)
             rebooted = previous is not None and previous != count
             if rebooted:
                 self._epoch += 1
@@ -784,20 +837,81 @@ class ParachuteSession:
                 self._schedule('init', force=True)
         return epoch
 
-    def _set_streaming(self, enabled: bool) -> bool:
-        reply = self._req(p.encode_streaming(enabled), retries=1)
-        self._update(streaming=reply.enabled)
+    def _set_streaming(self, enabled: bool, silence_ok: bool = False) -> bool:
+        reply = self._req(p.encode_streaming(enabled), retries=1, silence_ok=silence_ok)
+        with self._lock:
+            self._stream_on_at = self.clock()  # its first frame is due from now
+            self._snap = replace(self._snap, streaming=reply.enabled,
+                                 stream_problem=self._snap.stream_problem if enabled else '')
+            self._lock.notify_all()
         return reply.enabled == enabled
+
+    # -- the status stream, and polling when it is gone (D2) -------------------------------------
+
+    def _start_stream(self) -> None:
+        """Turn the stream on or off as configured; a stream that does not come is polled."""
+        want = self.config.stream_status
+        try:
+            # A module that ignores 0x13 but answers the rest is online (D2): no verdict here.
+            acked = self._set_streaming(want, silence_ok=True)
+        except LinkTimeout:
+            if want:
+                self._stream_fallback('the module did not answer stream on (0x13)')
+            else:
+                self._update(streaming=False, stream_problem='')
+            return
+        if want and not acked:
+            self._stream_fallback('the module answered stream on (0x13) with "off"')
+
+    def _stream_stopped(self) -> None:
+        """No stream frame for a while: ask the module; an answer means the stream stopped."""
+        with self._lock:
+            silent = self.clock() - max(self._last_stream_time, self._stream_on_at)
+        # A module that rebooted unnoticed has its stream off (D3): the boot count tells, and a
+        # reboot re-initializes. The answer also keeps it online while its stream is silent.
+        before = self._current_epoch()
+        epoch = self._note_boot_count(self._req(p.encode_boot_count_query()).count)
+        status = self._req(p.encode_status_query())
+        if epoch != before or epoch != self._current_epoch():
+            return
+        self._on_status(status, via='poll', epoch=epoch)
+        self._stream_fallback(f'no status frame for {silent:.1f} s although the module answers')
+
+    def _stream_fallback(self, why: str) -> None:
+        """Poll the status instead of the stream, say so, and try the stream again later."""
+        now = self.clock()
+        with self._lock:
+            delay = self._stream_backoff
+            self._stream_backoff = min(delay * 2.0, STREAM_RETRY_S[1])
+            self._stream_retry_at = now + delay
+            period = self._config.aux_poll_period_s
+            problem = (f'status stream dead ({why}): polling the status every {period:g} s; '
+                       f'stream on again in {delay:.0f} s')
+            self._snap = replace(self._snap, streaming=False, stream_problem=problem)
+            self._lock.notify_all()
+        self._log('warn', problem, key='stream', every_s=30.0)
+        self.blackbox.record('state', event='status stream dead', reason=problem)
+        self._emit_status()
+        self.listener.on_diagnostics()
 
     def _poll(self) -> None:
         epoch = self._current_epoch()
-        light = self._req(p.encode_light_level_query()).volts
-        charging = self._req(p.encode_charging_query()).charging
-        voltage = self._req(p.encode_cell_voltage_query()).volts
-        snap = self._update(light_v=light, charging=charging, voltage_v=voltage)
-        if not snap.streaming:
+        if not self.snapshot.streaming:
+            # The status first: it is what the online judgement and a deploy need.
             self._on_status(self._req(p.encode_status_query()), via='poll', epoch=epoch)
-        else:
+        values = {}
+        for name, frame, field_ in (('light_v', p.encode_light_level_query(), 'volts'),
+                                    ('charging', p.encode_charging_query(), 'charging'),
+                                    ('voltage_v', p.encode_cell_voltage_query(), 'volts')):
+            # A query the module leaves unanswered leaves its value as it was; it says
+            # nothing of whether the module is online while other queries are answered.
+            try:
+                values[name] = getattr(self._req(frame, silence_ok=True), field_)
+            except LinkTimeout:
+                self._log('warn', f'no reply to the {name} query', key=f'poll-{name}',
+                          every_s=30.0)
+        snap = self._update(**values)
+        if snap.streaming:
             self._emit_status()
         self.listener.on_battery(self.snapshot)
         self.listener.on_diagnostics()
@@ -1091,6 +1205,8 @@ class ParachuteSession:
             before = self._snap
             if triggered is not None:
                 also['triggered'] = triggered
+                if triggered and not before.triggered:
+                    self._triggered_seen = (self.clock(), via)
             self._snap = before.evolve(**also)
             reported = self._snap.boot_count in self._reported_boots
             self._lock.notify_all()
@@ -1116,18 +1232,71 @@ class ParachuteSession:
             if boot in self._reported_boots:
                 return False
             self._reported_boots.add(boot)
+            self._deployment_seq += 1
+            event = Deployment(source, via, record, self._deployment_seq)
+            self._events[boot] = event
+            if not source:
+                # Owed: the record is fetched again until it comes (amend_sources).
+                self._source_owed.add(boot)
+                self._records_backoff = RECORDS_RETRY_S[0]
+                self._records_retry_at = self.clock() + self._records_backoff
         self.blackbox.record('trigger_event', source=source_name(source), via=via,
                              record=None if record is None else record.raw.hex(' '))
         self.blackbox.sync(None)
-        self.listener.on_deployment(Deployment(source, via, record))
-        self._log('error', f'PARACHUTE DEPLOYED: source {source_name(source)}')
+        self.listener.on_deployment(event)
+        self._log('error', f'PARACHUTE DEPLOYED: source {source_name(source)}'
+                           + ('' if source else '; the trigger record is read again until it '
+                              'tells, and ~/trigger_event amended then'))
         return True
+
+    def _amend_sources(self, records: List[p.TriggerRecord]) -> None:
+        """Amend the events published with an unknown source whose record is now read (D7).
+
+        The amendment carries the deployment id of the event it corrects and `amends`: the
+        same deployment, told better, never a second one.
+        """
+        with self._lock:
+            owed = [(boot, self._events[boot]) for boot in self._source_owed
+                    if boot in self._events]
+        for boot, event in owed:
+            mine = [r for r in records if r.boot_count == boot and r.source]
+            if not mine:
+                continue
+            record = mine[-1]
+            amended = replace(event, source=record.source, via='record', record=record,
+                              amends=True)
+            with self._lock:
+                if boot not in self._source_owed:
+                    continue
+                self._source_owed.discard(boot)
+                self._events[boot] = amended
+            name = source_name(record.source)
+            self.blackbox.record('state', event=f'trigger event {event.deployment_id} amended: '
+                                 f'source {name}, from the trigger record of boot {boot}')
+            self.blackbox.sync(None)
+            self.listener.on_deployment(amended)
+            self._log('warn', f'deployment {event.deployment_id} (reported with source '
+                              f'unknown): source {name}, by its trigger record; ~/trigger_event '
+                              'amended')
+
+    def _retry_records(self) -> None:
+        """Fetch the records owed to a deployment of unknown source again (backing off)."""
+        with self._lock:
+            delay = self._records_backoff
+            self._records_backoff = min(delay * 2.0, RECORDS_RETRY_S[1])
+            self._records_retry_at = self.clock() + delay
+        try:
+            self._fetch_records()
+        except LinkError as exc:
+            self._log('warn', f'trigger records not read ({exc}); trying again in {delay:.0f} s',
+                      key='records-retry', every_s=30.0)
 
     def _fetch_records(self) -> List[p.TriggerRecord]:
         """Query the history; remember every record; return the non-empty ones."""
         records = [r for r in self.link.query_records() if not r.is_empty]
         with self._lock:
             self._known_records = (self._known_records or set()) | {r.raw for r in records}
+        self._amend_sources(records)
         return records
 
     def _report_at_init(self, triggered: bool) -> None:
@@ -1173,6 +1342,11 @@ class ParachuteSession:
                     return
             try:
                 mine = [r for r in self._fetch_records() if r.boot_count == boot]
+            except LinkDown as exc:
+                # No use asking a module that is not there: say it now, read the record
+                # when it is back (the initialization does; the event is amended then).
+                self._log('warn', f'could not read the trigger record: {exc}')
+                break
             except LinkError as exc:
                 self._log('warn', f'could not read the trigger record: {exc}')
                 continue
@@ -1253,11 +1427,63 @@ class ParachuteSession:
         finally:
             self._actuation.release()
 
+    def _reread(self, snap: Snapshot) -> Snapshot:
+        """Ask the module what a deploy or an arm needs, when the driver's knowledge is old.
+
+        A module that answers is online (its answer is a frame), however it was judged before:
+        an offline verdict or a re-read still to come never refuses a module that answers.
+        """
+        if not snap.port_open:
+            return snap
+        epoch = self._current_epoch()
+        try:
+            # A reboot first (D15); a module silent to this one query is judged by the next.
+            epoch = self._note_boot_count(
+                self._req(p.encode_boot_count_query(), silence_ok=snap.online).count)
+        except LinkTimeout:
+            if not snap.online:
+                return self.snapshot  # silent: offline it is
+        except LinkError:
+            return self.snapshot
+        try:
+            # Armed and triggered in one frame; the two queries if it does not answer that.
+            self._on_status(self._req(p.encode_status_query(), retries=1), 'query', epoch)
+        except LinkTimeout:
+            try:
+                armed = self._req(p.encode_armed_query(), retries=1).armed
+                triggered = self._req(p.encode_triggered_query(), retries=1).triggered
+            except LinkError:
+                return self.snapshot
+            self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True)
+        except LinkError:
+            pass
+        return self.snapshot
+
+    def _seen_triggered(self) -> str:
+        """How the driver knows the module deployed, or '' (triggered not seen)."""
+        with self._lock:
+            if not self._snap.triggered or self._triggered_seen is None:
+                return ''
+            at, via = self._triggered_seen
+            sent = self._deploy_frame_at
+        text = f'the module reported TRIGGERED (via {via}'
+        if sent is not None and at >= sent:
+            text += f', {(at - sent) * 1000:.0f} ms after the deploy frame left'
+        return text + ')'
+
     def _deploy(self, arm_if_locked: bool, t0: float) -> Result:
         snap = self.snapshot
         if snap.online and not snap.fresh:
             snap = self._wait_fresh()
+        if not snap.online or not snap.fresh:
+            snap = self._reread(snap)
         if not snap.online:
+            seen = self._seen_triggered()
+            if seen:
+                # A deployment stays one: the module stays triggered until switched off.
+                return self._deploy_end('already deployed', f'already deployed: {seen}; it '
+                                        f'is offline now ({snap.offline_reason}); nothing '
+                                        'sent', success=True)
             return self._deploy_end('refused', f'deploy refused: {self._offline_text(snap)}; '
                                     'nothing sent')
         if snap.fresh and snap.triggered:
@@ -1266,8 +1492,8 @@ class ParachuteSession:
         if not snap.fresh:
             return self._deploy_end(
                 'refused', 'deploy refused: the module may have rebooted and has not been '
-                f're-read within {REREAD_WAIT_S:.0f} s, so whether it is armed is not known; '
-                'nothing sent. Try again in a moment.')
+                're-read (it did not answer the status, armed or triggered query), so whether it '
+                'is armed is not known; nothing sent. Try again in a moment.')
         if snap.armed is not True:
             if not arm_if_locked:
                 return self._deploy_end(
@@ -1374,6 +1600,13 @@ class ParachuteSession:
                 'Check the link; a module reboot clears this. Nothing sent')
 
     def _deploy_unknown(self, what: str, t0: float) -> Result:
+        seen = self._seen_triggered()
+        if seen:
+            # Seen triggered after the frame left: a deployment, whatever became of the reply.
+            with self._lock:
+                self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=0)
+            return self._deploy_end('deployed', f'deployed: {seen}; its acknowledgement did '
+                                    f'not come ({what})', success=True, t0=t0, ack='lost')
         with self._lock:
             self._unknown_boot = self._snap.boot_count
         self._update(deploy_outcome_unknown=True)
@@ -1422,6 +1655,8 @@ class ParachuteSession:
         snap = self.snapshot
         if want and snap.online and not snap.fresh:
             snap = self._wait_fresh()
+        if not snap.online or (want and not snap.fresh):
+            snap = self._reread(snap)
         if not snap.online:
             return False, f'cannot {word}: {self._offline_text(snap)}; nothing sent'
         if want and not snap.fresh:
@@ -1436,7 +1671,12 @@ class ParachuteSession:
             if reply.armed != want:
                 return False, (f'module answered {reply.raw.hex(" ")} to {word}: '
                                f'it stays {"armed" if reply.armed else "locked"}')
-            state = self._req(p.encode_armed_query(), retries=1)
+            try:
+                state = self._req(p.encode_armed_query(), retries=1)
+            except LinkTimeout:
+                # The status frame tells armed too: a module silent to the armed query alone
+                # is still verified (and can be armed for a deploy).
+                state = self._req(p.encode_status_query(), retries=1)
         except LinkError as exc:
             return False, f'{word} not confirmed: {exc}'
         self._update_if(epoch, armed=state.armed)
@@ -1479,7 +1719,7 @@ class ParachuteSession:
         if not snap.online:
             return Result(False, f'{self._offline_text(snap)}; nothing sent')
         try:
-            ok = self._set_streaming(enabled)
+            ok = self._set_streaming(enabled, silence_ok=True)
         except LinkError as exc:
             return Result(False, f'streaming not confirmed: {exc}')
         with self._lock:
@@ -1560,6 +1800,7 @@ class ParachuteSession:
                 checks.append((False, 'online', f'no answer: {exc}'))
             checks += [(False, name, 'not checked: the module did not answer')
                        for name in names if name not in done]
+        checks.append(self._stream_check(config))
         checks.append(self._blackbox_check())
         ok = all(passed for passed, _, _ in checks)
         lines = [f'{"OK  " if passed else "FAIL"} {name}: {detail}'
@@ -1596,6 +1837,19 @@ class ParachuteSession:
              (f'{", ".join(wanted_flags)} verified, {how}' if wanted_flags else
               'none desired (keep)')),
         ]
+
+    def _stream_check(self, config: SessionConfig) -> Tuple[bool, str, str]:
+        # The queries above are answered whether the stream flows or not: judged from it.
+        if not config.stream_status:
+            return (True, 'status stream', 'off (stream_status false): the status is polled')
+        snap = self.snapshot
+        with self._lock:
+            silent = self.clock() - max(self._last_stream_time, self._stream_on_at)
+        if snap.stream_problem:
+            return (False, 'status stream', snap.stream_problem)
+        if not snap.streaming or silent > config.offline_timeout_s * STREAM_GRACE:
+            return (False, 'status stream', f'no status frame for {silent:.1f} s')
+        return (True, 'status stream', 'flowing')
 
     def _blackbox_check(self) -> Tuple[bool, str, str]:
         synced = self.blackbox.sync(SAFETY_SYNC_S)  # also notices a file removed under it

@@ -40,9 +40,10 @@ class VirtualParachute(ClockedModel):
     ``freefall_trigger_enabled``, ``baud_code``, ``tilt_deg``, ``accel_g``,
     ``cell_voltage_v``, ``charge_voltage_v``.
 
-    Faults of the module itself: ``igniter_fault`` (trigger attempts do not deploy) and
-    ``lost_commands`` (command codes of host frames that never reach it). Faults of the wire
-    (lost, corrupted, late replies, noise) are the runner's
+    Faults of the module itself: ``igniter_fault`` (trigger attempts do not deploy),
+    ``lost_commands`` (command codes of host frames that never reach it) and ``stream_dead``
+    (its status stream stops and stream on/off, 0x13, is ignored; every other query answered).
+    Faults of the wire (lost, corrupted, late replies, noise) are the runner's
     (:class:`uav_serial_common.virtual_device.WireFaults`), the same for every device.
     """
 
@@ -97,6 +98,7 @@ class VirtualParachute(ClockedModel):
         # Command codes of host frames lost on the way in (a bad RX line, a glitching
         # connector): the module never sees them, and keeps streaming.
         self.lost_commands: set[int] = set()
+        self._stream_dead = False
 
         # Counters for tests and the wrapper's diagnostics.
         self.requests_sent = 0
@@ -193,6 +195,22 @@ class VirtualParachute(ClockedModel):
                 self._failed_attempt()
             return False
         return self._fire(p.SOURCE_PWM)
+
+    @property
+    def stream_dead(self) -> bool:
+        """Fault: the stream task hangs; no status frame, 0x13 ignored (no reply, no effect).
+
+        Setting it stops the stream; clearing it lets 0x13 work again (the stream stays off
+        until the host turns it on). Every other command is answered throughout.
+        """
+        return self._stream_dead
+
+    @stream_dead.setter
+    def stream_dead(self, dead: bool) -> None:
+        self._stream_dead = bool(dead)
+        if dead:
+            self.streaming = False
+            self._stream_at = None
 
     # -- read-only views -------------------------------------------------------------------
 
@@ -413,7 +431,7 @@ class VirtualParachute(ClockedModel):
                 reply(p.module_frame(code, 1))
                 self.power_off()
         elif code == p.CMD_STREAMING:
-            if value in (0, 1):
+            if value in (0, 1) and not self.stream_dead:
                 self.streaming = value == 1
                 self._stream_at = self._now + self.stream_period_s if self.streaming else None
                 reply(p.module_frame(code, value))

@@ -140,6 +140,9 @@ class Snapshot:
     tilt_deg: Optional[float] = None
     accel_g: Optional[float] = None
     streaming: bool = False
+    """The stream is on and its frames arrive (false while the driver polls instead)."""
+    stream_problem: str = ''
+    """Why the stream is wanted (`stream_status`) but not used: the driver polls the status."""
     light_v: Optional[float] = None
     charging: Optional[bool] = None
     voltage_v: Optional[float] = None
@@ -190,6 +193,11 @@ class Deployment:
     source: int
     via: str                              # 'deploy_ack', 'status' or 'record'
     record: Optional[p.TriggerRecord] = None
+    deployment_id: int = 0
+    """1, 2, ... per driver run; an amendment carries the id of the event it corrects."""
+    amends: bool = False
+    """This corrects the source of the event with the same id (published as unknown): it is no
+    new deployment."""
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,8 @@ PARAMS = (
     ParamSpec('lost_commands', Parameter.Type.INTEGER_ARRAY, 'command codes 0..255 of host '
               'frames lost before the module sees them, e.g. [17] (0x11): every deploy frame',
               check=_codes_problem),
+    ParamSpec('stream_dead', False, 'the status stream stops and stream on/off (0x13) is '
+              'ignored; every other query is answered'),
 )
 
 
@@ -127,6 +129,8 @@ class VirtualParachuteNode(Node):
                 faults.reply_delay_s = value
             elif name == 'lost_commands':
                 sim.lost_commands = set(value or ())
+            elif name == 'stream_dead':
+                sim.stream_dead = bool(value)
 
     # -- services -------------------------------------------------------------------------------
 
@@ -174,7 +178,8 @@ class VirtualParachuteNode(Node):
         with self.runner.locked():
             state = {
                 'powered': sim.powered, 'armed': sim.armed, 'triggered': sim.triggered,
-                'streaming': sim.streaming, 'protection': sim.protection,
+                'streaming': sim.streaming, 'stream_dead': sim.stream_dead,
+                'protection': sim.protection,
                 'external_power': sim.external_power, 'boot_count': sim.boot_count,
                 'tilt_deg': sim.tilt_deg, 'accel_g': sim.accel_g,
                 'light_level_v': sim.light_level_v, 'pending_request': sim.pending_request,

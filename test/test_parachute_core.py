@@ -469,7 +469,7 @@ def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(
     # A module that does not answer the re-read within the wait: refused, with the reason.
     rig.runner.faults.reply_delay_s = 0.0
     with rig.model():
-        rig.sim.lost_commands = {p.CMD_STREAMING, p.CMD_ARMED}
+        rig.sim.lost_commands = {p.CMD_STREAMING, p.CMD_ARMED, p.CMD_STATUS}
     rig.power_cycle()
     wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
     result = rig.session.deploy('DEPLOY', True)
@@ -629,7 +629,7 @@ def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     assert all(line.startswith('OK   ') for line in lines)
     assert [line.split(':')[0][5:] for line in lines] == [
         'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
-        'auto triggers as desired', 'battery', 'black box writable']
+        'auto triggers as desired', 'battery', 'status stream', 'black box writable']
     sent = rig.wire.since(mark)
     assert sent and all(raw[3] == p.CTRL_QUERY for raw in sent), [r.hex(' ') for r in sent]
     # Behind the driver's back: locked, a setting changed, on a weak battery.

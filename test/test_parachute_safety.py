@@ -196,4 +196,4 @@ def test_safety_21_preflight_check_over_ros(make_rig):
     assert rig.call(SetBool, 'arm', SetBool.Request(data=True)).success
     reply = rig.call(Trigger, 'preflight_check')
     assert reply.success, reply.message
-    assert len(reply.message.splitlines()) == 8 and 'FAIL' not in reply.message
+    assert len(reply.message.splitlines()) == 9 and 'FAIL' not in reply.message

@@ -67,3 +67,25 @@ def set_lost_commands(ros, codes):
     value = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=codes)
     request = SetParameters.Request(parameters=[Parameter(name='lost_commands', value=value)])
     return ros.call(SetParameters, '/virtual_parachute/set_parameters', request).results[0]
+
+
+def test_round2_2_the_virtual_module_reproduces_a_dead_stream(ros, launch, tmp_path):
+    """``stream_dead``: the stream stops and 0x13 is ignored; the driver polls and deploys."""
+    link = str(tmp_path / 'vparachute')
+    state = ros.subscribe(String, '/virtual_parachute/state')
+    launch.start('virtual_parachute', parameters={'link': link, 'tilt_deg': 50.0}, ros=ros,
+                 wait_service='/virtual_parachute/power_cycle')
+    status = ros.subscribe(ParachuteStatus, '/parachute/status')
+    launch.start('parachute_node', parameters={'port': link, 'blackbox_dir': str(tmp_path / 'bb')},
+                 ros=ros, wait_service='/parachute/deploy')
+    status.wait(lambda m: m.online and m.streaming, 15, what='online status')
+    value = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=True)
+    request = SetParameters.Request(parameters=[Parameter(name='stream_dead', value=value)])
+    assert ros.call(SetParameters, '/virtual_parachute/set_parameters',
+                    request).results[0].successful
+    state.wait(lambda m: json.loads(m.data)['stream_dead'], 5, what='the model: stream dead')
+    status.wait(lambda m: m.online and not m.streaming and m.tilt_deg == 50, 10,
+                what='polled status', start=len(status) - 1)
+    reply = ros.call(Deploy, '/parachute/deploy',
+                     Deploy.Request(confirm='DEPLOY', arm_if_locked=True))
+    assert reply.success, reply.message
