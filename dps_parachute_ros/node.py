@@ -108,6 +108,9 @@ class ParachuteNode(Node, Listener):
         self.config_pub = self.create_publisher(ParachuteConfig, '~/config', latched)
         self.triggered_pub = self.create_publisher(Bool, '~/triggered', latched)
         self.event_pub = self.create_publisher(TriggerEvent, '~/trigger_event', events_qos)
+        # One message per deployment on ~/trigger_event; a source learned later goes here.
+        self.event_update_pub = self.create_publisher(TriggerEvent, '~/trigger_event_update',
+                                                      events_qos)
         self.request_pub = self.create_publisher(TriggerRequest, '~/trigger_request', 10)
         self.battery_pub = self.create_publisher(BatteryState, '~/battery', 10)
 
@@ -242,8 +245,9 @@ class ParachuteNode(Node, Listener):
         self.triggered_pub.publish(m.triggered_msg(triggered))
 
     def on_deployment(self, event: Deployment) -> None:
-        """Publish ``~/trigger_event``."""
-        self.event_pub.publish(m.event_msg(event, self._now(), self.frame_id))
+        """Publish ``~/trigger_event``, or ``~/trigger_event_update`` for an amended source."""
+        publisher = self.event_update_pub if event.amends else self.event_pub
+        publisher.publish(m.event_msg(event, self._now(), self.frame_id))
 
     def on_trigger_request(self, decision: RequestDecision) -> None:
         """Publish ``~/trigger_request``."""
