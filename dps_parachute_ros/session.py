@@ -36,6 +36,7 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout, ParachuteLink
+from dps_parachute_ros.settings_rule import order, Step, TRIGGER_STEPS, Trigger, would_deploy
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener,
                                      MODULE_WINDOW_S, RequestDecision, Result, SessionConfig,
                                      SETTINGS, Snapshot, source_name)
@@ -63,9 +64,19 @@ LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
 DEPLOY_FRAME = p.encode_deploy()
+HELD_RETRY_S = 1.0
+"""A desired setting held back (it would deploy at once) is tried again at most this often."""
 IDLE_WAKE_S = 0.2
 """The worker and the monitor sleep until their next deadline, and at most this long (they see
 state changes nobody signals within it). Each wake-up costs CPU: they used to poll at 50 Hz."""
+
+
+class Withheld(Exception):
+    """A settings write the rule refused (D16): it would deploy the armed module at once."""
+
+    def __init__(self, what: str, reason: str) -> None:
+        super().__init__(f'{what} not written: {reason}')
+        self.reason = reason
 
 
 @dataclass
@@ -155,6 +166,9 @@ class ParachuteSession:
         self._initialized_at = 0.0
         self._init_retry_at = 0.0
         self._flags_query_answered = False
+        self._flags_query_sent = False
+        self._held: Dict[str, Tuple[Any, str]] = {}  # desired setting -> (value, why not written)
+        self._held_retry_at = -1e9
         self._throttle = Throttle()
         self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
         self._link_recorded_at = -1e9
@@ -387,6 +401,7 @@ class ParachuteSession:
                                      fresh=True)
         if before is None:
             return  # a poll's answer from before a reboot
+        self._recheck_held(status)
         if before.armed is not None and before.armed != status.armed:
             self.blackbox.record('state', armed=status.armed, via=via)
             self.blackbox.sync(None)
@@ -710,6 +725,8 @@ class ParachuteSession:
             self._fetch_records()
         elif job == 'stream' and self.snapshot.online:
             self._set_streaming(self.config.stream_status)
+        elif job == 'settings' and self.snapshot.online and self.snapshot.initialized:
+            self._apply_desired()
 
     def _initialize(self) -> None:
         """Read the module afresh and bring it to the desired settings (D2)."""
@@ -814,8 +831,19 @@ class ParachuteSession:
         self._update_mismatch(log=False)
 
     def _query_flags(self) -> bool:
-        # At most once per run while unknown (P14: a firmware ignoring D3 would take it as
-        # "enable the attitude trigger"); a real module may stay silent: flags stay unknown.
+        # P14: a firmware ignoring D3 would take the query as "enable the attitude trigger", so
+        # it is a possible settings write: sent at most once per run while unanswered (D5), and
+        # only when enabling the attitude trigger would not deploy the module at once (D16).
+        with self._lock:
+            if self._flags_query_sent and not self._flags_query_answered:
+                return False
+        danger = self._gate([('attitude', True)], 'auto-trigger flag query (P14)')
+        if danger:
+            self._log('warn', 'auto-trigger flag query not sent (a firmware may take it as '
+                              f'"enable the attitude trigger", P14): {danger}', key='flag-query')
+            return False
+        with self._lock:
+            self._flags_query_sent = True
         try:
             reply = self._req(p.encode_auto_trigger_query(), timeout=FLAGS_QUERY_TIMEOUT_S,
                               silence_ok=True)
@@ -826,9 +854,40 @@ class ParachuteSession:
             self._flags_query_answered = True
         return True
 
-    def _write_setting(self, name: str, value: float) -> Tuple[bool, str]:
+    # -- the settings rule: every write to the module passes here (D16) -------------------------
+
+    @staticmethod
+    def _trigger_settings(snap: Snapshot) -> Trigger:
+        return Trigger(snap.attitude_threshold_raw, snap.freefall_threshold_raw,
+                       snap.attitude_trigger_enabled, snap.freefall_trigger_enabled)
+
+    def _gate(self, steps: List[Step], origin: str) -> str:
+        """Why writing `steps` (in order) would deploy the module at once, or '' to write.
+
+        The one check of every settings write, whoever asks (D16): the status is read afresh
+        (raises LinkError when it is not answered: nothing is written then) and judged by
+        `settings_rule.would_deploy`. A refusal is recorded in the black box.
+        """
+        if not any(name in TRIGGER_STEPS for name, _ in steps):
+            return ''
+        epoch = self._current_epoch()
+        status = self._req(p.encode_status_query(), retries=1)
+        self._on_status(status, via='query', epoch=epoch)
+        danger = would_deploy(self._trigger_settings(self.snapshot), status.armed,
+                              status.triggered, float(status.tilt_deg), float(status.accel_g),
+                              steps)
+        if danger:
+            self.blackbox.record('decision', what='settings write withheld', origin=origin,
+                                 steps=[list(step) for step in steps], reason=danger)
+        return danger
+
+    def _write_setting(self, name: str, value: float, origin: str) -> Tuple[bool, str]:
+        """Write one numeric setting, verified; raises Withheld when the rule forbids it."""
         setting = SETTINGS[name]
         raw = setting.to_raw(value)
+        danger = self._gate([(name, value)], origin)
+        if danger:
+            raise Withheld(f'{name} = {value:g}', danger)
         reply = self._req(setting.encode_set(value))
         if not p.is_set_ack(reply, raw):
             return False, (f'module answered {reply.raw.hex(" ")} to setting {name} = {value}: '
@@ -844,13 +903,19 @@ class ParachuteSession:
                            f'{setting.to_si(back)}')
         return True, f'{name} = {setting.to_si(raw)} verified'
 
-    def _write_flags(self, attitude: Optional[bool] = None,
-                     freefall: Optional[bool] = None) -> Tuple[bool, str]:
-        """Enable/disable auto triggers (None = leave); verified by the replies (P8, D5)."""
-        if attitude is not None:
-            self._set_flags(self._req(p.encode_attitude_trigger(attitude)))
-        if freefall is not None:
-            self._set_flags(self._req(p.encode_freefall_trigger(freefall)))
+    def _write_flags(self, attitude: Optional[bool] = None, freefall: Optional[bool] = None,
+                     origin: str = '') -> Tuple[bool, str]:
+        """Enable/disable auto triggers (None = leave); verified by the replies (P8, D5).
+
+        Each frame is judged by the rule first (raises Withheld); a disable goes first.
+        """
+        encode = {'attitude': p.encode_attitude_trigger, 'freefall': p.encode_freefall_trigger}
+        asked = (('attitude', attitude), ('freefall', freefall))
+        for which, value in order([(w, v) for w, v in asked if v is not None]):
+            danger = self._gate([(which, value)], origin)
+            if danger:
+                raise Withheld(f'{which} trigger {"enable" if value else "disable"}', danger)
+            self._set_flags(self._req(encode[which](value)))
         snap = self.snapshot
         self.listener.on_config(snap)
         wrong = []
@@ -865,24 +930,85 @@ class ParachuteSession:
                            + f' (flag layout {self.link.layout})')
         return True, 'auto triggers verified'
 
-    def _apply_desired(self) -> None:
-        """Write every desired setting that differs from the module's, then verify (D4)."""
+    def _write_step(self, param: str, value: Any, origin: str) -> Tuple[bool, str]:
+        """Write one desired setting by its parameter name (flags: 'enable' / 'disable')."""
+        if param in SETTINGS:
+            return self._write_setting(param, value, origin)
+        return self._write_flags(**{FLAG_SETTINGS[param]: value == 'enable'}, origin=origin)
+
+    @staticmethod
+    def _step(param: str, value: Any) -> Step:
+        """Return the rule's step for a desired setting given by parameter name and value."""
+        if param in FLAG_SETTINGS:
+            return FLAG_SETTINGS[param], value == 'enable'
+        return param, value
+
+    def _ordered(self, wanted: Dict[str, Any]) -> List[Tuple[str, Any]]:
+        """Parameter name -> value pairs in the rule's safest order (a disable first)."""
+        steps = {self._step(n, v): n for n, v in wanted.items()}
+        return [(steps[step], wanted[steps[step]]) for step in order(steps)]
+
+    def _desired_differing(self) -> Dict[str, Any]:
+        """Return the desired settings (parameter name -> value) the module does not have."""
         config = self.config
+        snap = self.snapshot
+        wanted: Dict[str, Any] = {}
         for name, setting in SETTINGS.items():
             value = config.desired(name)
-            if value != -1 and self.snapshot.raw(name) != setting.to_raw(value):
-                ok, reason = self._write_setting(name, value)
-                if not ok:
-                    self._log('warn', f'desired setting not applied: {reason}')
-        flags = {FLAG_SETTINGS[n]: config.desired(n) == 'enable' for n in FLAG_SETTINGS
-                 if config.desired(n) != 'keep'}
-        if flags:
-            ok, reason = self._write_flags(**flags)
+            if value != -1 and snap.raw(name) != setting.to_raw(value):
+                wanted[name] = value
+        for name, which in FLAG_SETTINGS.items():
+            value = config.desired(name)
+            if value != 'keep' and \
+                    getattr(snap, f'{which}_trigger_enabled') != (value == 'enable'):
+                wanted[name] = value
+        return wanted
+
+    def _apply_desired(self) -> None:
+        """Write every desired setting that differs from the module's, then verify (D4).
+
+        One that would deploy the armed module at once is held back (D16): logged, named in
+        the settings diagnostics, and written once it no longer would (``_recheck_held``).
+        """
+        with self._lock:
+            self._held_retry_at = self.clock() + HELD_RETRY_S
+            before = dict(self._held)
+        held: Dict[str, Tuple[Any, str]] = {}
+        for name, value in self._ordered(self._desired_differing()):
+            try:
+                ok, reason = self._write_step(name, value, 'desired settings')
+            except Withheld as exc:
+                held[name] = (value, exc.reason)
+                if before.get(name, (None, ''))[0] != value:
+                    self._log('warn', f'desired setting {name} = {value} not written: '
+                                      f'{exc.reason}; it is written once it no longer would '
+                                      '(judged on every status)')
+                continue
             if not ok:
-                self._log('warn', f'desired auto triggers not applied: {reason}')
+                self._log('warn', f'desired setting not applied: {reason}')
+            elif name in before:
+                self._log('info', f'desired setting held back is written now: {reason}')
+        with self._lock:
+            self._held = held
         self._update_mismatch()
 
-    def _mismatch(self, snap: Snapshot, config: SessionConfig) -> List[str]:
+    def _recheck_held(self, status: p.Status) -> None:
+        """On a status: retry held-back settings the rule would let through now (reader)."""
+        now = self.clock()
+        with self._lock:
+            if not self._held or not self._snap.initialized or now < self._held_retry_at:
+                return
+            steps = [self._step(n, v) for n, (v, _) in self._held.items()]
+            trigger = self._trigger_settings(self._snap)
+        if all(would_deploy(trigger, status.armed, status.triggered, float(status.tilt_deg),
+                            float(status.accel_g), [step]) for step in steps):
+            return
+        with self._lock:
+            self._held_retry_at = now + HELD_RETRY_S
+        self._schedule('settings')
+
+    def _mismatch(self, snap: Snapshot, config: SessionConfig,
+                  held: Dict[str, Tuple[Any, str]]) -> List[str]:
         mismatch = []
         for name, setting in SETTINGS.items():
             value = config.desired(name)
@@ -896,13 +1022,19 @@ class ParachuteSession:
             if value != 'keep' and (have is None or have != (value == 'enable')):
                 mismatch.append(f'{name}: want {value}, module '
                                 f'{"unknown" if have is None else have}')
-        return mismatch
+        return [f'{line} (not written: {held[line.split(":")[0]][1]})'
+                if line.split(':')[0] in held else line for line in mismatch]
 
     def _update_mismatch(self, log: bool = True) -> None:
         with self._lock:
-            mismatch = tuple(self._mismatch(self._snap, self._config))
-            changed = mismatch != self._snap.mismatch
-            self._snap = replace(self._snap, mismatch=mismatch)
+            # A held setting the module has now, or no longer desired, is no longer held.
+            differing = self._desired_names()
+            self._held = {n: (v, why) for n, (v, why) in self._held.items()
+                          if self._config.desired(n) == v and n in differing}
+            mismatch = tuple(self._mismatch(self._snap, self._config, self._held))
+            held = tuple(f'{n} = {v} not written: {why}' for n, (v, why) in self._held.items())
+            changed = mismatch != self._snap.mismatch or held != self._snap.held
+            self._snap = replace(self._snap, mismatch=mismatch, held=held)
             snap = self._snap
         if changed:
             self.listener.on_diagnostics()
@@ -910,42 +1042,9 @@ class ParachuteSession:
                 self._log('warn', 'settings do not match: ' + '; '.join(mismatch))
         self.listener.on_config(snap)
 
-    def _would_deploy(self, changes: Dict[str, Any]) -> str:
-        """Why the settings `changes` would deploy an armed module at once, or '' (D16).
-
-        The module's rule (P21): attitude when the tilt is above the threshold, free fall when
-        |a| stays below the threshold for the free-fall time, each only with its trigger
-        enabled. Judged on a fresh status read, conservatively: tilt ≥ threshold, and a flag
-        not known counts as enabled.
-        """
-        touched_att = {'attitude_threshold_deg', 'attitude'} & set(changes)
-        touched_ff = {'freefall_threshold_g', 'freefall_time_s', 'freefall'} & set(changes)
-        if not touched_att and not touched_ff:
-            return ''
-        epoch = self._current_epoch()
-        status = self._req(p.encode_status_query(), retries=1)
-        self._on_status(status, via='query', epoch=epoch)
-        if not status.armed or status.triggered:
-            return ''
-        snap = self.snapshot
-        reasons = []
-        threshold = changes.get('attitude_threshold_deg', snap.attitude_threshold_raw)
-        enabled = changes.get('attitude', snap.attitude_trigger_enabled)
-        if touched_att and enabled is not False and threshold is not None and \
-                status.tilt_deg >= threshold:
-            reasons.append(f'tilt {status.tilt_deg}° ≥ attitude threshold {threshold:g}°')
-        if 'freefall_threshold_g' in changes:
-            ff_raw = p.freefall_threshold_to_raw(changes['freefall_threshold_g'])
-        else:
-            ff_raw = snap.freefall_threshold_raw
-        enabled = changes.get('freefall', snap.freefall_trigger_enabled)
-        if touched_ff and enabled is not False and ff_raw is not None and \
-                round(status.accel_g * 10) < ff_raw:
-            reasons.append(f'acceleration {status.accel_g:.1f} g < free-fall threshold '
-                           f'{ff_raw / 10:.1f} g')
-        if not reasons:
-            return ''
-        return 'would deploy now: ' + '; '.join(reasons) + '; lock first (~/arm false)'
+    def _desired_names(self) -> Set[str]:
+        """Desired settings the module does not have (caller holds _lock)."""
+        return {line.split(':')[0] for line in self._mismatch(self._snap, self._config, {})}
 
     def set_thresholds(self, values: Dict[str, float]) -> Result:
         """`~/set_thresholds`: write the given settings (name -> SI value), each verified."""
@@ -960,12 +1059,16 @@ class ParachuteSession:
             return Result(False, f'{self._offline_text(snap)}; nothing sent')
         results = []
         ok_all = True
+        steps = order(values.items())
         try:
-            danger = self._would_deploy(values)
+            danger = self._gate(steps, '~/set_thresholds')
             if danger:
                 return self._refused_setting(danger)
-            for name, value in values.items():
-                ok, message = self._write_setting(name, value)
+            for name, value in steps:
+                try:
+                    ok, message = self._write_setting(name, value, '~/set_thresholds')
+                except Withheld as exc:
+                    ok, message = False, str(exc)
                 ok_all &= ok
                 results.append(message)
         except LinkError as exc:
@@ -987,10 +1090,13 @@ class ParachuteSession:
         if not snap.online:
             return Result(False, f'{self._offline_text(snap)}; nothing sent')
         try:
-            danger = self._would_deploy({'attitude': attitude, 'freefall': freefall})
+            danger = self._gate(order([('attitude', attitude), ('freefall', freefall)]),
+                                '~/set_auto_triggers')
             if danger:
                 return self._refused_setting(danger)
-            ok, message = self._write_flags(attitude, freefall)
+            ok, message = self._write_flags(attitude, freefall, '~/set_auto_triggers')
+        except Withheld as exc:
+            ok, message = False, str(exc)
         except LinkError as exc:
             ok, message = False, f'no reply: {exc}'
         self._update_mismatch()
@@ -1013,13 +1119,12 @@ class ParachuteSession:
                                                 'written')
         deadline = time.monotonic() + PARAM_WRITE_BUDGET_S
         written: List[Tuple[str, Any]] = []
+        steps = self._ordered(wanted)
         try:
-            danger = self._would_deploy({FLAG_SETTINGS.get(n, n): (v == 'enable'
-                                                                   if n in FLAG_SETTINGS else v)
-                                         for n, v in wanted.items()})
+            danger = self._gate([self._step(n, v) for n, v in steps], 'parameters')
             if danger:
                 return self._param_refused(changes, f'refused, nothing written: {danger}')
-            for name, value in wanted.items():
+            for name, value in steps:
                 if time.monotonic() > deadline:
                     raise LinkTimeout(f'no time left for {name} within '
                                       f'{PARAM_WRITE_BUDGET_S} s')
@@ -1027,11 +1132,12 @@ class ParachuteSession:
                     before = self.snapshot.raw(name)
                     if before is None:
                         before = self._req(SETTINGS[name].encode_query(), retries=1).value
-                    ok, reason = self._write_setting(name, value)
                 else:
-                    which = FLAG_SETTINGS[name]
-                    before = getattr(self.snapshot, f'{which}_trigger_enabled')
-                    ok, reason = self._write_flags(**{which: value == 'enable'})
+                    before = getattr(self.snapshot, f'{FLAG_SETTINGS[name]}_trigger_enabled')
+                try:
+                    ok, reason = self._write_step(name, value, 'parameters')
+                except Withheld as exc:
+                    raise LinkError(str(exc)) from None
                 written.append((name, before))
                 if not ok:
                     raise LinkError(reason)
@@ -1052,13 +1158,16 @@ class ParachuteSession:
                 if before is None:
                     raise LinkError('its previous value is not known')
                 if name in SETTINGS:
-                    ok, reason = self._write_setting(name, SETTINGS[name].to_si(before))
+                    ok, reason = self._write_setting(name, SETTINGS[name].to_si(before),
+                                                     'putting back a refused parameter set')
                 else:
-                    ok, reason = self._write_flags(**{FLAG_SETTINGS[name]: before})
+                    ok, reason = self._write_flags(**{FLAG_SETTINGS[name]: before},
+                                                   origin='putting back a refused parameter '
+                                                   'set')
                 if not ok:
                     raise LinkError(reason)
                 back.append(name)
-            except (LinkError, p.ProtocolError) as exc:
+            except (LinkError, Withheld, p.ProtocolError) as exc:
                 failed.append(f'{name} ({exc})')
         self._update_mismatch()
         text = f'; put back {", ".join(back)}' if back else ''

@@ -8,6 +8,7 @@ the time-based rules (the test moves it; the module keeps its own real time). Te
 
 from __future__ import annotations
 
+from dataclasses import replace
 import os
 import subprocess
 import sys
@@ -18,7 +19,7 @@ import pytest
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
-from dps_parachute_ros.session import ParachuteSession
+from dps_parachute_ros.session import HELD_RETRY_S, ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
@@ -52,10 +53,12 @@ class Heard(Listener):
 
 
 class Rig:
-    def __init__(self, tmp, blackbox=None, baud=0, **config):
+    def __init__(self, tmp, blackbox=None, baud=0, setup=None, **config):
         self.tmp = tmp
         self.sim = VirtualParachute(now=time.monotonic() - 1.0)
         self.sim.step(time.monotonic())  # its power-up heartbeats are in the past
+        if setup is not None:
+            setup(self.sim)  # the module as the driver finds it
         # Baud 0: no wire time. (Wire faults that delay replies need a baud: the pty ignores
         # a start time at baud 0.)
         self.runner = create_runner(self.sim, str(tmp / 'vpara'), baud=baud).start()
@@ -100,6 +103,14 @@ class Rig:
 
     def deploy_outcomes(self):
         return [r for r in self.records() if r['kind'] == 'decision' and r['what'] == 'deploy']
+
+    def restart(self, **config):
+        """Stop the session and start a new one on the same module: a driver respawn."""
+        self.session.stop()
+        self.config = replace(self.config, **config)
+        self.heard = Heard()
+        self.session = ParachuteSession(self.config, self.heard, self.clock)
+        self.session.start()
 
     def close(self):
         self.session.stop()
@@ -862,3 +873,152 @@ def test_safety_5_7_a_pending_request_across_a_reboot_claims_no_deployment(rig):
     with rig.model():
         assert not rig.sim.triggered and not rig.sim.armed
     assert CONFIRM not in rig.wire.since(mark)
+
+
+# -- round two (issue 21) ---------------------------------------------------------------------
+
+def armed_and_banked(rig, tilt=30):
+    """Arm, raise the attitude threshold to 70 by the service, bank: return the requests so far."""
+    rig.arm()
+    assert rig.session.set_thresholds({'attitude_threshold_deg': 70}).ok
+    with rig.model():
+        rig.sim.set_tilt(tilt)
+        return rig.sim.requests_sent
+
+
+def assert_not_fired(rig, asked, threshold=70):
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == threshold
+        assert not rig.sim.triggered and rig.sim.requests_sent == asked
+        assert rig.sim.deployments == 0
+
+
+def assert_held(rig, name, reason):
+    wait_for(lambda: rig.snap.initialized and rig.snap.held, 5, what='the setting held back')
+    assert len(rig.snap.held) == 1 and rig.snap.held[0].startswith(name), rig.snap.held
+    assert reason in rig.snap.held[0], rig.snap.held
+    assert any(line.startswith(name) and 'not written' in line and reason in line
+               for line in rig.snap.mismatch), rig.snap.mismatch
+    assert any(level == 'warn' and name in text and reason in text
+               for level, text in rig.heard.logs), rig.heard.logs
+    withheld = [r for r in rig.records()
+                if r['kind'] == 'decision' and r['what'] == 'settings write withheld']
+    assert withheld and reason in withheld[-1]['reason'], withheld
+
+
+def test_round2_1_a_restart_never_writes_a_setting_that_would_deploy(tmp_path):
+    """Issue 21 item 1: attitude_threshold_deg 20, armed, raised to 70 by the service, banked
+    30°, the driver respawns with the same parameters: 20 is held back (log, mismatch with the
+    reason, black box), and written once the tilt came down; the parachute never fires."""
+    rig = Rig(tmp_path, attitude_threshold_deg=20)
+    try:
+        asked = armed_and_banked(rig)
+        mark = rig.wire.mark()
+        rig.restart()
+        rig.wait_ready()
+        assert_not_fired(rig, asked)
+        assert_held(rig, 'attitude_threshold_deg', 'tilt 30° ≥ attitude threshold 20°')
+        assert rig.wire.since(mark, p.CMD_ATTITUDE_THRESHOLD) == \
+            [p.encode_attitude_threshold_query()] * len(rig.wire.since(
+                mark, p.CMD_ATTITUDE_THRESHOLD))  # queries only, no set
+        assert_not_fired(rig, asked)
+        # Still banked: a status frame never lets it through.
+        rig.clock.advance(HELD_RETRY_S)
+        time.sleep(0.3)
+        assert_not_fired(rig, asked)
+        # The airframe levels: written at the next status, the module stays armed and quiet.
+        with rig.model():
+            rig.sim.set_tilt(5)
+        rig.clock.advance(HELD_RETRY_S)
+        wait_for(lambda: rig.snap.attitude_threshold_raw == 20 and not rig.snap.held, 5,
+                 what='the held setting written once the tilt came down')
+        assert rig.snap.mismatch == ()
+        assert_not_fired(rig, asked, threshold=20)
+        with rig.model():
+            assert rig.sim.armed
+    finally:
+        rig.close()
+
+
+def test_round2_1_a_reconnect_holds_a_setting_until_the_module_is_locked(tmp_path):
+    """The re-initialization after a reconnect (and after a reboot, the same path) passes the
+    rule too; locking the module lets the held setting through."""
+    rig = Rig(tmp_path, attitude_threshold_deg=20)
+    try:
+        asked = armed_and_banked(rig)
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+        rig.runner.replug()
+        rig.wait_ready()
+        assert_not_fired(rig, asked)
+        assert_held(rig, 'attitude_threshold_deg', 'tilt 30° ≥ attitude threshold 20°')
+        rig.clock.advance(HELD_RETRY_S)
+        assert rig.session.arm(False).ok
+        wait_for(lambda: rig.snap.attitude_threshold_raw == 20 and not rig.snap.held, 5,
+                 what='the held setting written once the module was locked')
+        assert_not_fired(rig, asked, threshold=20)
+    finally:
+        rig.close()
+
+
+def test_round2_1_a_set_is_written_in_an_order_that_never_fires(rig):
+    """Disable the attitude trigger and lower its threshold in one parameter set while armed
+    and banked: the disable goes first, so no moment of the write meets a trigger condition;
+    the same set at a driver restart."""
+    asked = armed_and_banked(rig)
+    ok, reason = rig.session.commit_desired({'attitude_threshold_deg': 20,
+                                             'attitude_trigger': 'disable'})
+    assert ok, reason
+    assert_not_fired(rig, asked, threshold=20)
+    with rig.model():
+        assert not rig.sim.attitude_trigger_enabled
+        rig.sim.attitude_threshold_deg = 70
+        rig.sim.attitude_trigger_enabled = True
+    rig.restart(attitude_threshold_deg=20, attitude_trigger='disable')
+    rig.wait_ready()
+    wait_for(lambda: rig.snap.attitude_threshold_raw == 20, 5, what='the settings written')
+    assert rig.snap.held == () and rig.snap.mismatch == ()
+    assert_not_fired(rig, asked, threshold=20)
+
+
+def flag_queries(rig, mark):
+    return [raw for raw in rig.wire.since(mark, p.CMD_ATTITUDE_TRIGGER)
+            if raw[3] == p.CTRL_QUERY]
+
+
+def test_round2_1_the_flag_query_goes_out_once_per_run_and_never_when_it_could_fire(tmp_path):
+    """P14: a firmware may read the flag query as "enable the attitude trigger". Sent at most
+    once per run while unanswered (D5: get_config and re-initializations used to repeat it),
+    and never while enabling the attitude trigger would deploy the armed module at once."""
+    def silent_to_flags(sim):
+        sim.lost_commands = {p.CMD_ATTITUDE_TRIGGER}
+    rig = Rig(tmp_path, setup=silent_to_flags)
+    try:
+        assert len(flag_queries(rig, 0)) == 1
+        assert rig.snap.attitude_trigger_enabled is None
+        assert rig.session.get_config().ok
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+        rig.runner.replug()
+        rig.wait_ready()
+        assert rig.session.get_config().ok
+        assert len(flag_queries(rig, 0)) == 1
+        # A new run, the module armed and banked beyond its threshold with the attitude
+        # trigger off: the query could turn it on and fire; it is not sent.
+        with rig.model():
+            rig.sim.lost_commands = set()
+            rig.sim.attitude_trigger_enabled = False
+        rig.arm()
+        with rig.model():
+            rig.sim.set_tilt(75)
+            asked = rig.sim.requests_sent
+        mark = rig.wire.mark()
+        rig.restart()
+        rig.wait_ready()
+        assert flag_queries(rig, mark) == []
+        assert rig.snap.attitude_trigger_enabled is None
+        assert any('flag query not sent' in text for _, text in rig.heard.logs), rig.heard.logs
+        with rig.model():
+            assert rig.sim.requests_sent == asked and not rig.sim.triggered
+    finally:
+        rig.close()
