@@ -36,7 +36,8 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout, ParachuteLink
-from dps_parachute_ros.settings_rule import order, Step, TRIGGER_STEPS, Trigger, would_deploy
+from dps_parachute_ros.settings_rule import (conditions, order, Step, TRIGGER_STEPS, Trigger,
+                                             would_deploy)
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener,
                                      MODULE_WINDOW_S, RequestDecision, Result, SessionConfig,
                                      SETTINGS, Snapshot, source_name)
@@ -63,7 +64,11 @@ SAFETY_SYNC_S = 0.5
 LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
+LINK_QUIET_S = 10.0
+"""Preflight: a link error (checksum, discarded bytes, lost reply, reconnect) this recent fails."""
 DEPLOY_FRAME = p.encode_deploy()
+Check = Tuple[bool, str, str]
+"""A preflight line: passed, name, detail."""
 HELD_RETRY_S = 1.0
 """A desired setting held back (it would deploy at once) is tried again at most this often."""
 IDLE_WAKE_S = 0.2
@@ -172,6 +177,8 @@ class ParachuteSession:
         self._throttle = Throttle()
         self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
         self._link_recorded_at = -1e9
+        self._link_seen: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
+        self._link_changed_at = -1e9        # when one of the problem counters last grew
         # -- guarded by _jobs_cond ----------------------------------------------------------
         self._jobs = _Jobs()
         self._jobs_cond = threading.Condition()
@@ -577,6 +584,7 @@ class ParachuteSession:
         # not know of them; the counters are cumulative for the run (D10).
         info = self.link_info()
         counters = tuple(info[name] for name in LINK_PROBLEM_COUNTERS)
+        self._note_link(counters)
         now = self.clock()
         with self._lock:
             if counters == self._link_recorded or \
@@ -584,6 +592,18 @@ class ParachuteSession:
                 return
             self._link_recorded, self._link_recorded_at = counters, now
         self.blackbox.record('link', **info)
+
+    def _note_link(self, counters: Optional[Tuple[int, ...]] = None
+                   ) -> Tuple[Tuple[int, ...], float]:
+        """Note when a link problem counter last grew; return the counters and that time."""
+        if counters is None:
+            info = self.link_info()
+            counters = tuple(info[name] for name in LINK_PROBLEM_COUNTERS)
+        with self._lock:
+            if counters != self._link_seen:
+                self._link_seen = counters
+                self._link_changed_at = self.clock()
+            return counters, self._link_changed_at
 
     def tick(self) -> None:
         """Judge the time-based rules now (the monitor does at each deadline, or IDLE_WAKE_S)."""
@@ -1624,55 +1644,152 @@ class ParachuteSession:
         return Result(True, 'module acknowledged and is switching off; switch it on with its '
                             'button (2 s) or external power')
 
+    # -- preflight (D17) -------------------------------------------------------------------------
+
+    def _preflight_steps(self) -> List[Tuple[Tuple[str, ...], bool, Callable[[], List[Check]]]]:
+        """Return the checks of ``~/preflight_check`` in the order of its lines.
+
+        Each is (the names of its lines, whether it queries the module, the check). A check that
+        queries raises LinkError when the module does not answer: its lines and those of every
+        later querying check say "not checked"; the others are judged from what the driver
+        knows. One more check is one more entry here.
+        """
+        return [
+            (('online',), True, self._pf_online),
+            (('armed',), True, self._pf_armed),
+            (('not triggered',), True, self._pf_triggered),
+            (('not in protection',), False, lambda: [self._protection_check()]),
+            (('settings as desired', 'auto triggers as desired'), True, self._pf_settings),
+            (('auto triggers on',), False, self._pf_auto_triggers_on),
+            (('trigger requests confirmed',), False, self._pf_policy),
+            (('no trigger condition met',), True, self._pf_conditions),
+            (('bay closed',), True, self._pf_bay),
+            (('battery',), True, self._pf_battery),
+            (('link clean',), False, self._pf_link),
+            (('black box writable',), False, lambda: [self._blackbox_check()]),
+        ]
+
     def preflight_check(self) -> Result:
         """`~/preflight_check`: go / no-go from the module read afresh, queries only (D17)."""
-        checks: List[Tuple[bool, str, str]] = []
-        config = self.config
-        snap = self.snapshot
-        names = ('armed', 'not triggered', 'not in protection', 'settings as desired',
-                 'auto triggers as desired', 'battery')
-        try:
-            if not snap.port_open:
-                raise LinkDown(self.link.serial.last_error or 'port not open')
-            epoch = self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count)
-            checks.append((True, 'online', f'answers (boot count {self.snapshot.boot_count})'))
-            armed = self._req(p.encode_armed_query(), retries=1).armed
-            self._update_if(epoch, armed=armed)
-            checks.append((armed, 'armed', 'armed' if armed else 'LOCKED: arm it with ~/arm'))
-            triggered = self._query_triggered()
-            if triggered is None:
-                raise LinkTimeout('no reply to the triggered query')
-            checks.append((not triggered, 'not triggered', 'not triggered' if not triggered
-                           else 'TRIGGERED: the parachute has deployed'))
-            checks.append(self._protection_check())
-            for name, setting in SETTINGS.items():
-                self._update(**{setting.field: self._req(setting.encode_query(),
-                                                         retries=1).value})
-            if self._flags_query_answered:
-                self._query_flags()
-            self._update_mismatch(log=False)
-            checks += self._settings_checks(config)
-            charging = self._req(p.encode_charging_query(), retries=1).charging
-            volts = self._req(p.encode_cell_voltage_query(), retries=1).volts
-            self._update(charging=charging, voltage_v=volts)
-            low = not charging and volts < LOW_BATTERY_V
-            checks.append((not low, 'battery', f'{volts:.2f} V '
-                           f'{"charging" if charging else "on battery"}'
-                           + (f', below {LOW_BATTERY_V} V' if low else '')))
-        except LinkError as exc:
-            done = {name for _, name, _ in checks}
-            if 'online' not in done:
-                checks.append((False, 'online', f'no answer: {exc}'))
-            checks += [(False, name, 'not checked: the module did not answer')
-                       for name in names if name not in done]
-        checks.append(self._blackbox_check())
+        checks: List[Check] = []
+        silent: Optional[LinkError] = None
+        if not self.snapshot.port_open:
+            silent = LinkDown(self.link.serial.last_error or 'port not open')
+        for names, queries, check in self._preflight_steps():
+            if queries and silent is not None:
+                checks += [(False, name, f'no answer: {silent}' if name == 'online' else
+                            'not checked: the module did not answer') for name in names]
+                continue
+            try:
+                checks += check()
+            except LinkError as exc:
+                silent = exc
+                checks += [(False, name, f'no answer: {exc}' if name == 'online' else
+                            'not checked: the module did not answer') for name in names]
         ok = all(passed for passed, _, _ in checks)
         lines = [f'{"OK  " if passed else "FAIL"} {name}: {detail}'
                  for passed, name, detail in sorted(checks, key=lambda c: c[0])]
         self.blackbox.record('decision', what='preflight', ok=ok, checks=lines)
         return Result(ok, '\n'.join(lines))
 
-    def _protection_check(self) -> Tuple[bool, str, str]:
+    def _pf_online(self) -> List[Check]:
+        self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count)
+        return [(True, 'online', f'answers (boot count {self.snapshot.boot_count})')]
+
+    def _pf_armed(self) -> List[Check]:
+        epoch = self._current_epoch()
+        armed = self._req(p.encode_armed_query(), retries=1).armed
+        self._update_if(epoch, armed=armed)
+        return [(armed, 'armed', 'armed' if armed else 'LOCKED: arm it with ~/arm')]
+
+    def _pf_triggered(self) -> List[Check]:
+        triggered = self._query_triggered()
+        if triggered is None:
+            raise LinkTimeout('no reply to the triggered query')
+        return [(not triggered, 'not triggered', 'not triggered' if not triggered
+                 else 'TRIGGERED: the parachute has deployed')]
+
+    def _pf_settings(self) -> List[Check]:
+        for setting in SETTINGS.values():
+            self._update(**{setting.field: self._req(setting.encode_query(), retries=1).value})
+        if self._flags_query_answered:
+            self._query_flags()
+        self._update_mismatch(log=False)
+        return self._settings_checks(self.config)
+
+    def _pf_auto_triggers_on(self) -> List[Check]:
+        # Both off: the module never deploys on its own detection, only on ~/deploy.
+        snap = self.snapshot
+        flags = (snap.attitude_trigger_enabled, snap.freefall_trigger_enabled)
+        if None in flags:
+            return [(True, 'auto triggers on', 'not known (the module never reported them, '
+                     'P14)')]
+        text = (f'attitude {"on" if flags[0] else "OFF"}, free fall '
+                f'{"on" if flags[1] else "OFF"}')
+        if not any(flags):
+            return [(False, 'auto triggers on', f'{text}: the module never deploys on its own '
+                     'crash detection, only on ~/deploy')]
+        return [(True, 'auto triggers on', text)]
+
+    def _pf_policy(self) -> List[Check]:
+        config = self.config
+        policy = config.trigger_request_policy
+        if policy == 'deny':
+            return [(False, 'trigger requests confirmed', 'trigger_request_policy deny: a '
+                     "request of the module (its own crash detection, on external power) is "
+                     'never confirmed, so it does not deploy on its own')]
+        if policy == 'defer':
+            return [(True, 'trigger requests confirmed', 'trigger_request_policy defer: '
+                     'confirmed only if ~/answer_trigger_request answers true within '
+                     f'{config.defer_timeout_s:.2f} s, else denied')]
+        return [(True, 'trigger requests confirmed', 'trigger_request_policy confirm')]
+
+    def _pf_conditions(self) -> List[Check]:
+        epoch = self._current_epoch()
+        status = self._req(p.encode_status_query(), retries=1)
+        self._on_status(status, via='query', epoch=epoch)
+        snap = self.snapshot
+        tilt, accel = float(status.tilt_deg), float(status.accel_g)
+        met = conditions(self._trigger_settings(snap), tilt, accel)
+        if snap.pending_request:
+            return [(False, 'no trigger condition met', 'a trigger request of the module is '
+                     'waiting for an answer')]
+        if met:
+            what = ('the module is deploying or asking to' if status.armed else
+                    'arming now fires the parachute at once')
+            return [(False, 'no trigger condition met', f'{"; ".join(met)}: {what} (P21)')]
+        return [(True, 'no trigger condition met', f'tilt {tilt:g}°, |a| {accel:.1f} g')]
+
+    def _pf_bay(self) -> List[Check]:
+        light = self._req(p.encode_light_level_query(), retries=1).volts
+        snap = self._update(light_v=light)
+        threshold = snap.light_threshold_raw / 10
+        if snap.bay_open:
+            return [(False, 'bay closed', f'BAY OPEN: light {light:.1f} V > light threshold '
+                     f'{threshold:.1f} V (lid open or the parachute out?)')]
+        return [(True, 'bay closed', f'light {light:.1f} V ≤ light threshold {threshold:.1f} V')]
+
+    def _pf_battery(self) -> List[Check]:
+        charging = self._req(p.encode_charging_query(), retries=1).charging
+        volts = self._req(p.encode_cell_voltage_query(), retries=1).volts
+        self._update(charging=charging, voltage_v=volts)
+        low = not charging and volts < LOW_BATTERY_V
+        return [(not low, 'battery', f'{volts:.2f} V {"charging" if charging else "on battery"}'
+                 + (f', below {LOW_BATTERY_V} V' if low else ''))]
+
+    def _pf_link(self) -> List[Check]:
+        # The counters are for the whole run: one burst long ago is no reason for a no-go, a
+        # recent one is (a deploy frame would meet the same link).
+        counters, changed_at = self._note_link()
+        totals = ', '.join(f'{n} {c}' for n, c in zip(LINK_PROBLEM_COUNTERS, counters))
+        ago = self.clock() - changed_at
+        if ago < LINK_QUIET_S:
+            return [(False, 'link clean', f'link errors {ago:.1f} s ago (run: {totals}); a '
+                     f'clean link for {LINK_QUIET_S:.0f} s is a go')]
+        return [(True, 'link clean', f'no link error in the last {LINK_QUIET_S:.0f} s (run: '
+                 f'{totals})')]
+
+    def _protection_check(self) -> Check:
         # The module has no query for its protection state (P19): judged from the deploy
         # frames this driver sent since the module's last power-up.
         snap = self.snapshot
@@ -1685,7 +1802,7 @@ class ParachuteSession:
         return (True, 'not in protection', detail + ' (judged by the driver: the module has '
                 'no query for it)')
 
-    def _settings_checks(self, config: SessionConfig) -> List[Tuple[bool, str, str]]:
+    def _settings_checks(self, config: SessionConfig) -> List[Check]:
         snap = self.snapshot
         numeric = [m for m in snap.mismatch if m.split(':')[0] in SETTINGS]
         flags = [m for m in snap.mismatch if m.split(':')[0] in FLAG_SETTINGS]

@@ -631,6 +631,12 @@ def test_safety_12_the_blackbox_directory_stays_within_its_bound(tmp_path):
         box.close()
 
 
+PREFLIGHT_LINES = [
+    'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
+    'auto triggers as desired', 'auto triggers on', 'trigger requests confirmed',
+    'no trigger condition met', 'bay closed', 'battery', 'link clean', 'black box writable']
+
+
 def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     rig.arm()
     mark = rig.wire.mark()
@@ -638,9 +644,7 @@ def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     assert result.ok, result.message
     lines = result.message.splitlines()
     assert all(line.startswith('OK   ') for line in lines)
-    assert [line.split(':')[0][5:] for line in lines] == [
-        'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
-        'auto triggers as desired', 'battery', 'black box writable']
+    assert [line.split(':')[0][5:] for line in lines] == PREFLIGHT_LINES
     sent = rig.wire.since(mark)
     assert sent and all(raw[3] == p.CTRL_QUERY for raw in sent), [r.hex(' ') for r in sent]
     # Behind the driver's back: locked, a setting changed, on a weak battery.
@@ -1020,5 +1024,89 @@ def test_round2_1_the_flag_query_goes_out_once_per_run_and_never_when_it_could_f
         assert any('flag query not sent' in text for _, text in rig.heard.logs), rig.heard.logs
         with rig.model():
             assert rig.sim.requests_sent == asked and not rig.sim.triggered
+    finally:
+        rig.close()
+
+
+def preflight_fails(rig):
+    """Run the preflight check; return its FAIL lines as {name: detail}."""
+    result = rig.session.preflight_check()
+    fails = dict(line[5:].split(': ', 1) for line in result.message.splitlines()
+                 if line.startswith('FAIL'))
+    assert result.ok == (not fails), result.message
+    return fails
+
+
+def test_round2_4_preflight_fails_under_deny_and_with_the_bay_open(rig):
+    """Issue 21 item 4: GO under trigger_request_policy deny and with bay_open true; both are
+    FAIL lines with the reason now, and only they."""
+    rig.arm()
+    assert preflight_fails(rig) == {}
+    policy(rig, 'deny')
+    fails = preflight_fails(rig)
+    assert list(fails) == ['trigger requests confirmed'], fails
+    assert 'deny' in fails['trigger requests confirmed'] and \
+        'does not deploy on its own' in fails['trigger requests confirmed']
+    policy(rig, 'defer')
+    assert preflight_fails(rig) == {}  # someone may answer: said in its OK line
+    policy(rig, 'confirm')
+    with rig.model():
+        rig.sim.set_light(3.0)  # above the module's 1.2 V light threshold
+    fails = preflight_fails(rig)
+    assert list(fails) == ['bay closed'], fails
+    assert 'BAY OPEN: light 3.0 V > light threshold 1.2 V' in fails['bay closed']
+    assert rig.snap.bay_open
+    with rig.model():
+        rig.sim.set_light(None)
+    assert preflight_fails(rig) == {}
+
+
+def test_round2_4_preflight_fails_on_every_state_that_keeps_the_parachute_in(tmp_path):
+    """The other states the driver knows that stop a deployment: both auto triggers off, a
+    trigger condition met now (arming would fire), a desired setting held back (item 1), a
+    link that just had errors."""
+    rig = Rig(tmp_path, attitude_threshold_deg=20)
+    try:
+        rig.arm()
+        assert rig.session.set_auto_triggers(False, False).ok
+        fails = preflight_fails(rig)
+        assert list(fails) == ['auto triggers on'], fails
+        assert 'attitude OFF, free fall OFF' in fails['auto triggers on']
+        assert rig.session.set_auto_triggers(True, True).ok
+        # Locked and banked beyond the threshold: arming now would fire it.
+        assert rig.session.arm(False).ok
+        with rig.model():
+            rig.sim.set_tilt(30)
+        fails = preflight_fails(rig)
+        assert set(fails) == {'armed', 'no trigger condition met'}, fails
+        assert 'tilt 30° ≥ attitude threshold 20°: arming now fires the parachute' in \
+            fails['no trigger condition met']
+        # Armed at 70, banked 30, a respawn holds 20 back: the settings line says so.
+        with rig.model():
+            rig.sim.set_tilt(0)
+        rig.arm()
+        asked = armed_and_banked(rig)
+        rig.restart()
+        rig.wait_ready()
+        wait_for(lambda: rig.snap.held, 5, what='the setting held back')
+        fails = preflight_fails(rig)
+        assert list(fails) == ['settings as desired'], fails
+        assert 'attitude_threshold_deg: want 20, module 70 (not written: would deploy now' in \
+            fails['settings as desired']
+        with rig.model():
+            assert rig.sim.requests_sent == asked and not rig.sim.triggered
+            rig.sim.set_tilt(0)
+        rig.clock.advance(HELD_RETRY_S)
+        wait_for(lambda: not rig.snap.held, 5, what='the held setting written')
+        rig.clock.advance(11.0)
+        assert preflight_fails(rig) == {}
+        # Noise on the line: a no-go until the link has been clean for 10 s.
+        rig.runner.inject_garbage(bytes([0x41, 0x75, 0x32, 0x01, 0x00, 0x00]))
+        wait_for(lambda: rig.session.link_info()['checksum_errors'] or
+                 rig.session.link_info()['bytes_discarded'], 5, what='the noise counted')
+        fails = preflight_fails(rig)
+        assert list(fails) == ['link clean'], fails
+        rig.clock.advance(11.0)
+        assert preflight_fails(rig) == {}
     finally:
         rig.close()

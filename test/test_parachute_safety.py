@@ -197,7 +197,7 @@ def test_safety_21_preflight_check_over_ros(make_rig):
     assert rig.call(SetBool, 'arm', SetBool.Request(data=True)).success
     reply = rig.call(Trigger, 'preflight_check')
     assert reply.success, reply.message
-    assert len(reply.message.splitlines()) == 8 and 'FAIL' not in reply.message
+    assert len(reply.message.splitlines()) == 13 and 'FAIL' not in reply.message
 
 
 def settings_diagnostic(rig, predicate, timeout=15.0, start=0):
