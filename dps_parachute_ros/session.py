@@ -36,7 +36,7 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout, ParachuteLink
-from dps_parachute_ros.settings_rule import (conditions, order, Step, TRIGGER_STEPS, Trigger,
+from dps_parachute_ros.settings_rule import (conditions, JUDGED_STEPS, order, Step, Trigger,
                                              would_deploy)
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener,
                                      MODULE_WINDOW_S, RequestDecision, Result, SessionConfig,
@@ -888,7 +888,7 @@ class ParachuteSession:
         (raises LinkError when it is not answered: nothing is written then) and judged by
         `settings_rule.would_deploy`. A refusal is recorded in the black box.
         """
-        if not any(name in TRIGGER_STEPS for name, _ in steps):
+        if not any(name in JUDGED_STEPS for name, _ in steps):
             return ''
         epoch = self._current_epoch()
         status = self._req(p.encode_status_query(), retries=1)
@@ -1398,7 +1398,7 @@ class ParachuteSession:
                 return self._deploy_end(
                     'refused', 'deploy refused: the module is locked (a locked module cannot '
                     'deploy); arm it with ~/arm or set arm_if_locked; nothing sent')
-            ok, message = self._arm(True)
+            ok, message = self._arm(True, judge=False)  # deploying is what was asked
             if not ok:
                 return self._deploy_end('refused', f'deploy refused: arming failed: {message}')
         attempts = 0
@@ -1542,7 +1542,11 @@ class ParachuteSession:
         self._log('info' if ok else 'warn', message)
         return Result(ok, message)
 
-    def _arm(self, want: bool) -> Tuple[bool, str]:
+    def _arm(self, want: bool, judge: bool = True) -> Tuple[bool, str]:
+        """Arm or lock, verified; an arm that would fire at once is refused (D16, P21).
+
+        `judge` False: arming for a deploy (``arm_if_locked``), where firing is the point.
+        """
         word = 'arm' if want else 'lock'
         snap = self.snapshot
         if want and snap.online and not snap.fresh:
@@ -1557,6 +1561,9 @@ class ParachuteSession:
                            'is never re-armed. Re-pack it and switch it off and on; nothing sent')
         epoch = self._current_epoch()
         try:
+            danger = self._gate([('armed', True)], '~/arm') if want and judge else ''
+            if danger:
+                return False, f'cannot arm, nothing sent: {danger}'
             reply = self._req(p.encode_arm(want), retries=1)
             if reply.armed != want:
                 return False, (f'module answered {reply.raw.hex(" ")} to {word}: '

@@ -24,6 +24,8 @@ ATTITUDE_STEPS = frozenset({'attitude_threshold_deg', 'attitude'})
 FREEFALL_STEPS = frozenset({'freefall_threshold_g', 'freefall_time_s', 'freefall'})
 TRIGGER_STEPS = ATTITUDE_STEPS | FREEFALL_STEPS
 """The light threshold only decides `bay_open` (D9): no trigger condition depends on it."""
+JUDGED_STEPS = TRIGGER_STEPS | {'armed'}
+"""``('armed', True)``: arming a module that meets a trigger condition fires it at once (P21)."""
 
 
 @dataclass(frozen=True)
@@ -90,17 +92,24 @@ def would_deploy(trigger: Trigger, armed: Optional[bool], triggered: Optional[bo
     """Why writing `steps` in this order to this module would deploy it at once, or ''.
 
     Only an armed module that has not deployed can fire (P21); an armed state not known
-    counts as armed. Each step is judged in the state it leaves, on the trigger it touches.
+    counts as armed. Each step is judged in the state it leaves: a setting on the trigger it
+    touches, arming on both.
     """
-    if armed is False or triggered:
+    if triggered:
         return ''
     for step in steps:
-        name = step[0]
-        if name not in TRIGGER_STEPS:
+        name, value = step
+        if name == 'armed':
+            armed = bool(value)
+            which: Tuple[str, ...] = ('attitude', 'freefall')
+            advice = 'level it, or raise the threshold or disable that trigger first'
+        elif name in TRIGGER_STEPS:
+            trigger = trigger.after(step)
+            which = ('attitude',) if name in ATTITUDE_STEPS else ('freefall',)
+            advice = 'lock first (~/arm false)'
+        else:
             continue
-        trigger = trigger.after(step)
-        which = ('attitude',) if name in ATTITUDE_STEPS else ('freefall',)
-        met = conditions(trigger, tilt_deg, accel_g, which)
+        met = conditions(trigger, tilt_deg, accel_g, which) if armed is not False else []
         if met:
-            return 'would deploy now: ' + '; '.join(met) + '; lock first (~/arm false)'
+            return 'would deploy now: ' + '; '.join(met) + '; ' + advice
     return ''

@@ -1110,3 +1110,36 @@ def test_round2_4_preflight_fails_on_every_state_that_keeps_the_parachute_in(tmp
         assert preflight_fails(rig) == {}
     finally:
         rig.close()
+
+
+def test_round2_1_arming_a_module_that_meets_a_trigger_condition_is_refused(rig):
+    """The same rule on the arm path (P21: arming beyond a threshold fires at once): ~/arm is
+    refused with nothing sent; ~/deploy with arm_if_locked still arms and deploys."""
+    with rig.model():
+        rig.sim.set_tilt(75)  # the threshold is 70
+        asked = rig.sim.requests_sent
+    mark = rig.wire.mark()
+    result = rig.session.arm(True)
+    assert not result.ok and 'would deploy now: tilt 75° ≥ attitude threshold 70°' in \
+        result.message, result.message
+    assert rig.wire.since(mark, p.CMD_ARM) == []
+    with rig.model():
+        assert not rig.sim.armed and rig.sim.requests_sent == asked
+        rig.sim.set_tilt(0)
+        rig.sim.set_accel(0.3)  # below the 0.5 g free-fall threshold
+    result = rig.session.arm(True)
+    assert not result.ok and 'acceleration 0.3 g < free-fall threshold 0.5 g' in \
+        result.message, result.message
+    assert rig.session.set_auto_triggers(True, False).ok
+    rig.arm()  # the free-fall trigger is off: nothing fires
+    with rig.model():
+        assert rig.sim.armed and rig.sim.requests_sent == asked and not rig.sim.triggered
+    assert rig.session.arm(False).ok
+    with rig.model():
+        rig.sim.set_accel(1.0)
+        rig.sim.set_tilt(75)
+    policy(rig, 'deny')  # the module's own request is not what deploys it here
+    result = rig.session.deploy('DEPLOY', arm_if_locked=True)
+    assert result.ok, result.message
+    with rig.model():
+        assert rig.sim.triggered
