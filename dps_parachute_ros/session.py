@@ -65,7 +65,10 @@ LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
 LINK_QUIET_S = 10.0
-"""Preflight: a link error (checksum, discarded bytes, lost reply, reconnect) this recent fails."""
+"""Preflight: a link error (checksum, lost reply, reconnect) this recent fails."""
+LINK_ERROR_COUNTERS = ('checksum_errors', 'timeouts', 'reconnects')
+"""What preflight judges the link by. Not discarded bytes: they also come from the end of a
+trigger-record answer cut at its quiet gap (P15); not the flag query's silence (P14)."""
 DEPLOY_FRAME = p.encode_deploy()
 Check = Tuple[bool, str, str]
 """A preflight line: passed, name, detail."""
@@ -177,7 +180,8 @@ class ParachuteSession:
         self._throttle = Throttle()
         self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
         self._link_recorded_at = -1e9
-        self._link_seen: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
+        self._link_seen: Tuple[int, ...] = (0,) * len(LINK_ERROR_COUNTERS)
+        self._silent_flag_queries = 0       # flag queries unanswered (P14): no link error
         self._link_changed_at = -1e9        # when one of the problem counters last grew
         # -- guarded by _jobs_cond ----------------------------------------------------------
         self._jobs = _Jobs()
@@ -584,7 +588,7 @@ class ParachuteSession:
         # not know of them; the counters are cumulative for the run (D10).
         info = self.link_info()
         counters = tuple(info[name] for name in LINK_PROBLEM_COUNTERS)
-        self._note_link(counters)
+        self._note_link(info)
         now = self.clock()
         with self._lock:
             if counters == self._link_recorded or \
@@ -593,13 +597,13 @@ class ParachuteSession:
             self._link_recorded, self._link_recorded_at = counters, now
         self.blackbox.record('link', **info)
 
-    def _note_link(self, counters: Optional[Tuple[int, ...]] = None
+    def _note_link(self, info: Optional[Dict[str, Any]] = None
                    ) -> Tuple[Tuple[int, ...], float]:
-        """Note when a link problem counter last grew; return the counters and that time."""
-        if counters is None:
-            info = self.link_info()
-            counters = tuple(info[name] for name in LINK_PROBLEM_COUNTERS)
+        """Note when a link error counter last grew; return the counters and that time."""
+        info = info or self.link_info()
         with self._lock:
+            info = dict(info, timeouts=info['timeouts'] - self._silent_flag_queries)
+            counters = tuple(info[name] for name in LINK_ERROR_COUNTERS)
             if counters != self._link_seen:
                 self._link_seen = counters
                 self._link_changed_at = self.clock()
@@ -868,6 +872,8 @@ class ParachuteSession:
             reply = self._req(p.encode_auto_trigger_query(), timeout=FLAGS_QUERY_TIMEOUT_S,
                               silence_ok=True)
         except LinkTimeout:
+            with self._lock:
+                self._silent_flag_queries += 1
             return False
         self._set_flags(reply)
         with self._lock:
@@ -1788,7 +1794,7 @@ class ParachuteSession:
         # The counters are for the whole run: one burst long ago is no reason for a no-go, a
         # recent one is (a deploy frame would meet the same link).
         counters, changed_at = self._note_link()
-        totals = ', '.join(f'{n} {c}' for n, c in zip(LINK_PROBLEM_COUNTERS, counters))
+        totals = ', '.join(f'{n} {c}' for n, c in zip(LINK_ERROR_COUNTERS, counters))
         ago = self.clock() - changed_at
         if ago < LINK_QUIET_S:
             return [(False, 'link clean', f'link errors {ago:.1f} s ago (run: {totals}); a '
