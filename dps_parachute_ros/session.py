@@ -750,7 +750,9 @@ class ParachuteSession:
         elif job == 'stream' and self.snapshot.online:
             self._set_streaming(self.config.stream_status)
         elif job == 'settings' and self.snapshot.online and self.snapshot.initialized:
-            self._apply_desired()
+            with self._lock:
+                held = set(self._held)
+            self._apply_desired(only=held)
 
     def _initialize(self) -> None:
         """Read the module afresh and bring it to the desired settings (D2)."""
@@ -990,17 +992,22 @@ class ParachuteSession:
                 wanted[name] = value
         return wanted
 
-    def _apply_desired(self) -> None:
+    def _apply_desired(self, only: Optional[Set[str]] = None) -> None:
         """Write every desired setting that differs from the module's, then verify (D4).
 
         One that would deploy the armed module at once is held back (D16): logged, named in
-        the settings diagnostics, and written once it no longer would (``_recheck_held``).
+        the settings diagnostics, and written once it no longer would (``_recheck_held``, which
+        passes `only` the held ones: a value set by a service meanwhile stays until the next
+        re-initialization, as before).
         """
         with self._lock:
             self._held_retry_at = self.clock() + HELD_RETRY_S
             before = dict(self._held)
-        held: Dict[str, Tuple[Any, str]] = {}
-        for name, value in self._ordered(self._desired_differing()):
+        wanted = self._desired_differing()
+        if only is not None:
+            wanted = {n: v for n, v in wanted.items() if n in only}
+        held = {n: h for n, h in before.items() if only is not None and n not in only}
+        for name, value in self._ordered(wanted):
             try:
                 ok, reason = self._write_step(name, value, 'desired settings')
             except Withheld as exc:
