@@ -34,6 +34,7 @@ import time
 from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.attempts import AttemptsFile
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout, ParachuteLink
 from dps_parachute_ros.settings_rule import (conditions, JUDGED_STEPS, order, Step, Trigger,
@@ -188,6 +189,7 @@ class ParachuteSession:
         self._jobs_cond = threading.Condition()
         # -- other ----------------------------------------------------------------------------
         self._actuation = threading.Lock()
+        self._attempts = AttemptsFile(config.blackbox_dir, config.port)
         self._stopping = threading.Event()
         self._monitor_wake = threading.Event()
         max_bytes = int(config.blackbox_max_mb * 1e6) if config.blackbox_max_mb > 0 else None
@@ -802,9 +804,17 @@ class ParachuteSession:
         A change is a reboot (D3): the module is read afresh (unless `reinit` is False: the
         initialization in progress does that).
         """
+        stored = self._attempts.load() if self.snapshot.boot_count is None else None
         with self._lock:
             previous = self._snap.boot_count
             self._snap = replace(self._snap, boot_count=count)
+            restored = previous is None and stored is not None and \
+                stored.boot_count == count and stored.failed > self._snap.failed_deploys
+            if restored:
+                # The same power-up as an earlier run's unsuccessful deploy frames (P11).
+                self._snap = replace(self._snap, failed_deploys=stored.failed,
+                                     unacked_deploys=max(stored.unacked,
+                                                         self._snap.unacked_deploys))
             if None in self._reported_boots and previous is None:
                 # A deployment reported before the first boot count read happened in this boot.
                 self._reported_boots.discard(None)
@@ -816,12 +826,29 @@ class ParachuteSession:
                 self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=0, fresh=False,
                                      armed=None)
             epoch = self._epoch
+        if restored:
+            self._log('warn', f'{stored.failed} deploy frame(s) without a successful '
+                              f'acknowledgement in this power-up (boot {count}), sent by an '
+                              'earlier run of the driver: they count (P11)')
+            self.blackbox.record('state', event='deploy attempts of an earlier run',
+                                 boot_count=count, failed_deploys=stored.failed,
+                                 unacked_deploys=stored.unacked)
+            self.listener.on_diagnostics()
         if rebooted:
             self._log('warn', f'module boot count {previous} -> {count}: it rebooted')
             self._void_pending('the module rebooted while the request was pending')
             if reinit:
                 self._schedule('init', force=True)
         return epoch
+
+    def _save_attempts(self, leaving: int = 0) -> None:
+        """Keep the unsuccessful deploy frames of this power-up for a later run (P11)."""
+        snap = self.snapshot
+        problem = self._attempts.save(snap.boot_count, snap.failed_deploys + leaving,
+                                      snap.unacked_deploys + leaving)
+        if problem:
+            self._log('warn', f'deploy attempts not kept for a restart: {problem}',
+                      key='attempts', every_s=60.0)
 
     def _set_streaming(self, enabled: bool) -> bool:
         reply = self._req(p.encode_streaming(enabled), retries=1)
@@ -1323,6 +1350,8 @@ class ParachuteSession:
         with self._lock:
             failed = 0 if ack.success else self._snap.failed_deploys
             self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=failed)
+        if not late:
+            self._save_attempts()  # (a late one is saved by the deploy call it ends)
         if not ack.success:
             return
         if late:
@@ -1389,6 +1418,7 @@ class ParachuteSession:
                                         'down; nothing sent')
             return self._deploy(arm_if_locked, t0)
         finally:
+            self._save_attempts()
             self._actuation.release()
 
     def _deploy(self, arm_if_locked: bool, t0: float) -> Result:
@@ -1441,6 +1471,7 @@ class ParachuteSession:
             self.blackbox.record('decision', what='deploy: sending the deploy frame',
                                  attempt=attempts)
             self._safety_sync()
+            self._save_attempts(leaving=1)  # a respawned driver counts it too (P11)
             with self._lock:
                 self._deploy_frame_left = False
             try:

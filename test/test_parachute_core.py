@@ -1143,3 +1143,30 @@ def test_round2_1_arming_a_module_that_meets_a_trigger_condition_is_refused(rig)
     assert result.ok, result.message
     with rig.model():
         assert rig.sim.triggered
+
+
+def test_round2_1_the_two_frame_guard_holds_across_a_driver_restart(rig):
+    """Found auditing the rules' paths: the P11 guard (never a third deploy frame without an
+    acknowledgement in one power-up) was kept in memory, so a respawned driver sent two more to
+    the same power-up of the module (four in a row: protection blocks its own detection)."""
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # no frame reaches it: no acknowledgement
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'did NOT deploy' in result.message, result.message
+    rig.restart()
+    rig.wait_ready()
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'a third could put the module into protection' in \
+        result.message, result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == []
+    assert 'FAIL not in protection' in rig.session.preflight_check().message
+    assert any('earlier run of the driver' in text for _, text in rig.heard.logs)
+    # A power-up of the module clears its count, and the driver's.
+    with rig.model():
+        rig.sim.lost_commands = set()
+    rig.fresh()
+    assert rig.snap.failed_deploys == 0
+    rig.arm()
+    assert rig.session.deploy('DEPLOY').ok
