@@ -503,7 +503,7 @@ class ParachuteSession:
             problem = f'{self._offline_text(snap)}: no confirmation sent'
         elif snap.triggered:
             problem = 'the module has already deployed: no confirmation sent'
-        elif snap.armed is False:
+        elif snap.armed is False and snap.fresh:
             problem = ('the module is locked, and a locked module cannot deploy (P12, P20): '
                        'no confirmation sent')
         if problem:
@@ -517,7 +517,8 @@ class ParachuteSession:
                          None)
             return Result(False, f'confirmation not sent: {exc}')
         t_tx = self.clock()
-        if snap.armed:
+        # Armed only as read since the module last could have changed unseen (D15).
+        if snap.armed and snap.fresh:
             outcome = 'the module was armed: it deploys on it (~/trigger_event reports it)'
         else:
             outcome = ("the module's armed state is not known: ~/triggered shows whether it "

@@ -1170,3 +1170,25 @@ def test_round2_1_the_two_frame_guard_holds_across_a_driver_restart(rig):
     assert rig.snap.failed_deploys == 0
     rig.arm()
     assert rig.session.deploy('DEPLOY').ok
+
+
+def test_round2_1_a_confirmation_after_a_reconnect_claims_nothing_on_old_knowledge(rig):
+    """Found auditing "never on old knowledge" (D15): deploy and arm wait for the re-read, but
+    answering a held request true right after a reconnect, before the module was read again,
+    said "the module was armed: it deploys" from the armed state read before the unplug."""
+    mark = held_request(rig)
+    rig.runner.unplug()
+    wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+    with rig.model():
+        rig.sim.streaming = False  # no status frame re-reads it ...
+        rig.sim.lost_commands = {p.CMD_STREAMING}  # ... and the re-initialization stalls
+    rig.runner.replug()
+    wait_for(lambda: rig.snap.online and rig.wire.since(mark, p.CMD_STREAMING), 5,
+             what='online again, initializing')
+    assert not rig.snap.fresh and rig.snap.armed  # as read before the unplug
+    result = rig.session.answer_trigger_request(True)
+    assert result.ok and 'was armed' not in result.message and 'not known' in \
+        result.message, result.message
+    assert 'was armed' not in rig.heard.decisions[-1].reason
+    with rig.model():
+        assert not rig.sim.triggered  # its 1 s window had passed: it did not
