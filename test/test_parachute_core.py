@@ -15,13 +15,16 @@ import sys
 import threading
 import time
 
+from hypothesis import assume, example, given, settings
+from hypothesis import strategies as st
 import pytest
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.session import HELD_RETRY_S, ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
-from dps_parachute_ros.state import Listener, SessionConfig
+from dps_parachute_ros.settings_rule import conditions, order, Trigger, would_deploy
+from dps_parachute_ros.state import Listener, SessionConfig, SETTINGS
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
 from support import FakeClock
@@ -1192,3 +1195,57 @@ def test_round2_1_a_confirmation_after_a_reconnect_claims_nothing_on_old_knowled
     assert 'was armed' not in rig.heard.decisions[-1].reason
     with rig.model():
         assert not rig.sim.triggered  # its 1 s window had passed: it did not
+
+
+_STEP = st.one_of(
+    st.tuples(st.just('attitude_threshold_deg'), st.integers(10, 90)),
+    st.tuples(st.just('freefall_threshold_g'), st.integers(1, 9).map(lambda raw: raw / 10)),
+    st.tuples(st.just('freefall_time_s'), st.integers(1, 255).map(lambda raw: raw / 100)),
+    st.tuples(st.sampled_from(['attitude', 'freefall']), st.booleans()),
+    st.tuples(st.just('armed'), st.just(True)))
+
+
+def _frame(step):
+    name, value = step
+    if name == 'armed':
+        return p.encode_arm(True)
+    if name == 'attitude':
+        return p.encode_attitude_trigger(value)
+    if name == 'freefall':
+        return p.encode_freefall_trigger(value)
+    return SETTINGS[name].encode_set(value)
+
+
+@settings(max_examples=300, deadline=None)
+@given(attitude=st.integers(10, 90), freefall=st.integers(1, 9), freefall_time=st.integers(1, 255),
+       attitude_on=st.booleans(), freefall_on=st.booleans(), armed=st.booleans(),
+       tilt=st.integers(0, 95), accel=st.integers(0, 20), steps=st.lists(_STEP, max_size=4))
+@example(attitude=70, freefall=5, freefall_time=160, attitude_on=True, freefall_on=True,
+         armed=True, tilt=30, accel=10, steps=[('attitude_threshold_deg', 20),
+                                               ('attitude', False)])  # issue 21 item 1
+def test_round2_1_no_write_the_rule_lets_through_fires_the_module(
+        attitude, freefall, freefall_time, attitude_on, freefall_on, armed, tilt, accel, steps):
+    """The settings rule as an invariant, against the module model itself (P21): whatever
+    settings, flags, tilt and |a|, a sequence of writes (and an arm) that the rule lets
+    through, in the order the driver writes it, never makes the module ask or fire, even after
+    the longest free-fall time."""
+    trigger = Trigger(attitude, freefall, attitude_on, freefall_on)
+    # A module already meeting a condition while armed has fired before any write of ours.
+    assume(not (armed and conditions(trigger, tilt, accel / 10)))
+    ordered = order(steps)
+    if would_deploy(trigger, armed, False, tilt, accel / 10, ordered):
+        return
+    sim = VirtualParachute()
+    sim.step(1.0)
+    sim.attitude_threshold_deg, sim.freefall_threshold_raw = attitude, freefall
+    sim.freefall_time_raw = freefall_time
+    sim.attitude_trigger_enabled, sim.freefall_trigger_enabled = attitude_on, freefall_on
+    sim.set_tilt(tilt)
+    sim.set_accel(accel / 10)
+    sim.armed = armed
+    now = 1.0
+    for step in ordered:
+        now += 0.01
+        sim.receive(_frame(step), now)
+    sim.step(now + 3.0)
+    assert sim.requests_sent == 0 and not sim.triggered and sim.deployments == 0, ordered
