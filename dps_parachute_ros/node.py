@@ -315,7 +315,10 @@ class ParachuteNode(Node, Listener):
 
     def _diag_settings(self, stat: Status) -> None:
         snap = self.session.snapshot
-        if snap.mismatch:
+        if snap.held:
+            stat.summary(WARN, 'desired setting held back (written once it no longer would '
+                               'deploy the armed module): ' + '; '.join(snap.held))
+        elif snap.mismatch:
             stat.summary(WARN, 'settings do not match: ' + '; '.join(snap.mismatch))
         else:
             stat.summary(OK, 'settings verified')

@@ -34,8 +34,11 @@ import time
 from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.attempts import AttemptsFile
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout, ParachuteLink
+from dps_parachute_ros.settings_rule import (conditions, JUDGED_STEPS, order, Step, Trigger,
+                                             would_deploy)
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener,
                                      MODULE_WINDOW_S, RequestDecision, Result, SessionConfig,
                                      SETTINGS, Snapshot, source_name)
@@ -62,6 +65,11 @@ SAFETY_SYNC_S = 0.5
 LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
+LINK_QUIET_S = 10.0
+"""Preflight: a link error (checksum, lost reply, reconnect) this recent fails."""
+LINK_ERROR_COUNTERS = ('checksum_errors', 'timeouts', 'reconnects')
+"""What preflight judges the link by. Not discarded bytes: they also come from the end of a
+trigger-record answer cut at its quiet gap (P15); not the flag query's silence (P14)."""
 DEPLOY_FRAME = p.encode_deploy()
 STREAM_GRACE = 0.5
 """Without a stream frame for this share of `offline_timeout_s` the driver asks the module: an
@@ -70,9 +78,21 @@ STREAM_RETRY_S = (2.0, 60.0)
 """Back-off of the attempts to restore a stopped stream: first delay, longest delay."""
 RECORDS_RETRY_S = (1.0, 30.0)
 """Back-off of the trigger-record fetch owed to a deployment of unknown source, while online."""
+Check = Tuple[bool, str, str]
+"""A preflight line: passed, name, detail."""
+HELD_RETRY_S = 1.0
+"""A desired setting held back (it would deploy at once) is tried again at most this often."""
 IDLE_WAKE_S = 0.2
 """The worker and the monitor sleep until their next deadline, and at most this long (they see
 state changes nobody signals within it). Each wake-up costs CPU: they used to poll at 50 Hz."""
+
+
+class Withheld(Exception):
+    """A settings write the rule refused (D16): it would deploy the armed module at once."""
+
+    def __init__(self, what: str, reason: str) -> None:
+        super().__init__(f'{what} not written: {reason}')
+        self.reason = reason
 
 
 @dataclass
@@ -173,14 +193,21 @@ class ParachuteSession:
         self._initialized_at = 0.0
         self._init_retry_at = 0.0
         self._flags_query_answered = False
+        self._flags_query_sent = False
+        self._held: Dict[str, Tuple[Any, str]] = {}  # desired setting -> (value, why not written)
+        self._held_retry_at = -1e9
         self._throttle = Throttle()
         self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
         self._link_recorded_at = -1e9
+        self._link_seen: Tuple[int, ...] = (0,) * len(LINK_ERROR_COUNTERS)
+        self._silent_flag_queries = 0       # flag queries unanswered (P14): no link error
+        self._link_changed_at = -1e9        # when one of the problem counters last grew
         # -- guarded by _jobs_cond ----------------------------------------------------------
         self._jobs = _Jobs()
         self._jobs_cond = threading.Condition()
         # -- other ----------------------------------------------------------------------------
         self._actuation = threading.Lock()
+        self._attempts = AttemptsFile(config.blackbox_dir, config.port)
         self._stopping = threading.Event()
         self._monitor_wake = threading.Event()
         max_bytes = int(config.blackbox_max_mb * 1e6) if config.blackbox_max_mb > 0 else None
@@ -422,6 +449,7 @@ class ParachuteSession:
                                      fresh=True)
         if before is None:
             return  # a poll's answer from before a reboot
+        self._recheck_held(status)
         if before.armed is not None and before.armed != status.armed:
             self.blackbox.record('state', armed=status.armed, via=via)
             self.blackbox.sync(None)
@@ -510,7 +538,7 @@ class ParachuteSession:
             problem = f'{self._offline_text(snap)}: no confirmation sent'
         elif snap.triggered:
             problem = 'the module has already deployed: no confirmation sent'
-        elif snap.armed is False:
+        elif snap.armed is False and snap.fresh:
             problem = ('the module is locked, and a locked module cannot deploy (P12, P20): '
                        'no confirmation sent')
         if problem:
@@ -524,7 +552,8 @@ class ParachuteSession:
                          None)
             return Result(False, f'confirmation not sent: {exc}')
         t_tx = self.clock()
-        if snap.armed:
+        # Armed only as read since the module last could have changed unseen (D15).
+        if snap.armed and snap.fresh:
             outcome = 'the module was armed: it deploys on it (~/trigger_event reports it)'
         else:
             outcome = ("the module's armed state is not known: ~/triggered shows whether it "
@@ -597,6 +626,7 @@ class ParachuteSession:
         # not know of them; the counters are cumulative for the run (D10).
         info = self.link_info()
         counters = tuple(info[name] for name in LINK_PROBLEM_COUNTERS)
+        self._note_link(info)
         now = self.clock()
         with self._lock:
             if counters == self._link_recorded or \
@@ -604,6 +634,18 @@ class ParachuteSession:
                 return
             self._link_recorded, self._link_recorded_at = counters, now
         self.blackbox.record('link', **info)
+
+    def _note_link(self, info: Optional[Dict[str, Any]] = None
+                   ) -> Tuple[Tuple[int, ...], float]:
+        """Note when a link error counter last grew; return the counters and that time."""
+        info = info or self.link_info()
+        with self._lock:
+            info = dict(info, timeouts=info['timeouts'] - self._silent_flag_queries)
+            counters = tuple(info[name] for name in LINK_ERROR_COUNTERS)
+            if counters != self._link_seen:
+                self._link_seen = counters
+                self._link_changed_at = self.clock()
+            return counters, self._link_changed_at
 
     def tick(self) -> None:
         """Judge the time-based rules now (the monitor does at each deadline, or IDLE_WAKE_S)."""
@@ -760,6 +802,10 @@ class ParachuteSession:
             with self._lock:
                 self._stream_backoff = STREAM_RETRY_S[0]
             self._start_stream()
+        elif job == 'settings' and self.snapshot.online and self.snapshot.initialized:
+            with self._lock:
+                held = set(self._held)
+            self._apply_desired(only=held)
 
     def _initialize(self) -> None:
         """Read the module afresh and bring it to the desired settings (D2)."""
@@ -811,9 +857,17 @@ class ParachuteSession:
         A change is a reboot (D3): the module is read afresh (unless `reinit` is False: the
         initialization in progress does that).
         """
+        stored = self._attempts.load() if self.snapshot.boot_count is None else None
         with self._lock:
             previous = self._snap.boot_count
             self._snap = replace(self._snap, boot_count=count)
+            restored = previous is None and stored is not None and \
+                stored.boot_count == count and stored.failed > self._snap.failed_deploys
+            if restored:
+                # The same power-up as an earlier run's unsuccessful deploy frames (P11).
+                self._snap = replace(self._snap, failed_deploys=stored.failed,
+                                     unacked_deploys=max(stored.unacked,
+                                                         self._snap.unacked_deploys))
             if None in self._reported_boots and previous is None:
                 # A deployment reported before the first boot count read happened in this boot.
                 self._reported_boots.discard(None)
@@ -830,12 +884,29 @@ class ParachuteSession:
                 self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=0, fresh=False,
                                      armed=None)
             epoch = self._epoch
+        if restored:
+            self._log('warn', f'{stored.failed} deploy frame(s) without a successful '
+                              f'acknowledgement in this power-up (boot {count}), sent by an '
+                              'earlier run of the driver: they count (P11)')
+            self.blackbox.record('state', event='deploy attempts of an earlier run',
+                                 boot_count=count, failed_deploys=stored.failed,
+                                 unacked_deploys=stored.unacked)
+            self.listener.on_diagnostics()
         if rebooted:
             self._log('warn', f'module boot count {previous} -> {count}: it rebooted')
             self._void_pending('the module rebooted while the request was pending')
             if reinit:
                 self._schedule('init', force=True)
         return epoch
+
+    def _save_attempts(self, leaving: int = 0) -> None:
+        """Keep the unsuccessful deploy frames of this power-up for a later run (P11)."""
+        snap = self.snapshot
+        problem = self._attempts.save(snap.boot_count, snap.failed_deploys + leaving,
+                                      snap.unacked_deploys + leaving)
+        if problem:
+            self._log('warn', f'deploy attempts not kept for a restart: {problem}',
+                      key='attempts', every_s=60.0)
 
     def _set_streaming(self, enabled: bool, silence_ok: bool = False) -> bool:
         reply = self._req(p.encode_streaming(enabled), retries=1, silence_ok=silence_ok)
@@ -932,21 +1003,65 @@ class ParachuteSession:
         self._update_mismatch(log=False)
 
     def _query_flags(self) -> bool:
-        # At most once per run while unknown (P14: a firmware ignoring D3 would take it as
-        # "enable the attitude trigger"); a real module may stay silent: flags stay unknown.
+        # P14: a firmware ignoring D3 would take the query as "enable the attitude trigger", so
+        # it is a possible settings write: sent at most once per run while unanswered (D5), and
+        # only when enabling the attitude trigger would not deploy the module at once (D16).
+        with self._lock:
+            if self._flags_query_sent and not self._flags_query_answered:
+                return False
+        danger = self._gate([('attitude', True)], 'auto-trigger flag query (P14)')
+        if danger:
+            self._log('warn', 'auto-trigger flag query not sent (a firmware may take it as '
+                              f'"enable the attitude trigger", P14): {danger}', key='flag-query')
+            return False
+        with self._lock:
+            self._flags_query_sent = True
         try:
             reply = self._req(p.encode_auto_trigger_query(), timeout=FLAGS_QUERY_TIMEOUT_S,
                               silence_ok=True)
         except LinkTimeout:
+            with self._lock:
+                self._silent_flag_queries += 1
             return False
         self._set_flags(reply)
         with self._lock:
             self._flags_query_answered = True
         return True
 
-    def _write_setting(self, name: str, value: float) -> Tuple[bool, str]:
+    # -- the settings rule: every write to the module passes here (D16) -------------------------
+
+    @staticmethod
+    def _trigger_settings(snap: Snapshot) -> Trigger:
+        return Trigger(snap.attitude_threshold_raw, snap.freefall_threshold_raw,
+                       snap.attitude_trigger_enabled, snap.freefall_trigger_enabled)
+
+    def _gate(self, steps: List[Step], origin: str) -> str:
+        """Why writing `steps` (in order) would deploy the module at once, or '' to write.
+
+        The one check of every settings write, whoever asks (D16): the status is read afresh
+        (raises LinkError when it is not answered: nothing is written then) and judged by
+        `settings_rule.would_deploy`. A refusal is recorded in the black box.
+        """
+        if not any(name in JUDGED_STEPS for name, _ in steps):
+            return ''
+        epoch = self._current_epoch()
+        status = self._req(p.encode_status_query(), retries=1)
+        self._on_status(status, via='query', epoch=epoch)
+        danger = would_deploy(self._trigger_settings(self.snapshot), status.armed,
+                              status.triggered, float(status.tilt_deg), float(status.accel_g),
+                              steps)
+        if danger:
+            self.blackbox.record('decision', what='settings write withheld', origin=origin,
+                                 steps=[list(step) for step in steps], reason=danger)
+        return danger
+
+    def _write_setting(self, name: str, value: float, origin: str) -> Tuple[bool, str]:
+        """Write one numeric setting, verified; raises Withheld when the rule forbids it."""
         setting = SETTINGS[name]
         raw = setting.to_raw(value)
+        danger = self._gate([(name, value)], origin)
+        if danger:
+            raise Withheld(f'{name} = {value:g}', danger)
         reply = self._req(setting.encode_set(value))
         if not p.is_set_ack(reply, raw):
             return False, (f'module answered {reply.raw.hex(" ")} to setting {name} = {value}: '
@@ -962,13 +1077,19 @@ class ParachuteSession:
                            f'{setting.to_si(back)}')
         return True, f'{name} = {setting.to_si(raw)} verified'
 
-    def _write_flags(self, attitude: Optional[bool] = None,
-                     freefall: Optional[bool] = None) -> Tuple[bool, str]:
-        """Enable/disable auto triggers (None = leave); verified by the replies (P8, D5)."""
-        if attitude is not None:
-            self._set_flags(self._req(p.encode_attitude_trigger(attitude)))
-        if freefall is not None:
-            self._set_flags(self._req(p.encode_freefall_trigger(freefall)))
+    def _write_flags(self, attitude: Optional[bool] = None, freefall: Optional[bool] = None,
+                     origin: str = '') -> Tuple[bool, str]:
+        """Enable/disable auto triggers (None = leave); verified by the replies (P8, D5).
+
+        Each frame is judged by the rule first (raises Withheld); a disable goes first.
+        """
+        encode = {'attitude': p.encode_attitude_trigger, 'freefall': p.encode_freefall_trigger}
+        asked = (('attitude', attitude), ('freefall', freefall))
+        for which, value in order([(w, v) for w, v in asked if v is not None]):
+            danger = self._gate([(which, value)], origin)
+            if danger:
+                raise Withheld(f'{which} trigger {"enable" if value else "disable"}', danger)
+            self._set_flags(self._req(encode[which](value)))
         snap = self.snapshot
         self.listener.on_config(snap)
         wrong = []
@@ -983,24 +1104,90 @@ class ParachuteSession:
                            + f' (flag layout {self.link.layout})')
         return True, 'auto triggers verified'
 
-    def _apply_desired(self) -> None:
-        """Write every desired setting that differs from the module's, then verify (D4)."""
+    def _write_step(self, param: str, value: Any, origin: str) -> Tuple[bool, str]:
+        """Write one desired setting by its parameter name (flags: 'enable' / 'disable')."""
+        if param in SETTINGS:
+            return self._write_setting(param, value, origin)
+        return self._write_flags(**{FLAG_SETTINGS[param]: value == 'enable'}, origin=origin)
+
+    @staticmethod
+    def _step(param: str, value: Any) -> Step:
+        """Return the rule's step for a desired setting given by parameter name and value."""
+        if param in FLAG_SETTINGS:
+            return FLAG_SETTINGS[param], value == 'enable'
+        return param, value
+
+    def _ordered(self, wanted: Dict[str, Any]) -> List[Tuple[str, Any]]:
+        """Parameter name -> value pairs in the rule's safest order (a disable first)."""
+        steps = {self._step(n, v): n for n, v in wanted.items()}
+        return [(steps[step], wanted[steps[step]]) for step in order(steps)]
+
+    def _desired_differing(self) -> Dict[str, Any]:
+        """Return the desired settings (parameter name -> value) the module does not have."""
         config = self.config
+        snap = self.snapshot
+        wanted: Dict[str, Any] = {}
         for name, setting in SETTINGS.items():
             value = config.desired(name)
-            if value != -1 and self.snapshot.raw(name) != setting.to_raw(value):
-                ok, reason = self._write_setting(name, value)
-                if not ok:
-                    self._log('warn', f'desired setting not applied: {reason}')
-        flags = {FLAG_SETTINGS[n]: config.desired(n) == 'enable' for n in FLAG_SETTINGS
-                 if config.desired(n) != 'keep'}
-        if flags:
-            ok, reason = self._write_flags(**flags)
+            if value != -1 and snap.raw(name) != setting.to_raw(value):
+                wanted[name] = value
+        for name, which in FLAG_SETTINGS.items():
+            value = config.desired(name)
+            if value != 'keep' and \
+                    getattr(snap, f'{which}_trigger_enabled') != (value == 'enable'):
+                wanted[name] = value
+        return wanted
+
+    def _apply_desired(self, only: Optional[Set[str]] = None) -> None:
+        """Write every desired setting that differs from the module's, then verify (D4).
+
+        One that would deploy the armed module at once is held back (D16): logged, named in
+        the settings diagnostics, and written once it no longer would (``_recheck_held``, which
+        passes `only` the held ones: a value set by a service meanwhile stays until the next
+        re-initialization, as before).
+        """
+        with self._lock:
+            self._held_retry_at = self.clock() + HELD_RETRY_S
+            before = dict(self._held)
+        wanted = self._desired_differing()
+        if only is not None:
+            wanted = {n: v for n, v in wanted.items() if n in only}
+        held = {n: h for n, h in before.items() if only is not None and n not in only}
+        for name, value in self._ordered(wanted):
+            try:
+                ok, reason = self._write_step(name, value, 'desired settings')
+            except Withheld as exc:
+                held[name] = (value, exc.reason)
+                if before.get(name, (None, ''))[0] != value:
+                    self._log('warn', f'desired setting {name} = {value} not written: '
+                                      f'{exc.reason}; it is written once it no longer would '
+                                      '(judged on every status)')
+                continue
             if not ok:
-                self._log('warn', f'desired auto triggers not applied: {reason}')
+                self._log('warn', f'desired setting not applied: {reason}')
+            elif name in before:
+                self._log('info', f'desired setting held back is written now: {reason}')
+        with self._lock:
+            self._held = held
         self._update_mismatch()
 
-    def _mismatch(self, snap: Snapshot, config: SessionConfig) -> List[str]:
+    def _recheck_held(self, status: p.Status) -> None:
+        """On a status: retry held-back settings the rule would let through now (reader)."""
+        now = self.clock()
+        with self._lock:
+            if not self._held or not self._snap.initialized or now < self._held_retry_at:
+                return
+            steps = [self._step(n, v) for n, (v, _) in self._held.items()]
+            trigger = self._trigger_settings(self._snap)
+        if all(would_deploy(trigger, status.armed, status.triggered, float(status.tilt_deg),
+                            float(status.accel_g), [step]) for step in steps):
+            return
+        with self._lock:
+            self._held_retry_at = now + HELD_RETRY_S
+        self._schedule('settings')
+
+    def _mismatch(self, snap: Snapshot, config: SessionConfig,
+                  held: Dict[str, Tuple[Any, str]]) -> List[str]:
         mismatch = []
         for name, setting in SETTINGS.items():
             value = config.desired(name)
@@ -1014,13 +1201,19 @@ class ParachuteSession:
             if value != 'keep' and (have is None or have != (value == 'enable')):
                 mismatch.append(f'{name}: want {value}, module '
                                 f'{"unknown" if have is None else have}')
-        return mismatch
+        return [f'{line} (not written: {held[line.split(":")[0]][1]})'
+                if line.split(':')[0] in held else line for line in mismatch]
 
     def _update_mismatch(self, log: bool = True) -> None:
         with self._lock:
-            mismatch = tuple(self._mismatch(self._snap, self._config))
-            changed = mismatch != self._snap.mismatch
-            self._snap = replace(self._snap, mismatch=mismatch)
+            # A held setting the module has now, or no longer desired, is no longer held.
+            differing = self._desired_names()
+            self._held = {n: (v, why) for n, (v, why) in self._held.items()
+                          if self._config.desired(n) == v and n in differing}
+            mismatch = tuple(self._mismatch(self._snap, self._config, self._held))
+            held = tuple(f'{n} = {v} not written: {why}' for n, (v, why) in self._held.items())
+            changed = mismatch != self._snap.mismatch or held != self._snap.held
+            self._snap = replace(self._snap, mismatch=mismatch, held=held)
             snap = self._snap
         if changed:
             self.listener.on_diagnostics()
@@ -1028,42 +1221,9 @@ class ParachuteSession:
                 self._log('warn', 'settings do not match: ' + '; '.join(mismatch))
         self.listener.on_config(snap)
 
-    def _would_deploy(self, changes: Dict[str, Any]) -> str:
-        """Why the settings `changes` would deploy an armed module at once, or '' (D16).
-
-        The module's rule (P21): attitude when the tilt is above the threshold, free fall when
-        |a| stays below the threshold for the free-fall time, each only with its trigger
-        enabled. Judged on a fresh status read, conservatively: tilt ≥ threshold, and a flag
-        not known counts as enabled.
-        """
-        touched_att = {'attitude_threshold_deg', 'attitude'} & set(changes)
-        touched_ff = {'freefall_threshold_g', 'freefall_time_s', 'freefall'} & set(changes)
-        if not touched_att and not touched_ff:
-            return ''
-        epoch = self._current_epoch()
-        status = self._req(p.encode_status_query(), retries=1)
-        self._on_status(status, via='query', epoch=epoch)
-        if not status.armed or status.triggered:
-            return ''
-        snap = self.snapshot
-        reasons = []
-        threshold = changes.get('attitude_threshold_deg', snap.attitude_threshold_raw)
-        enabled = changes.get('attitude', snap.attitude_trigger_enabled)
-        if touched_att and enabled is not False and threshold is not None and \
-                status.tilt_deg >= threshold:
-            reasons.append(f'tilt {status.tilt_deg}° ≥ attitude threshold {threshold:g}°')
-        if 'freefall_threshold_g' in changes:
-            ff_raw = p.freefall_threshold_to_raw(changes['freefall_threshold_g'])
-        else:
-            ff_raw = snap.freefall_threshold_raw
-        enabled = changes.get('freefall', snap.freefall_trigger_enabled)
-        if touched_ff and enabled is not False and ff_raw is not None and \
-                round(status.accel_g * 10) < ff_raw:
-            reasons.append(f'acceleration {status.accel_g:.1f} g < free-fall threshold '
-                           f'{ff_raw / 10:.1f} g')
-        if not reasons:
-            return ''
-        return 'would deploy now: ' + '; '.join(reasons) + '; lock first (~/arm false)'
+    def _desired_names(self) -> Set[str]:
+        """Desired settings the module does not have (caller holds _lock)."""
+        return {line.split(':')[0] for line in self._mismatch(self._snap, self._config, {})}
 
     def set_thresholds(self, values: Dict[str, float]) -> Result:
         """`~/set_thresholds`: write the given settings (name -> SI value), each verified."""
@@ -1078,12 +1238,16 @@ class ParachuteSession:
             return Result(False, f'{self._offline_text(snap)}; nothing sent')
         results = []
         ok_all = True
+        steps = order(values.items())
         try:
-            danger = self._would_deploy(values)
+            danger = self._gate(steps, '~/set_thresholds')
             if danger:
                 return self._refused_setting(danger)
-            for name, value in values.items():
-                ok, message = self._write_setting(name, value)
+            for name, value in steps:
+                try:
+                    ok, message = self._write_setting(name, value, '~/set_thresholds')
+                except Withheld as exc:
+                    ok, message = False, str(exc)
                 ok_all &= ok
                 results.append(message)
         except LinkError as exc:
@@ -1105,10 +1269,13 @@ class ParachuteSession:
         if not snap.online:
             return Result(False, f'{self._offline_text(snap)}; nothing sent')
         try:
-            danger = self._would_deploy({'attitude': attitude, 'freefall': freefall})
+            danger = self._gate(order([('attitude', attitude), ('freefall', freefall)]),
+                                '~/set_auto_triggers')
             if danger:
                 return self._refused_setting(danger)
-            ok, message = self._write_flags(attitude, freefall)
+            ok, message = self._write_flags(attitude, freefall, '~/set_auto_triggers')
+        except Withheld as exc:
+            ok, message = False, str(exc)
         except LinkError as exc:
             ok, message = False, f'no reply: {exc}'
         self._update_mismatch()
@@ -1131,13 +1298,12 @@ class ParachuteSession:
                                                 'written')
         deadline = time.monotonic() + PARAM_WRITE_BUDGET_S
         written: List[Tuple[str, Any]] = []
+        steps = self._ordered(wanted)
         try:
-            danger = self._would_deploy({FLAG_SETTINGS.get(n, n): (v == 'enable'
-                                                                   if n in FLAG_SETTINGS else v)
-                                         for n, v in wanted.items()})
+            danger = self._gate([self._step(n, v) for n, v in steps], 'parameters')
             if danger:
                 return self._param_refused(changes, f'refused, nothing written: {danger}')
-            for name, value in wanted.items():
+            for name, value in steps:
                 if time.monotonic() > deadline:
                     raise LinkTimeout(f'no time left for {name} within '
                                       f'{PARAM_WRITE_BUDGET_S} s')
@@ -1145,11 +1311,12 @@ class ParachuteSession:
                     before = self.snapshot.raw(name)
                     if before is None:
                         before = self._req(SETTINGS[name].encode_query(), retries=1).value
-                    ok, reason = self._write_setting(name, value)
                 else:
-                    which = FLAG_SETTINGS[name]
-                    before = getattr(self.snapshot, f'{which}_trigger_enabled')
-                    ok, reason = self._write_flags(**{which: value == 'enable'})
+                    before = getattr(self.snapshot, f'{FLAG_SETTINGS[name]}_trigger_enabled')
+                try:
+                    ok, reason = self._write_step(name, value, 'parameters')
+                except Withheld as exc:
+                    raise LinkError(str(exc)) from None
                 written.append((name, before))
                 if not ok:
                     raise LinkError(reason)
@@ -1170,13 +1337,16 @@ class ParachuteSession:
                 if before is None:
                     raise LinkError('its previous value is not known')
                 if name in SETTINGS:
-                    ok, reason = self._write_setting(name, SETTINGS[name].to_si(before))
+                    ok, reason = self._write_setting(name, SETTINGS[name].to_si(before),
+                                                     'putting back a refused parameter set')
                 else:
-                    ok, reason = self._write_flags(**{FLAG_SETTINGS[name]: before})
+                    ok, reason = self._write_flags(**{FLAG_SETTINGS[name]: before},
+                                                   origin='putting back a refused parameter '
+                                                   'set')
                 if not ok:
                     raise LinkError(reason)
                 back.append(name)
-            except (LinkError, p.ProtocolError) as exc:
+            except (LinkError, Withheld, p.ProtocolError) as exc:
                 failed.append(f'{name} ({exc})')
         self._update_mismatch()
         text = f'; put back {", ".join(back)}' if back else ''
@@ -1359,6 +1529,8 @@ class ParachuteSession:
         with self._lock:
             failed = 0 if ack.success else self._snap.failed_deploys
             self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=failed)
+        if not late:
+            self._save_attempts()  # (a late one is saved by the deploy call it ends)
         if not ack.success:
             return
         if late:
@@ -1425,6 +1597,7 @@ class ParachuteSession:
                                         'down; nothing sent')
             return self._deploy(arm_if_locked, t0)
         finally:
+            self._save_attempts()
             self._actuation.release()
 
     def _reread(self, snap: Snapshot) -> Snapshot:
@@ -1499,7 +1672,7 @@ class ParachuteSession:
                 return self._deploy_end(
                     'refused', 'deploy refused: the module is locked (a locked module cannot '
                     'deploy); arm it with ~/arm or set arm_if_locked; nothing sent')
-            ok, message = self._arm(True)
+            ok, message = self._arm(True, judge=False)  # deploying is what was asked
             if not ok:
                 return self._deploy_end('refused', f'deploy refused: arming failed: {message}')
         attempts = 0
@@ -1529,6 +1702,7 @@ class ParachuteSession:
             self.blackbox.record('decision', what='deploy: sending the deploy frame',
                                  attempt=attempts)
             self._safety_sync()
+            self._save_attempts(leaving=1)  # a respawned driver counts it too (P11)
             with self._lock:
                 self._deploy_frame_left = False
             try:
@@ -1650,7 +1824,11 @@ class ParachuteSession:
         self._log('info' if ok else 'warn', message)
         return Result(ok, message)
 
-    def _arm(self, want: bool) -> Tuple[bool, str]:
+    def _arm(self, want: bool, judge: bool = True) -> Tuple[bool, str]:
+        """Arm or lock, verified; an arm that would fire at once is refused (D16, P21).
+
+        `judge` False: arming for a deploy (``arm_if_locked``), where firing is the point.
+        """
         word = 'arm' if want else 'lock'
         snap = self.snapshot
         if want and snap.online and not snap.fresh:
@@ -1667,6 +1845,9 @@ class ParachuteSession:
                            'is never re-armed. Re-pack it and switch it off and on; nothing sent')
         epoch = self._current_epoch()
         try:
+            danger = self._gate([('armed', True)], '~/arm') if want and judge else ''
+            if danger:
+                return False, f'cannot arm, nothing sent: {danger}'
             reply = self._req(p.encode_arm(want), retries=1)
             if reply.armed != want:
                 return False, (f'module answered {reply.raw.hex(" ")} to {word}: '
@@ -1759,56 +1940,153 @@ class ParachuteSession:
         return Result(True, 'module acknowledged and is switching off; switch it on with its '
                             'button (2 s) or external power')
 
+    # -- preflight (D17) -------------------------------------------------------------------------
+
+    def _preflight_steps(self) -> List[Tuple[Tuple[str, ...], bool, Callable[[], List[Check]]]]:
+        """Return the checks of ``~/preflight_check`` in the order of its lines.
+
+        Each is (the names of its lines, whether it queries the module, the check). A check that
+        queries raises LinkError when the module does not answer: its lines and those of every
+        later querying check say "not checked"; the others are judged from what the driver
+        knows. One more check is one more entry here.
+        """
+        return [
+            (('online',), True, self._pf_online),
+            (('armed',), True, self._pf_armed),
+            (('not triggered',), True, self._pf_triggered),
+            (('not in protection',), False, lambda: [self._protection_check()]),
+            (('settings as desired', 'auto triggers as desired'), True, self._pf_settings),
+            (('auto triggers on',), False, self._pf_auto_triggers_on),
+            (('trigger requests confirmed',), False, self._pf_policy),
+            (('no trigger condition met',), True, self._pf_conditions),
+            (('bay closed',), True, self._pf_bay),
+            (('battery',), True, self._pf_battery),
+            (('link clean',), False, self._pf_link),
+            (('status stream',), False, lambda: [self._stream_check(self.config)]),
+            (('black box writable',), False, lambda: [self._blackbox_check()]),
+        ]
+
     def preflight_check(self) -> Result:
         """`~/preflight_check`: go / no-go from the module read afresh, queries only (D17)."""
-        checks: List[Tuple[bool, str, str]] = []
-        config = self.config
-        snap = self.snapshot
-        names = ('armed', 'not triggered', 'not in protection', 'settings as desired',
-                 'auto triggers as desired', 'battery')
-        try:
-            if not snap.port_open:
-                raise LinkDown(self.link.serial.last_error or 'port not open')
-            epoch = self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count)
-            checks.append((True, 'online', f'answers (boot count {self.snapshot.boot_count})'))
-            armed = self._req(p.encode_armed_query(), retries=1).armed
-            self._update_if(epoch, armed=armed)
-            checks.append((armed, 'armed', 'armed' if armed else 'LOCKED: arm it with ~/arm'))
-            triggered = self._query_triggered()
-            if triggered is None:
-                raise LinkTimeout('no reply to the triggered query')
-            checks.append((not triggered, 'not triggered', 'not triggered' if not triggered
-                           else 'TRIGGERED: the parachute has deployed'))
-            checks.append(self._protection_check())
-            for name, setting in SETTINGS.items():
-                self._update(**{setting.field: self._req(setting.encode_query(),
-                                                         retries=1).value})
-            if self._flags_query_answered:
-                self._query_flags()
-            self._update_mismatch(log=False)
-            checks += self._settings_checks(config)
-            charging = self._req(p.encode_charging_query(), retries=1).charging
-            volts = self._req(p.encode_cell_voltage_query(), retries=1).volts
-            self._update(charging=charging, voltage_v=volts)
-            low = not charging and volts < LOW_BATTERY_V
-            checks.append((not low, 'battery', f'{volts:.2f} V '
-                           f'{"charging" if charging else "on battery"}'
-                           + (f', below {LOW_BATTERY_V} V' if low else '')))
-        except LinkError as exc:
-            done = {name for _, name, _ in checks}
-            if 'online' not in done:
-                checks.append((False, 'online', f'no answer: {exc}'))
-            checks += [(False, name, 'not checked: the module did not answer')
-                       for name in names if name not in done]
-        checks.append(self._stream_check(config))
-        checks.append(self._blackbox_check())
+        checks: List[Check] = []
+        silent: Optional[LinkError] = None
+        if not self.snapshot.port_open:
+            silent = LinkDown(self.link.serial.last_error or 'port not open')
+        for names, queries, check in self._preflight_steps():
+            if queries and silent is not None:
+                checks += [(False, name, f'no answer: {silent}' if name == 'online' else
+                            'not checked: the module did not answer') for name in names]
+                continue
+            try:
+                checks += check()
+            except LinkError as exc:
+                silent = exc
+                checks += [(False, name, f'no answer: {exc}' if name == 'online' else
+                            'not checked: the module did not answer') for name in names]
         ok = all(passed for passed, _, _ in checks)
         lines = [f'{"OK  " if passed else "FAIL"} {name}: {detail}'
                  for passed, name, detail in sorted(checks, key=lambda c: c[0])]
         self.blackbox.record('decision', what='preflight', ok=ok, checks=lines)
         return Result(ok, '\n'.join(lines))
 
-    def _protection_check(self) -> Tuple[bool, str, str]:
+    def _pf_online(self) -> List[Check]:
+        self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count)
+        return [(True, 'online', f'answers (boot count {self.snapshot.boot_count})')]
+
+    def _pf_armed(self) -> List[Check]:
+        epoch = self._current_epoch()
+        armed = self._req(p.encode_armed_query(), retries=1).armed
+        self._update_if(epoch, armed=armed)
+        return [(armed, 'armed', 'armed' if armed else 'LOCKED: arm it with ~/arm')]
+
+    def _pf_triggered(self) -> List[Check]:
+        triggered = self._query_triggered()
+        if triggered is None:
+            raise LinkTimeout('no reply to the triggered query')
+        return [(not triggered, 'not triggered', 'not triggered' if not triggered
+                 else 'TRIGGERED: the parachute has deployed')]
+
+    def _pf_settings(self) -> List[Check]:
+        for setting in SETTINGS.values():
+            self._update(**{setting.field: self._req(setting.encode_query(), retries=1).value})
+        if self._flags_query_answered:
+            self._query_flags()
+        self._update_mismatch(log=False)
+        return self._settings_checks(self.config)
+
+    def _pf_auto_triggers_on(self) -> List[Check]:
+        # Both off: the module never deploys on its own detection, only on ~/deploy.
+        snap = self.snapshot
+        flags = (snap.attitude_trigger_enabled, snap.freefall_trigger_enabled)
+        if None in flags:
+            return [(True, 'auto triggers on', 'not known (the module never reported them, '
+                     'P14)')]
+        text = (f'attitude {"on" if flags[0] else "OFF"}, free fall '
+                f'{"on" if flags[1] else "OFF"}')
+        if not any(flags):
+            return [(False, 'auto triggers on', f'{text}: the module never deploys on its own '
+                     'crash detection, only on ~/deploy')]
+        return [(True, 'auto triggers on', text)]
+
+    def _pf_policy(self) -> List[Check]:
+        config = self.config
+        policy = config.trigger_request_policy
+        if policy == 'deny':
+            return [(False, 'trigger requests confirmed', 'trigger_request_policy deny: a '
+                     "request of the module (its own crash detection, on external power) is "
+                     'never confirmed, so it does not deploy on its own')]
+        if policy == 'defer':
+            return [(True, 'trigger requests confirmed', 'trigger_request_policy defer: '
+                     'confirmed only if ~/answer_trigger_request answers true within '
+                     f'{config.defer_timeout_s:.2f} s, else denied')]
+        return [(True, 'trigger requests confirmed', 'trigger_request_policy confirm')]
+
+    def _pf_conditions(self) -> List[Check]:
+        epoch = self._current_epoch()
+        status = self._req(p.encode_status_query(), retries=1)
+        self._on_status(status, via='query', epoch=epoch)
+        snap = self.snapshot
+        tilt, accel = float(status.tilt_deg), float(status.accel_g)
+        met = conditions(self._trigger_settings(snap), tilt, accel)
+        if snap.pending_request:
+            return [(False, 'no trigger condition met', 'a trigger request of the module is '
+                     'waiting for an answer')]
+        if met:
+            what = ('the module is deploying or asking to' if status.armed else
+                    'arming now fires the parachute at once')
+            return [(False, 'no trigger condition met', f'{"; ".join(met)}: {what} (P21)')]
+        return [(True, 'no trigger condition met', f'tilt {tilt:g}°, |a| {accel:.1f} g')]
+
+    def _pf_bay(self) -> List[Check]:
+        light = self._req(p.encode_light_level_query(), retries=1).volts
+        snap = self._update(light_v=light)
+        threshold = snap.light_threshold_raw / 10
+        if snap.bay_open:
+            return [(False, 'bay closed', f'BAY OPEN: light {light:.1f} V > light threshold '
+                     f'{threshold:.1f} V (lid open or the parachute out?)')]
+        return [(True, 'bay closed', f'light {light:.1f} V ≤ light threshold {threshold:.1f} V')]
+
+    def _pf_battery(self) -> List[Check]:
+        charging = self._req(p.encode_charging_query(), retries=1).charging
+        volts = self._req(p.encode_cell_voltage_query(), retries=1).volts
+        self._update(charging=charging, voltage_v=volts)
+        low = not charging and volts < LOW_BATTERY_V
+        return [(not low, 'battery', f'{volts:.2f} V {"charging" if charging else "on battery"}'
+                 + (f', below {LOW_BATTERY_V} V' if low else ''))]
+
+    def _pf_link(self) -> List[Check]:
+        # The counters are for the whole run: one burst long ago is no reason for a no-go, a
+        # recent one is (a deploy frame would meet the same link).
+        counters, changed_at = self._note_link()
+        totals = ', '.join(f'{n} {c}' for n, c in zip(LINK_ERROR_COUNTERS, counters))
+        ago = self.clock() - changed_at
+        if ago < LINK_QUIET_S:
+            return [(False, 'link clean', f'link errors {ago:.1f} s ago (run: {totals}); a '
+                     f'clean link for {LINK_QUIET_S:.0f} s is a go')]
+        return [(True, 'link clean', f'no link error in the last {LINK_QUIET_S:.0f} s (run: '
+                 f'{totals})')]
+
+    def _protection_check(self) -> Check:
         # The module has no query for its protection state (P19): judged from the deploy
         # frames this driver sent since the module's last power-up.
         snap = self.snapshot
@@ -1821,7 +2099,7 @@ class ParachuteSession:
         return (True, 'not in protection', detail + ' (judged by the driver: the module has '
                 'no query for it)')
 
-    def _settings_checks(self, config: SessionConfig) -> List[Tuple[bool, str, str]]:
+    def _settings_checks(self, config: SessionConfig) -> List[Check]:
         snap = self.snapshot
         numeric = [m for m in snap.mismatch if m.split(':')[0] in SETTINGS]
         flags = [m for m in snap.mismatch if m.split(':')[0] in FLAG_SETTINGS]

@@ -156,6 +156,8 @@ class Snapshot:
     config_reads: int = 0
     """Incremented at every read-back of the settings (the node stamps ~/config by it)."""
     mismatch: Tuple[str, ...] = ()
+    held: Tuple[str, ...] = ()
+    """Desired settings not written because they would deploy the armed module at once (D16)."""
     unacked_deploys: int = 0
     """Deploy frames sent since the last deploy reply (P11)."""
     failed_deploys: int = 0

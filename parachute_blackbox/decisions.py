@@ -223,6 +223,12 @@ def _decision_settings_refused(a: FlightAnalysis, record: Dict[str, Any], t: flo
             f'{short(record.get("reason", ""), 140)}')
 
 
+def _decision_withheld(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    # Every write the rule stopped (a refused service call also has its 'settings refused').
+    a.event(t, 'settings', 'warn', f'{record.get("origin", "?")}: not written, it would deploy '
+            f'the armed module at once (D16): {short(record.get("reason", ""), 140)}')
+
+
 def _decision_preflight(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     ok = record.get('ok') is True
     checks = record.get('checks')
@@ -259,6 +265,7 @@ DECISIONS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = 
     'trigger request deferred': _decision_deferred,
     'policy': _decision_policy,
     'settings refused': _decision_settings_refused,
+    'settings write withheld': _decision_withheld,
     'preflight': _decision_preflight,
 }
 """``decision`` records by their ``what``; any other ``what`` is shown as it is."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+import signal
 import threading
 import time
 from typing import List, Optional
@@ -100,8 +101,17 @@ class Rig:
                       defer_timeout_s=0.5, aux_poll_period_s=0.5, **DESIRED)
         params.update(parameters)
         self.blackbox_dir = Path(params['blackbox_dir'])
+        self.params = params
         self.proc = self.procs.start('parachute_node', parameters=params, ros=self.ros,
                                      wait_service=f'{NODE}/deploy')
+
+    def respawn(self, **parameters):
+        """Kill the node (a crash) and start it again, as a respawn would; return it."""
+        self.proc.stop(signal.SIGKILL)
+        self.params.update(parameters)
+        self.proc = self.procs.start('parachute_node', parameters=self.params, ros=self.ros,
+                                     wait_service=f'{NODE}/deploy')
+        return self.proc
 
     def call(self, srv, name, request=None, timeout=10.0):
         return self.ros.call(srv, f'{NODE}/{name}', request, timeout)

@@ -134,6 +134,11 @@ class Bench:
                                        wait_service='/parachute/deploy')
         self.status.wait(lambda m: m.online and m.streaming, 15, what='online status',
                          start=n_status)
+        # Streaming comes early in the initialization: a scenario step (an unplug) must not
+        # cut it short, or the report rightly tells a different story.
+        wait_for(lambda: any(b'"event":"initialized"' in Path(f).read_bytes()
+                             for f in glob.glob(str(box / 'parachute-*.jsonl'))), 10,
+                 what='the first initialization in the black box')
         return box
 
     def stop_driver(self, box):
@@ -144,6 +149,10 @@ class Bench:
         return files[0]
 
     def arm(self):
+        # Arming a module in free fall fires it at once (P21): the driver refuses. A free fall
+        # of the scenario may outlast the deployment and reboot it caused.
+        self.status.wait(lambda m: m.accel_g >= 0.9, 5, what='|a| back to 1 g',
+                         start=len(self.status) - 1)
         reply = self.call(SetBool, 'arm', SetBool.Request(data=True))
         assert reply.success, reply.message
 
@@ -244,9 +253,14 @@ def deployment_run(bench):
                       start=len(bench.status) - 1)
     reply = bench.call(Trigger, 'zero_sensor', Trigger.Request())
     assert reply.success, reply.message
+    bench.status.wait(lambda m: m.accel_g >= 0.9, 5, what='the free fall over',
+                      start=len(bench.status) - 1)
     bench.mark('preflight')
     reply = bench.call(Trigger, 'preflight_check', Trigger.Request())
-    assert reply.success, reply.message
+    # Under deny the module does not deploy on its own detection: the only no-go.
+    fails = [line for line in reply.message.splitlines() if line.startswith('FAIL')]
+    assert [line.split(':')[0] for line in fails] == ['FAIL trigger requests confirmed'], \
+        reply.message
     bench.mark('stop')
     return bench.stop_driver(box)
 
@@ -416,9 +430,10 @@ def test_each_deployment_gets_a_paragraph_with_who_decided_and_the_step_times(
     # The policy changes, the sensor zeroed, and the preflight check at the end.
     assert summary.facts['Trigger-request policy'] == 'confirm → defer → deny'
     assert len(events_of(summary, 'calls', 'attitude sensor zeroed')) == 1
-    (check,) = events_of(summary, 'calls', '~/preflight_check: GO')
+    (check,) = events_of(summary, 'calls', '~/preflight_check: NO-GO')
     assert marks['preflight'] <= at_wall(summary, check[0]) <= marks['stop']
-    assert summary.facts['Last preflight check'].endswith('GO')
+    assert 'trigger requests confirmed' in check[3]
+    assert summary.facts['Last preflight check'].split(': ', 1)[1].startswith('NO-GO')
 
 
 def test_reboots_are_shown_when_they_happened(deployment_report, bench):

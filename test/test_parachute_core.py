@@ -8,19 +8,23 @@ the time-based rules (the test moves it; the module keeps its own real time). Te
 
 from __future__ import annotations
 
+from dataclasses import replace
 import os
 import subprocess
 import sys
 import threading
 import time
 
+from hypothesis import assume, example, given, settings
+from hypothesis import strategies as st
 import pytest
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
-from dps_parachute_ros.session import ParachuteSession
+from dps_parachute_ros.session import HELD_RETRY_S, ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
-from dps_parachute_ros.state import Listener, SessionConfig
+from dps_parachute_ros.settings_rule import conditions, order, Trigger, would_deploy
+from dps_parachute_ros.state import Listener, SessionConfig, SETTINGS
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
 from support import FakeClock
@@ -52,10 +56,12 @@ class Heard(Listener):
 
 
 class Rig:
-    def __init__(self, tmp, blackbox=None, baud=0, **config):
+    def __init__(self, tmp, blackbox=None, baud=0, setup=None, **config):
         self.tmp = tmp
         self.sim = VirtualParachute(now=time.monotonic() - 1.0)
         self.sim.step(time.monotonic())  # its power-up heartbeats are in the past
+        if setup is not None:
+            setup(self.sim)  # the module as the driver finds it
         # Baud 0: no wire time. (Wire faults that delay replies need a baud: the pty ignores
         # a start time at baud 0.)
         self.runner = create_runner(self.sim, str(tmp / 'vpara'), baud=baud).start()
@@ -100,6 +106,14 @@ class Rig:
 
     def deploy_outcomes(self):
         return [r for r in self.records() if r['kind'] == 'decision' and r['what'] == 'deploy']
+
+    def restart(self, **config):
+        """Stop the session and start a new one on the same module: a driver respawn."""
+        self.session.stop()
+        self.config = replace(self.config, **config)
+        self.heard = Heard()
+        self.session = ParachuteSession(self.config, self.heard, self.clock)
+        self.session.start()
 
     def close(self):
         self.session.stop()
@@ -620,6 +634,13 @@ def test_safety_12_the_blackbox_directory_stays_within_its_bound(tmp_path):
         box.close()
 
 
+PREFLIGHT_LINES = [
+    'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
+    'auto triggers as desired', 'auto triggers on', 'trigger requests confirmed',
+    'no trigger condition met', 'bay closed', 'battery', 'link clean', 'status stream',
+    'black box writable']
+
+
 def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     rig.arm()
     mark = rig.wire.mark()
@@ -627,9 +648,7 @@ def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
     assert result.ok, result.message
     lines = result.message.splitlines()
     assert all(line.startswith('OK   ') for line in lines)
-    assert [line.split(':')[0][5:] for line in lines] == [
-        'online', 'armed', 'not triggered', 'not in protection', 'settings as desired',
-        'auto triggers as desired', 'battery', 'status stream', 'black box writable']
+    assert [line.split(':')[0][5:] for line in lines] == PREFLIGHT_LINES
     sent = rig.wire.since(mark)
     assert sent and all(raw[3] == p.CTRL_QUERY for raw in sent), [r.hex(' ') for r in sent]
     # Behind the driver's back: locked, a setting changed, on a weak battery.
@@ -862,3 +881,378 @@ def test_safety_5_7_a_pending_request_across_a_reboot_claims_no_deployment(rig):
     with rig.model():
         assert not rig.sim.triggered and not rig.sim.armed
     assert CONFIRM not in rig.wire.since(mark)
+
+
+# -- round two (issue 21) ---------------------------------------------------------------------
+
+def armed_and_banked(rig, tilt=30):
+    """Arm, raise the attitude threshold to 70 by the service, bank: return the requests so far."""
+    rig.arm()
+    assert rig.session.set_thresholds({'attitude_threshold_deg': 70}).ok
+    with rig.model():
+        rig.sim.set_tilt(tilt)
+        return rig.sim.requests_sent
+
+
+def assert_not_fired(rig, asked, threshold=70):
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == threshold
+        assert not rig.sim.triggered and rig.sim.requests_sent == asked
+        assert rig.sim.deployments == 0
+
+
+def assert_held(rig, name, reason):
+    wait_for(lambda: rig.snap.initialized and rig.snap.held, 5, what='the setting held back')
+    assert len(rig.snap.held) == 1 and rig.snap.held[0].startswith(name), rig.snap.held
+    assert reason in rig.snap.held[0], rig.snap.held
+    assert any(line.startswith(name) and 'not written' in line and reason in line
+               for line in rig.snap.mismatch), rig.snap.mismatch
+    assert any(level == 'warn' and name in text and reason in text
+               for level, text in rig.heard.logs), rig.heard.logs
+    withheld = [r for r in rig.records()
+                if r['kind'] == 'decision' and r['what'] == 'settings write withheld']
+    assert withheld and reason in withheld[-1]['reason'], withheld
+
+
+def test_round2_1_a_restart_never_writes_a_setting_that_would_deploy(tmp_path):
+    """Issue 21 item 1: attitude_threshold_deg 20, armed, raised to 70 by the service, banked
+    30°, the driver respawns with the same parameters: 20 is held back (log, mismatch with the
+    reason, black box), and written once the tilt came down; the parachute never fires."""
+    rig = Rig(tmp_path, attitude_threshold_deg=20)
+    try:
+        asked = armed_and_banked(rig)
+        mark = rig.wire.mark()
+        rig.restart()
+        rig.wait_ready()
+        assert_not_fired(rig, asked)
+        assert_held(rig, 'attitude_threshold_deg', 'tilt 30° ≥ attitude threshold 20°')
+        assert rig.wire.since(mark, p.CMD_ATTITUDE_THRESHOLD) == \
+            [p.encode_attitude_threshold_query()] * len(rig.wire.since(
+                mark, p.CMD_ATTITUDE_THRESHOLD))  # queries only, no set
+        assert_not_fired(rig, asked)
+        # Still banked: a status frame never lets it through.
+        rig.clock.advance(HELD_RETRY_S)
+        time.sleep(0.3)
+        assert_not_fired(rig, asked)
+        # The airframe levels: written at the next status, the module stays armed and quiet.
+        with rig.model():
+            rig.sim.set_tilt(5)
+        rig.clock.advance(HELD_RETRY_S)
+        wait_for(lambda: rig.snap.attitude_threshold_raw == 20 and not rig.snap.held, 5,
+                 what='the held setting written once the tilt came down')
+        assert rig.snap.mismatch == ()
+        assert_not_fired(rig, asked, threshold=20)
+        with rig.model():
+            assert rig.sim.armed
+    finally:
+        rig.close()
+
+
+def test_round2_1_a_reconnect_holds_a_setting_until_the_module_is_locked(tmp_path):
+    """The re-initialization after a reconnect (and after a reboot, the same path) passes the
+    rule too; locking the module lets the held setting through."""
+    rig = Rig(tmp_path, attitude_threshold_deg=20)
+    try:
+        asked = armed_and_banked(rig)
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+        rig.runner.replug()
+        rig.wait_ready()
+        assert_not_fired(rig, asked)
+        assert_held(rig, 'attitude_threshold_deg', 'tilt 30° ≥ attitude threshold 20°')
+        rig.clock.advance(HELD_RETRY_S)
+        assert rig.session.arm(False).ok
+        wait_for(lambda: rig.snap.attitude_threshold_raw == 20 and not rig.snap.held, 5,
+                 what='the held setting written once the module was locked')
+        assert_not_fired(rig, asked, threshold=20)
+    finally:
+        rig.close()
+
+
+def test_round2_1_a_set_is_written_in_an_order_that_never_fires(rig):
+    """Disable the attitude trigger and lower its threshold in one parameter set while armed
+    and banked: the disable goes first, so no moment of the write meets a trigger condition;
+    the same set at a driver restart."""
+    asked = armed_and_banked(rig)
+    ok, reason = rig.session.commit_desired({'attitude_threshold_deg': 20,
+                                             'attitude_trigger': 'disable'})
+    assert ok, reason
+    assert_not_fired(rig, asked, threshold=20)
+    with rig.model():
+        assert not rig.sim.attitude_trigger_enabled
+        rig.sim.attitude_threshold_deg = 70
+        rig.sim.attitude_trigger_enabled = True
+    rig.restart(attitude_threshold_deg=20, attitude_trigger='disable')
+    rig.wait_ready()
+    wait_for(lambda: rig.snap.attitude_threshold_raw == 20, 5, what='the settings written')
+    assert rig.snap.held == () and rig.snap.mismatch == ()
+    assert_not_fired(rig, asked, threshold=20)
+
+
+def flag_queries(rig, mark):
+    return [raw for raw in rig.wire.since(mark, p.CMD_ATTITUDE_TRIGGER)
+            if raw[3] == p.CTRL_QUERY]
+
+
+def test_round2_1_the_flag_query_goes_out_once_per_run_and_never_when_it_could_fire(tmp_path):
+    """P14: a firmware may read the flag query as "enable the attitude trigger". Sent at most
+    once per run while unanswered (D5: get_config and re-initializations used to repeat it),
+    and never while enabling the attitude trigger would deploy the armed module at once."""
+    def silent_to_flags(sim):
+        sim.lost_commands = {p.CMD_ATTITUDE_TRIGGER}
+    rig = Rig(tmp_path, setup=silent_to_flags)
+    try:
+        assert len(flag_queries(rig, 0)) == 1
+        assert rig.snap.attitude_trigger_enabled is None
+        assert rig.session.get_config().ok
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+        rig.runner.replug()
+        rig.wait_ready()
+        assert rig.session.get_config().ok
+        assert len(flag_queries(rig, 0)) == 1
+        # A new run, the module armed and banked beyond its threshold with the attitude
+        # trigger off: the query could turn it on and fire; it is not sent.
+        with rig.model():
+            rig.sim.lost_commands = set()
+            rig.sim.attitude_trigger_enabled = False
+        rig.arm()
+        with rig.model():
+            rig.sim.set_tilt(75)
+            asked = rig.sim.requests_sent
+        mark = rig.wire.mark()
+        rig.restart()
+        rig.wait_ready()
+        assert flag_queries(rig, mark) == []
+        assert rig.snap.attitude_trigger_enabled is None
+        assert any('flag query not sent' in text for _, text in rig.heard.logs), rig.heard.logs
+        with rig.model():
+            assert rig.sim.requests_sent == asked and not rig.sim.triggered
+    finally:
+        rig.close()
+
+
+def preflight_fails(rig):
+    """Run the preflight check; return its FAIL lines as {name: detail}."""
+    result = rig.session.preflight_check()
+    fails = dict(line[5:].split(': ', 1) for line in result.message.splitlines()
+                 if line.startswith('FAIL'))
+    assert result.ok == (not fails), result.message
+    return fails
+
+
+def test_round2_4_preflight_fails_under_deny_and_with_the_bay_open(rig):
+    """Issue 21 item 4: GO under trigger_request_policy deny and with bay_open true; both are
+    FAIL lines with the reason now, and only they."""
+    rig.arm()
+    assert preflight_fails(rig) == {}
+    policy(rig, 'deny')
+    fails = preflight_fails(rig)
+    assert list(fails) == ['trigger requests confirmed'], fails
+    assert 'deny' in fails['trigger requests confirmed'] and \
+        'does not deploy on its own' in fails['trigger requests confirmed']
+    policy(rig, 'defer')
+    assert preflight_fails(rig) == {}  # someone may answer: said in its OK line
+    policy(rig, 'confirm')
+    with rig.model():
+        rig.sim.set_light(3.0)  # above the module's 1.2 V light threshold
+    fails = preflight_fails(rig)
+    assert list(fails) == ['bay closed'], fails
+    assert 'BAY OPEN: light 3.0 V > light threshold 1.2 V' in fails['bay closed']
+    assert rig.snap.bay_open
+    with rig.model():
+        rig.sim.set_light(None)
+    assert preflight_fails(rig) == {}
+
+
+def test_round2_4_preflight_fails_on_every_state_that_keeps_the_parachute_in(tmp_path):
+    """The other states the driver knows that stop a deployment: both auto triggers off, a
+    trigger condition met now (arming would fire), a desired setting held back (item 1), a
+    link that just had errors."""
+    rig = Rig(tmp_path, attitude_threshold_deg=20)
+    try:
+        rig.arm()
+        assert rig.session.set_auto_triggers(False, False).ok
+        fails = preflight_fails(rig)
+        assert list(fails) == ['auto triggers on'], fails
+        assert 'attitude OFF, free fall OFF' in fails['auto triggers on']
+        assert rig.session.set_auto_triggers(True, True).ok
+        # Locked and banked beyond the threshold: arming now would fire it.
+        assert rig.session.arm(False).ok
+        with rig.model():
+            rig.sim.set_tilt(30)
+        fails = preflight_fails(rig)
+        assert set(fails) == {'armed', 'no trigger condition met'}, fails
+        assert 'tilt 30° ≥ attitude threshold 20°: arming now fires the parachute' in \
+            fails['no trigger condition met']
+        # Armed at 70, banked 30, a respawn holds 20 back: the settings line says so.
+        with rig.model():
+            rig.sim.set_tilt(0)
+        rig.arm()
+        asked = armed_and_banked(rig)
+        rig.restart()
+        rig.wait_ready()
+        wait_for(lambda: rig.snap.held, 5, what='the setting held back')
+        fails = preflight_fails(rig)
+        assert list(fails) == ['settings as desired'], fails
+        assert 'attitude_threshold_deg: want 20, module 70 (not written: would deploy now' in \
+            fails['settings as desired']
+        with rig.model():
+            assert rig.sim.requests_sent == asked and not rig.sim.triggered
+            rig.sim.set_tilt(0)
+        rig.clock.advance(HELD_RETRY_S)
+        wait_for(lambda: not rig.snap.held, 5, what='the held setting written')
+        rig.clock.advance(11.0)
+        # The jump leaves the stream silent on the driver's clock until its next frame.
+        wait_for(lambda: rig.session._stream_check(rig.session.config)[0], 5,
+                 what='a status frame after the clock jump')
+        assert preflight_fails(rig) == {}
+        # Noise on the line: a no-go until the link has been clean for 10 s.
+        rig.runner.inject_garbage(bytes([0x41, 0x75, 0x23, 0x01, 0x05, 0x00]))  # bad sum
+        wait_for(lambda: rig.session.link_info()['checksum_errors'], 5,
+                 what='the checksum error counted')
+        fails = preflight_fails(rig)
+        assert list(fails) == ['link clean'], fails
+        rig.clock.advance(11.0)
+        wait_for(lambda: rig.session._stream_check(rig.session.config)[0], 5,
+                 what='a status frame after the clock jump')
+        assert preflight_fails(rig) == {}
+    finally:
+        rig.close()
+
+
+def test_round2_1_arming_a_module_that_meets_a_trigger_condition_is_refused(rig):
+    """The same rule on the arm path (P21: arming beyond a threshold fires at once): ~/arm is
+    refused with nothing sent; ~/deploy with arm_if_locked still arms and deploys."""
+    with rig.model():
+        rig.sim.set_tilt(75)  # the threshold is 70
+        asked = rig.sim.requests_sent
+    mark = rig.wire.mark()
+    result = rig.session.arm(True)
+    assert not result.ok and 'would deploy now: tilt 75° ≥ attitude threshold 70°' in \
+        result.message, result.message
+    assert rig.wire.since(mark, p.CMD_ARM) == []
+    with rig.model():
+        assert not rig.sim.armed and rig.sim.requests_sent == asked
+        rig.sim.set_tilt(0)
+        rig.sim.set_accel(0.3)  # below the 0.5 g free-fall threshold
+    result = rig.session.arm(True)
+    assert not result.ok and 'acceleration 0.3 g < free-fall threshold 0.5 g' in \
+        result.message, result.message
+    assert rig.session.set_auto_triggers(True, False).ok
+    rig.arm()  # the free-fall trigger is off: nothing fires
+    with rig.model():
+        assert rig.sim.armed and rig.sim.requests_sent == asked and not rig.sim.triggered
+    assert rig.session.arm(False).ok
+    with rig.model():
+        rig.sim.set_accel(1.0)
+        rig.sim.set_tilt(75)
+    policy(rig, 'deny')  # the module's own request is not what deploys it here
+    result = rig.session.deploy('DEPLOY', arm_if_locked=True)
+    assert result.ok, result.message
+    with rig.model():
+        assert rig.sim.triggered
+
+
+def test_round2_1_the_two_frame_guard_holds_across_a_driver_restart(rig):
+    """Found auditing the rules' paths: the P11 guard (never a third deploy frame without an
+    acknowledgement in one power-up) was kept in memory, so a respawned driver sent two more to
+    the same power-up of the module (four in a row: protection blocks its own detection)."""
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # no frame reaches it: no acknowledgement
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'did NOT deploy' in result.message, result.message
+    rig.restart()
+    rig.wait_ready()
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY')
+    assert not result.ok and 'a third could put the module into protection' in \
+        result.message, result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == []
+    assert 'FAIL not in protection' in rig.session.preflight_check().message
+    assert any('earlier run of the driver' in text for _, text in rig.heard.logs)
+    # A power-up of the module clears its count, and the driver's.
+    with rig.model():
+        rig.sim.lost_commands = set()
+    rig.fresh()
+    assert rig.snap.failed_deploys == 0
+    rig.arm()
+    assert rig.session.deploy('DEPLOY').ok
+
+
+def test_round2_1_a_confirmation_after_a_reconnect_claims_nothing_on_old_knowledge(rig):
+    """Found auditing "never on old knowledge" (D15): deploy and arm wait for the re-read, but
+    answering a held request true right after a reconnect, before the module was read again,
+    said "the module was armed: it deploys" from the armed state read before the unplug."""
+    mark = held_request(rig)
+    rig.runner.unplug()
+    wait_for(lambda: not rig.snap.port_open, 3, what='the port closed')
+    with rig.model():
+        rig.sim.streaming = False  # no status frame re-reads it ...
+        # ... and the re-initialization stalls at the armed query (nor does a status poll tell)
+        rig.sim.lost_commands = {p.CMD_STREAMING, p.CMD_ARMED, p.CMD_STATUS}
+    rig.runner.replug()
+    wait_for(lambda: rig.snap.online and rig.wire.since(mark, p.CMD_ARMED), 5,
+             what='online again, initializing')
+    assert not rig.snap.fresh and rig.snap.armed  # as read before the unplug
+    result = rig.session.answer_trigger_request(True)
+    assert result.ok and 'was armed' not in result.message and 'not known' in \
+        result.message, result.message
+    assert 'was armed' not in rig.heard.decisions[-1].reason
+    with rig.model():
+        assert not rig.sim.triggered  # its 1 s window had passed: it did not
+
+
+_STEP = st.one_of(
+    st.tuples(st.just('attitude_threshold_deg'), st.integers(10, 90)),
+    st.tuples(st.just('freefall_threshold_g'), st.integers(1, 9).map(lambda raw: raw / 10)),
+    st.tuples(st.just('freefall_time_s'), st.integers(1, 255).map(lambda raw: raw / 100)),
+    st.tuples(st.sampled_from(['attitude', 'freefall']), st.booleans()),
+    st.tuples(st.just('armed'), st.just(True)))
+
+
+def _frame(step):
+    name, value = step
+    if name == 'armed':
+        return p.encode_arm(True)
+    if name == 'attitude':
+        return p.encode_attitude_trigger(value)
+    if name == 'freefall':
+        return p.encode_freefall_trigger(value)
+    return SETTINGS[name].encode_set(value)
+
+
+@settings(max_examples=300, deadline=None)
+@given(attitude=st.integers(10, 90), freefall=st.integers(1, 9), freefall_time=st.integers(1, 255),
+       attitude_on=st.booleans(), freefall_on=st.booleans(), armed=st.booleans(),
+       tilt=st.integers(0, 95), accel=st.integers(0, 20), steps=st.lists(_STEP, max_size=4))
+@example(attitude=70, freefall=5, freefall_time=160, attitude_on=True, freefall_on=True,
+         armed=True, tilt=30, accel=10, steps=[('attitude_threshold_deg', 20),
+                                               ('attitude', False)])  # issue 21 item 1
+def test_round2_1_no_write_the_rule_lets_through_fires_the_module(
+        attitude, freefall, freefall_time, attitude_on, freefall_on, armed, tilt, accel, steps):
+    """The settings rule as an invariant, against the module model itself (P21): whatever
+    settings, flags, tilt and |a|, a sequence of writes (and an arm) that the rule lets
+    through, in the order the driver writes it, never makes the module ask or fire, even after
+    the longest free-fall time."""
+    trigger = Trigger(attitude, freefall, attitude_on, freefall_on)
+    # A module already meeting a condition while armed has fired before any write of ours.
+    assume(not (armed and conditions(trigger, tilt, accel / 10)))
+    ordered = order(steps)
+    if would_deploy(trigger, armed, False, tilt, accel / 10, ordered):
+        return
+    sim = VirtualParachute()
+    sim.step(1.0)
+    sim.attitude_threshold_deg, sim.freefall_threshold_raw = attitude, freefall
+    sim.freefall_time_raw = freefall_time
+    sim.attitude_trigger_enabled, sim.freefall_trigger_enabled = attitude_on, freefall_on
+    sim.set_tilt(tilt)
+    sim.set_accel(accel / 10)
+    sim.armed = armed
+    now = 1.0
+    for step in ordered:
+        now += 0.01
+        sim.receive(_frame(step), now)
+    sim.step(now + 3.0)
+    assert sim.requests_sent == 0 and not sim.triggered and sim.deployments == 0, ordered

@@ -6,6 +6,7 @@ milliseconds in ``test_parachute_core.py``; these prove the wiring where the def
 processes. Tests named ``test_safety_<n>_...`` are issue 10, item <n>.
 """
 
+import math
 import os
 import signal
 import time
@@ -19,7 +20,7 @@ from rcl_interfaces.srv import GetParameters, SetParametersAtomically
 from std_srvs.srv import SetBool, Trigger
 from uav_serial_common.process import wait_for
 from uav_serial_drivers.msg import TriggerRequest
-from uav_serial_drivers.srv import Deploy
+from uav_serial_drivers.srv import Deploy, SetThresholds
 
 CONFIRM = p.encode_trigger_confirm()
 DEPLOY = p.encode_deploy()
@@ -196,4 +197,47 @@ def test_safety_21_preflight_check_over_ros(make_rig):
     assert rig.call(SetBool, 'arm', SetBool.Request(data=True)).success
     reply = rig.call(Trigger, 'preflight_check')
     assert reply.success, reply.message
-    assert len(reply.message.splitlines()) == 9 and 'FAIL' not in reply.message
+    assert len(reply.message.splitlines()) == 14 and 'FAIL' not in reply.message
+
+
+def settings_diagnostic(rig, predicate, timeout=15.0, start=0):
+    """Wait for a settings diagnostic of the node that satisfies `predicate`; return it."""
+    name = f'{NODE}: settings'
+    msg = rig.diagnostics.wait(lambda m: any(s.name == name and predicate(s) for s in m.status),
+                               timeout, start=start, what='the settings diagnostic')
+    return next(s for s in msg.status if s.name == name and predicate(s))
+
+
+def test_round2_1_a_driver_respawn_never_writes_a_setting_that_would_deploy(make_rig):
+    """Issue 21 item 1 through the real node: attitude_threshold_deg 20, arm, raise it to 70
+    with ~/set_thresholds, bank 30°, the driver is killed and respawned with the same
+    parameters. 20 is not written (the settings diagnostic is WARN and says why) until the
+    airframe levels; the module never deploys."""
+    rig = make_rig(attitude_threshold_deg=20)
+    rig.wait_ready()
+    rig.arm()
+    reply = rig.call(SetThresholds, 'set_thresholds', SetThresholds.Request(
+        attitude_deg=70.0, freefall_g=math.nan, freefall_time_s=math.nan,
+        light_threshold_v=math.nan))
+    assert reply.success, reply.message
+    with rig.model():
+        rig.sim.set_tilt(30)
+        asked = rig.sim.requests_sent
+    start = len(rig.diagnostics)
+    rig.respawn()
+    status = settings_diagnostic(rig, lambda s: s.level == DiagnosticStatus.WARN and
+                                 'attitude_threshold_deg' in s.message, start=start)
+    assert 'would deploy now: tilt 30° ≥ attitude threshold 20°' in status.message, \
+        status.message
+    assert 'Traceback' not in rig.proc.output()
+    with rig.model():
+        assert rig.sim.attitude_threshold_deg == 70 and rig.sim.armed
+        assert not rig.sim.triggered and rig.sim.requests_sent == asked
+    # The airframe levels: the desired 20 is written, nothing fires.
+    with rig.model():
+        rig.sim.set_tilt(3)
+    rig.config.wait(lambda m: m.attitude_threshold_deg == 20 and m.settings_verified, 15,
+                    what='the desired threshold written once level')
+    settings_diagnostic(rig, lambda s: s.level == DiagnosticStatus.OK)
+    with rig.model():
+        assert rig.sim.armed and not rig.sim.triggered and rig.sim.requests_sent == asked
