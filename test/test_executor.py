@@ -117,3 +117,17 @@ def test_an_exception_in_an_inline_callback_ends_spinning_as_rclpys_executors_do
     pub.publish(Int32(data=3))
     wait_for(lambda: driver.errors, 5, what='the failure raised out of spin_once')
     assert 'callback failed on 3' in str(driver.errors[0])
+
+
+def test_round2_23_a_done_callback_of_a_client_call_keeps_the_executor_spinning(ros, driver):
+    # A future's done callback runs as a task of the executor, with no entity: parachute_node's
+    # release gate and parachute_mavlink wait on call_async this way.
+    driver.release.set()
+    client = driver.node.create_client(Trigger, '/executor_under_test/slow_0')
+    assert client.wait_for_service(timeout_sec=10.0)
+    done = threading.Event()
+    future = client.call_async(Trigger.Request())
+    future.add_done_callback(lambda _: done.set())
+    assert done.wait(10.0), 'the done callback never ran'
+    _publish_until_seen(ros, driver, 11)
+    assert driver.errors == []
