@@ -1394,6 +1394,18 @@ def _decision_preflight(a: FlightAnalysis, record: Dict[str, Any], t: float) -> 
     a.event(t, 'calls', 'ok' if ok else 'bad', short(text, 200))
 
 
+def _decision_release_gate(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    route = record.get('route', '?')
+    if record.get('called') is False:
+        text = f'release gate not called for the {route}: {record.get("reason", "")}'
+    elif record.get('success') is True:
+        text = f'release gate for the {route}: {record.get("message", "")}'
+    else:
+        text = (f'release gate for the {route} gave no go ({record.get("message", "")}): '
+                'released anyway')
+    a.event(t, 'deploy', 'ok' if record.get('success') is True else 'warn', short(text, 200))
+
+
 def _decision_other(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     what = str(record.get('what'))
     a._unknown(a.unknown_whats, ('decision', what), record)
@@ -1415,6 +1427,7 @@ DECISIONS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = 
     'policy': _decision_policy,
     'settings refused': _decision_settings_refused,
     'preflight': _decision_preflight,
+    'release gate': _decision_release_gate,
 }
 """``decision`` records by their ``what``; any other ``what`` is shown as it is."""
 

@@ -325,3 +325,42 @@ def test_round2_23_bad_data_and_floods_never_raise():
     deploys = [a for a in clock.of(c.Call) if a.service == 'deploy']
     assert len(deploys) == 1  # one RELEASE runs; every other joins it
     assert clock.core.counts['bad_data'] == 2000
+
+
+class _GateClock:
+    def __init__(self) -> None:
+        self.t = 50.0
+        self.records: list = []
+        self.logs: list = []
+        self.timeouts: list = []
+
+    def record(self, kind, **fields) -> None:
+        self.records.append(fields)
+
+    def log(self, level, text) -> None:
+        self.logs.append((level, text))
+
+
+def test_round2_23_release_gate_never_outlives_the_modules_window_nor_stops_a_release():
+    from dps_parachute_ros.release_gate import ReleaseGate, WINDOW_MARGIN_S
+    g = _GateClock()
+
+    def call(timeout):
+        g.timeouts.append(timeout)
+        g.t += timeout
+        return None, 'no answer'
+    gate = ReleaseGate('gate', call, 0.5, g.record, g.log, clock=lambda: g.t)
+    gate.before_release('deploy')
+    assert g.timeouts == [0.5]
+    t_request = g.t - 0.4  # a trigger request 0.4 s old
+    gate.before_release('trigger request', t_request)
+    assert g.timeouts[-1] == pytest.approx(1.0 - WINDOW_MARGIN_S - 0.4)
+    assert g.t - t_request <= 1.0 - WINDOW_MARGIN_S + 1e-9
+    gate.before_release('trigger request', g.t - 0.9)  # no time left: not called
+    assert len(g.timeouts) == 2 and g.records[-1]['called'] is False
+
+    def broken(timeout):
+        raise RuntimeError('boom')
+    ReleaseGate('gate', broken, 0.5, g.record, g.log, clock=lambda: g.t).before_release('deploy')
+    assert g.records[-1]['answered'] is False and 'boom' in g.records[-1]['message']
+    assert all(level == 'error' for level, _ in g.logs)
