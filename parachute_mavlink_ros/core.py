@@ -426,10 +426,10 @@ class LinkCore:
                        chunk_seq=seq)
 
     def _ack(self, to: Tuple[int, int, str], result: int, reason: int = 0,
-             progress: int = 0) -> None:
+             progress: int = 0, command: int = MAV_CMD_DO_PARACHUTE) -> None:
         self.acks[RESULT_NAMES.get(result, str(result))] = \
             self.acks.get(RESULT_NAMES.get(result, str(result)), 0) + 1
-        self._send('command_ack', command=MAV_CMD_DO_PARACHUTE, result=result,
+        self._send('command_ack', command=command, result=result,
                    progress=progress, result_param2=reason, target_system=to[0],
                    target_component=to[1])
 
@@ -479,6 +479,11 @@ class LinkCore:
     def _on_command(self, event: Command, now: float) -> None:
         self.counts['messages'] += 1
         if event.command != MAV_CMD_DO_PARACHUTE:
+            if self.sysid is not None and (event.target_system, event.target_component) == \
+                    (self.sysid, self.config.component_id):
+                # Addressed to us alone: the command protocol wants an answer, not silence.
+                self._ack((event.sysid, event.compid, event.kind), MAV_RESULT_UNSUPPORTED,
+                          command=event.command)
             return
         if self.sysid is None or event.target_system not in (0, self.sysid) or \
                 event.target_component not in (0, self.config.component_id):

@@ -364,3 +364,14 @@ def test_round2_23_release_gate_never_outlives_the_modules_window_nor_stops_a_re
     ReleaseGate('gate', broken, 0.5, g.record, g.log, clock=lambda: g.t).before_release('deploy')
     assert g.records[-1]['answered'] is False and 'boom' in g.records[-1]['message']
     assert all(level == 'error' for level, _ in g.logs)
+
+
+def test_round2_23_other_commands_to_us_alone_are_unsupported_broadcasts_ignored():
+    clock = Clock()
+    ready(clock)
+    mark = clock.mark()
+    clock.feed(c.Command(255, 190, 1, 161, 512, (245.0,), 0))   # REQUEST_MESSAGE to us
+    clock.feed(c.Command(255, 190, 0, 0, 512, (245.0,), 0))     # broadcast: not ours to answer
+    acks = clock.sent('command_ack', mark)
+    assert [(a.fields['command'], a.fields['result']) for a in acks] == \
+        [(512, c.MAV_RESULT_UNSUPPORTED)]
