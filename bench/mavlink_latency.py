@@ -135,47 +135,80 @@ def _link(directory, stop: str):
             peer.close()
 
 
-def release_latencies(rig: ParachuteRig, peer: Peer, count: int, gap_s: float = 0.25) -> Dict:
-    """Send `count` RELEASEs to an armed module; return command-to-deploy-frame latencies."""
+def release_latencies(rig: ParachuteRig, peer: Peer, count: int, gap_s: float = 0.25,
+                      warm_up: int = 20) -> Dict:
+    """Send `count` RELEASEs to an armed module; return command-to-deploy-frame latencies.
+
+    First, up to `warm_up` uncounted RELEASEs until one is ACCEPTED: right after it starts,
+    parachute_mavlink may not have discovered ``~/deploy`` yet (it answers DENIED, 6).
+    """
+    for _ in range(warm_up):
+        if _release_trial(rig, peer, gap_s) is not None:
+            break
     latencies: List[float] = []
     failed = 0
     for _ in range(count):
-        _rearm(rig)
-        time.sleep(gap_s)  # a few status frames: the driver sees the module armed
-        rx_start, acks = len(rig.tap.rx), len(peer.acks)
-        t0 = peer.release()
-        got = rig.tap.wait_rx(_is_deploy, rx_start, 2.0)
-        result = peer.final_ack(acks, 5.0)
-        if got is None or result != mavlink.MAV_RESULT_ACCEPTED:
+        latency = _release_trial(rig, peer, gap_s)
+        if latency is None:
             failed += 1
-            continue
-        latencies.append((got[0] - t0) * 1000.0)
+        else:
+            latencies.append(latency)
     _rearm(rig)
     return {'latencies_ms': latencies, 'failed': failed}
 
 
+def _release_trial(rig: ParachuteRig, peer: Peer, gap_s: float) -> Optional[float]:
+    """One RELEASE: its latency (ms), or None when it was not deployed and ACCEPTED."""
+    _rearm(rig)
+    time.sleep(gap_s)  # a few status frames: the driver sees the module armed
+    rx_start, acks = len(rig.tap.rx), len(peer.acks)
+    t0 = peer.release()
+    got = rig.tap.wait_rx(_is_deploy, rx_start, 2.0)
+    result = peer.final_ack(acks, 5.0)
+    if got is None or result != mavlink.MAV_RESULT_ACCEPTED:
+        return None
+    return (got[0] - t0) * 1000.0
+
+
 def stop_release_latencies(rig: ParachuteRig, peer: Peer, count: int,
-                           gap_s: float = 0.25) -> Dict:
-    """Raise `count` trigger requests; return request-to-confirmation latencies with the stop."""
+                           gap_s: float = 0.25, warm_up: int = 20) -> Dict:
+    """Raise `count` trigger requests; return request-to-confirmation latencies with the stop.
+
+    First, up to `warm_up` uncounted requests until one has its motor stop first: right after
+    parachute_mavlink starts, parachute_node may not have discovered its gate service yet, and
+    then releases without a stop, as it must.
+    """
+    for _ in range(warm_up):
+        if _stop_release_trial(rig, peer, gap_s)[1] is False:
+            break
     latencies: List[float] = []
     missed = 0
-    late_stops = 0
-    for _ in range(count):
-        _rearm(rig)
-        time.sleep(gap_s)
-        tx_start, rx_start, stops = len(rig.tap.tx), len(rig.tap.rx), len(peer.stops)
-        with rig.runner.locked():
-            rig.sim.set_tilt(80.0)
-        sent = _trigger_request_sent_at(rig, tx_start, 1.0)
-        got = rig.tap.wait_rx(_is_confirm, rx_start, 1.5)
-        if sent is None or got is None:
+    late_stops: List[int] = []
+    for trial in range(count):
+        latency, late = _stop_release_trial(rig, peer, gap_s)
+        if latency is None:
             missed += 1
             continue
-        if len(peer.stops) <= stops or peer.stops[stops] > got[0]:
-            late_stops += 1
-        latencies.append((got[0] - sent) * 1000.0)
+        if late:
+            late_stops.append(trial)
+        latencies.append(latency)
     _rearm(rig)
     return {'latencies_ms': latencies, 'missed': missed, 'late_stops': late_stops}
+
+
+def _stop_release_trial(rig: ParachuteRig, peer: Peer, gap_s: float) -> tuple:
+    """One trigger request: (latency ms or None, whether the confirmation beat the stop)."""
+    _rearm(rig)
+    time.sleep(gap_s)
+    tx_start, rx_start, stops = len(rig.tap.tx), len(rig.tap.rx), len(peer.stops)
+    with rig.runner.locked():
+        rig.sim.set_tilt(80.0)
+    sent = _trigger_request_sent_at(rig, tx_start, 1.0)
+    got = rig.tap.wait_rx(_is_confirm, rx_start, 1.5)
+    if sent is None or got is None:
+        return None, None
+    late = len(peer.stops) <= stops or peer.stops[stops] > got[0]
+    return (got[0] - sent) * 1000.0, late
 
 
 def run(release_count: int = 200, stop_count: int = 200) -> Dict:
@@ -198,7 +231,8 @@ def run(release_count: int = 200, stop_count: int = 200) -> Dict:
         'mavlink_release_p99_ms': percentile(r, 99),
         'mavlink_release_max_ms': max(r) if r else float('nan'),
         'mavlink_stop_release_n': len(s), 'mavlink_stop_release_missed': stop['missed'],
-        'mavlink_stop_release_late_stops': stop['late_stops'],
+        'mavlink_stop_release_late_stops': len(stop['late_stops']),
+        'mavlink_stop_release_late_trials': stop['late_stops'],
         'mavlink_stop_release_p50_ms': percentile(s, 50),
         'mavlink_stop_release_p99_ms': percentile(s, 99),
         'mavlink_stop_release_max_ms': max(s) if s else float('nan'),

@@ -138,7 +138,8 @@ def bench_mavlink(res: Results, a: argparse.Namespace) -> None:
              f'stop + release (trigger request -> disarm ACCEPTED -> confirmation): p50 '
              f'{r["mavlink_stop_release_p50_ms"]:.1f} ms, max '
              f'{r["mavlink_stop_release_max_ms"]:.1f} ms, '
-             f'{r["mavlink_stop_release_late_stops"]} confirmations before their motor stop')
+             f'{r["mavlink_stop_release_late_stops"]} confirmations before their motor stop '
+             f'(trials {r["mavlink_stop_release_late_trials"][:10]})')
 
 
 def bench_imu_latency(res: Results, a: argparse.Namespace) -> None:
