@@ -148,6 +148,24 @@ def test_round2_23_a_refused_release_never_stops_the_motors(fresh):
     assert len(gate_records(rig)) == gates  # the gate was never asked
 
 
+def test_round2_23_a_release_the_module_did_not_do_is_failed(fresh):
+    rig = fresh
+    rig.arm()
+    with rig.model():
+        rig.sim.lost_commands = {p.CMD_DEPLOY}  # every deploy frame is lost on the wire
+    try:
+        mark, wire = rig.hub.mark(), rig.wire.mark()
+        rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE)
+        final = rig.hub.final_ack(mark, timeout=30.0)
+        assert (final.result, final.result_param2) == (mavlink.MAV_RESULT_FAILED, 4), final
+        assert motor_stops(rig.hub, mark)  # the release was attempted: the motors went first
+        assert len(rig.wire.since(wire, p.CMD_DEPLOY)) == 2  # never a third (P11)
+        rig.hub.wait(mark, 'node', 'STATUSTEXT', lambda m: 'FAILED' in m.text, 5)
+    finally:
+        with rig.model():
+            rig.sim.lost_commands = set()
+
+
 def test_round2_23_addressing_enable_disable_and_unsupported(fresh):
     rig = fresh
     mark = rig.hub.mark()
