@@ -85,7 +85,7 @@ PARAMS = (
               'leaves (the motor stop of parachute_mavlink); empty = none', startup_only=True),
     ParamSpec('release_gate_timeout_s', 0.5, 'longest wait for the release gate; a trigger '
               "request's confirmation never waits past its 1 s window [s]",
-              float_range=(0.01, 0.7), startup_only=True),
+              float_range=(0.01, 1.0), startup_only=True),
 )
 THRESHOLD_FIELDS = (('attitude_threshold_deg', 'attitude_deg'),
                     ('freefall_threshold_g', 'freefall_g'),

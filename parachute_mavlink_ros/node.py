@@ -51,7 +51,8 @@ PARAMS = (
               'any release: off, disarm (forced) or terminate', choices=c.STOP_MODES,
               startup_only=True),
     ParamSpec('motor_stop_wait_s', 0.3, "longest wait for the autopilot's ACK of the motor "
-              'stop before releasing anyway [s]', float_range=(0.0, 0.6), startup_only=True),
+              'stop before releasing anyway (the parachute node waits at most its '
+              'release_gate_timeout_s) [s]', float_range=(0.0, 0.9), startup_only=True),
     ParamSpec('handset_failsafe_to_autopilot', False, "forward the handset's RETURN_TO_HOME "
               'as MAV_CMD_NAV_RETURN_TO_LAUNCH', startup_only=True),
     ParamSpec('handset_ns', 'handset_link', 'name of the handset link node (relative)',
