@@ -15,7 +15,7 @@ from mavlink_rig import Hub, MavlinkRig, motor_stops
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_srvs.srv import Trigger
+from std_srvs.srv import SetBool, Trigger
 from uav_serial_common.process import wait_for
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import Failsafe, MavlinkLink, TriggerRequest
@@ -85,6 +85,20 @@ def test_round2_23_heartbeat_is_a_parachute_with_the_module_state(fresh):
     assert (beat.get_srcSystem(), beat.get_srcComponent()) == (1, 161)
     rig.arm()
     heartbeat_status(rig, mavlink.MAV_STATE_ACTIVE)
+    mark = rig.hub.mark()
+    with rig.model():
+        rig.sim.set_external_power(False)
+        cell, rig.sim.cell_voltage_v = rig.sim.cell_voltage_v, 3.2  # a nearly empty cell
+    try:
+        assert rig.call(SetBool, 'arm', SetBool.Request(data=False)).success
+        rig.arm()  # a change of armed: the link asks ~/preflight_check again
+        heartbeat_status(rig, mavlink.MAV_STATE_CRITICAL)
+        rig.hub.wait(mark, 'node', 'STATUSTEXT', lambda m: 'preflight FAIL' in m.text, 10)
+    finally:
+        with rig.model():
+            rig.sim.cell_voltage_v = cell
+            rig.sim.set_external_power(True)
+    heartbeat_status(rig, mavlink.MAV_STATE_ACTIVE, 30)  # the periodic check passes again
     mark = rig.hub.mark()
     rig.runner.unplug()
     try:
