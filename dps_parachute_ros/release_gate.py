@@ -38,7 +38,19 @@ class ReleaseGate:
         self._clock = clock
 
     def before_release(self, route: str, t_request: Optional[float] = None) -> None:
-        """Call the gate for a release by `route`; `t_request`: a trigger request's arrival."""
+        """Call the gate for a release by `route`; `t_request`: a trigger request's arrival.
+
+        Never raises: whatever goes wrong here, the release that follows must still go out.
+        """
+        try:
+            self._before_release(route, t_request)
+        except Exception as exc:  # noqa: BLE001 - the gate never stops a release
+            try:
+                self._log('error', f'release gate failed ({exc!r}): releasing anyway')
+            except Exception:  # noqa: BLE001 - not even a log line may stop it
+                pass
+
+    def _before_release(self, route: str, t_request: Optional[float]) -> None:
         timeout = self.timeout_s
         if t_request is not None:
             timeout = min(timeout, t_request + MODULE_WINDOW_S - WINDOW_MARGIN_S - self._clock())

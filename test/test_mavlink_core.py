@@ -365,6 +365,12 @@ def test_round2_23_release_gate_never_outlives_the_modules_window_nor_stops_a_re
     assert g.records[-1]['answered'] is False and 'boom' in g.records[-1]['message']
     assert all(level == 'error' for level, _ in g.logs)
 
+    def broken_record(kind, **fields):
+        raise OSError('disk gone')
+    ReleaseGate('gate', call, 0.5, broken_record, g.log,
+                clock=lambda: g.t).before_release('deploy')  # returns: the release goes on
+    assert 'disk gone' in g.logs[-1][1]
+
 
 def test_round2_23_other_commands_to_us_alone_are_unsupported_broadcasts_ignored():
     clock = Clock()
