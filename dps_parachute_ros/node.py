@@ -81,8 +81,9 @@ PARAMS = (
               choices=TRIGGER_MODES),
     ParamSpec('freefall_trigger', 'keep', 'desired free-fall auto-trigger',
               choices=TRIGGER_MODES),
-    ParamSpec('release_gate', '', 'std_srvs/Trigger service called just before a release '
-              'leaves (the motor stop of parachute_mavlink); empty = none', startup_only=True),
+    ParamSpec('release_gate', 'parachute_mavlink/release_gate', 'std_srvs/Trigger service '
+              'called just before a release leaves, when it is there (the motor stop of '
+              'parachute_mavlink); empty = never', startup_only=True),
     ParamSpec('release_gate_timeout_s', 0.5, 'longest wait for the release gate; a trigger '
               "request's confirmation never waits past its 1 s window [s]",
               float_range=(0.01, 1.0), startup_only=True),
@@ -176,7 +177,8 @@ class ParachuteNode(Node, Listener):
                 return None, f'no answer within {timeout * 1000:.0f} ms'
             reply = future.result()
             return bool(reply.success), reply.message
-        return ReleaseGate(name, call, timeout_s, self.session.blackbox.record, self.on_log)
+        return ReleaseGate(name, call, timeout_s, self.session.blackbox.record, self.on_log,
+                           ready=client.service_is_ready)
 
     # -- parameters -------------------------------------------------------------------------
 

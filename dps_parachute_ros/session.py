@@ -418,7 +418,8 @@ class ParachuteSession:
         with self._lock:
             policy = self._config.trigger_request_policy
             defer_s = self._config.defer_timeout_s
-        if policy == 'confirm' and self.release_gate is not None:
+        if policy == 'confirm' and self.release_gate is not None and \
+                self.release_gate.available('trigger request'):
             # The gate (the motor stop) waits: never on the reader thread, which delivers replies.
             threading.Thread(target=self._confirm_after_gate, args=(t_rx, policy),
                              name='parachute-gate', daemon=True).start()

@@ -7,9 +7,8 @@ ros2 launch uav_serial_drivers virtual_bringup.launch.py mavlink:=true   # + the
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
-from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 
@@ -22,9 +21,6 @@ def generate_launch_description():
     originman_link = LaunchConfiguration('originman_link')
     namespace = LaunchConfiguration('namespace')
     mavlink = LaunchConfiguration('mavlink')
-    gate = ParameterValue(PythonExpression(
-        ["'parachute_mavlink/release_gate' if '", mavlink, "'.lower() == 'true' else ''"]),
-        value_type=str)
     return LaunchDescription([
         DeclareLaunchArgument('mavlink', default_value='false',
                               description='also run parachute_mavlink against a virtual '
@@ -52,7 +48,7 @@ def generate_launch_description():
         Node(package='uav_serial_drivers', executable='parachute_node', name='parachute',
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'parachute.yaml']),
-                         {'port': parachute_link, 'release_gate': gate}],
+                         {'port': parachute_link}],
              output='screen'),
         Node(package='uav_serial_drivers', executable='servo_bus_node', name='servo_bus',
              namespace=namespace,

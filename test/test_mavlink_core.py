@@ -381,3 +381,25 @@ def test_round2_23_other_commands_to_us_alone_are_unsupported_broadcasts_ignored
     acks = clock.sent('command_ack', mark)
     assert [(a.fields['command'], a.fields['result']) for a in acks] == \
         [(512, c.MAV_RESULT_UNSUPPORTED)]
+
+
+def test_round2_23_release_gate_never_seen_is_no_gate_at_all_and_one_gone_is_said():
+    from dps_parachute_ros.release_gate import ReleaseGate
+    g = _GateClock()
+    ready = [False]
+
+    def call(timeout):
+        g.timeouts.append(timeout)
+        return True, 'motors stopped'
+    gate = ReleaseGate('parachute_mavlink/release_gate', call, 0.5, g.record, g.log,
+                       clock=lambda: g.t, ready=lambda: ready[0])
+    assert not gate.available('trigger request')
+    gate.before_release('deploy')
+    assert (g.timeouts, g.records, g.logs) == ([], [], [])  # exactly as without a gate
+    ready[0] = True
+    gate.before_release('deploy')
+    assert g.timeouts == [0.5] and g.records[-1]['success'] is True
+    ready[0] = False
+    gate.before_release('deploy')
+    assert g.records[-1]['called'] is False and 'gone' in g.records[-1]['reason']
+    assert g.logs[-1][0] == 'error'
