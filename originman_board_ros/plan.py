@@ -204,10 +204,9 @@ class FrameScheduler:
             return 'command', frame, ticket
         if not self.targets:
             return None
-        backlog = self.backlog(now)
-        if backlog > self.ahead_s / 2:
+        if now < self.board_free_at - self.ahead_s / 2:
             return None  # released in batches of at least half the room, not one by one
-        room = self.ahead_s - backlog
+        room = self.ahead_s - self.backlog(now)
         budget = max(1, min(PER_FRAME, int(room / _bus_bytes_time(BUS_MOVE_ITEM_BYTES))))
         duration = next(iter(self.targets.values()))[1]
         items = []
