@@ -699,7 +699,7 @@ class OriginManCore:
         with self._lock:
             if ticket in self._results:
                 return self._results.pop(ticket)
-        return 'dropped: the board went offline before it left'
+        return 'dropped before it left (a motor stop came after it, or the board went offline)'
 
     def _write(self, frame: bytes, cancels: Sequence[int] = ()) -> None:
         """Send a command now, behind queued ones; raise LinkError when it did not leave.

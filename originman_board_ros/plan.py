@@ -154,23 +154,31 @@ class FrameScheduler:
         self.ahead_s = ahead_s
         self.baud = baud
         self.stops: List[Tuple[bytes, object]] = []
-        self.commands: List[Tuple[bytes, object]] = []
+        self.commands: List[Tuple[bytes, object, bool]] = []  # (frame, ticket, motor)
         self.targets: Dict[int, Tuple[int, int]] = {}  # id -> (position, duration ms)
         self.board_free_at = 0.0
         self.coalesced = 0
 
     def push_stop(self, frame: bytes, ticket: object = None) -> None:
-        """A motor stop: ahead of everything queued."""
+        """A motor stop: ahead of everything queued, and it drops queued motor commands.
+
+        A motor command queued before the stop was given before it: sent after the stop, it
+        would start the motors again with nothing left to stop them.
+        """
+        self.commands = [c for c in self.commands if not c[2]]
         self.stops.append((frame, ticket))
 
     def push_command(self, frame: bytes, ticket: object = None,
-                     cancels: Sequence[int] = ()) -> None:
-        """A command, after those queued; ``cancels`` drops queued targets of those servos."""
+                     cancels: Sequence[int] = (), motor: bool = False) -> None:
+        """A command, after those queued; ``cancels`` drops queued targets of those servos.
+
+        ``motor``: the command sets motor speeds (a stop drops it while it waits).
+        """
         if p.BUS_BROADCAST_ID in cancels:
             self.targets.clear()
         for servo_id in cancels:
             self.targets.pop(servo_id, None)
-        self.commands.append((frame, ticket))
+        self.commands.append((frame, ticket, motor))
 
     def push_move(self, duration_ms: int, items: Sequence[Tuple[int, int]]) -> None:
         """Bus servo targets: each replaces the queued target of its servo."""
@@ -200,8 +208,8 @@ class FrameScheduler:
             frame, ticket = self.stops.pop(0)
             return 'stop', frame, ticket
         if self.commands:
-            frame, ticket = self.commands.pop(0)
-            return 'command', frame, ticket
+            frame, ticket, motor = self.commands.pop(0)
+            return 'motor' if motor else 'command', frame, ticket
         if not self.targets:
             return None
         if now < self.board_free_at - self.ahead_s / 2:
@@ -279,7 +287,7 @@ class BoardPlan:
             return False
         self.watchdog.command(now)
         if frame is not None:
-            self.scheduler.push_command(frame, ticket)
+            self.scheduler.push_command(frame, ticket, motor=True)
         return True
 
     def stop_motors(self, ticket: object = None) -> None:

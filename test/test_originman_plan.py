@@ -45,6 +45,18 @@ def test_a_stop_leaves_before_queued_moves_and_commands():
     assert kinds == ['stop', 'command'] and plan.scheduler.targets
 
 
+def test_a_stop_drops_motor_commands_queued_before_it():
+    # Found by the state machine: a motor command queued by one thread, a stop by another;
+    # the stop left first and the command after it restarted the motors, unwatched.
+    plan = BoardPlan(MOTOR_TIMEOUT_S, OFFLINE_TIMEOUT_S)
+    plan.connection(True, 0.0)
+    plan.frame(0.0)
+    assert plan.motor_command(p.encode_motor_speeds([(0, 1.0)]), 0.0, ticket='run')
+    assert plan.command(LED_FRAME, ticket='led')
+    plan.stop_motors(ticket='stop')
+    assert [plan.take(0.0)[2] for _ in range(2)] == ['stop', 'led'] and plan.take(0.0) is None
+
+
 def test_the_newest_target_of_a_servo_replaces_the_queued_one_in_its_place():
     s = FrameScheduler()
     s.push_move(20, [(1, 100), (2, 200)])
@@ -88,8 +100,8 @@ def test_board_time_counts_the_servo_bus():
 class BoardPlanMachine(RuleBasedStateMachine):
     """The plan as the core runs it, against a record of the wire."""
 
-    @initialize()
-    def start(self):
+    @initialize(online=st.booleans())
+    def start(self, online):
         self.plan = BoardPlan(MOTOR_TIMEOUT_S, OFFLINE_TIMEOUT_S)
         self.now = 0.0
         self.connected = False
@@ -97,6 +109,10 @@ class BoardPlanMachine(RuleBasedStateMachine):
         self.wanted = {}          # servo -> newest target accepted
         self.on_board = {}        # servo -> last target written
         self.wire = []            # (time, kind, frame)
+        self.motor_frames = []    # motor speeds and stops written since the port opened
+        if online:  # most interleavings worth trying start from a board that talks
+            self.connect()
+            self.frame_from_the_board()
 
     # -- the runtime, emulated -------------------------------------------------------------------
 
@@ -114,6 +130,9 @@ class BoardPlanMachine(RuleBasedStateMachine):
                 assert online, f'{kind} sent to a board judged offline'
             if not self.connected:
                 continue  # the write fails: the port is closed
+            if kind == 'stop' and self.armed_at is not None:
+                late = self.now - self.armed_at
+                assert late <= MOTOR_TIMEOUT_S + STOP_MARGIN_S, f'stop {late:.3f} s late'
             if kind == 'stop':
                 # The stop waits on the board behind at most the paced work (and two reads).
                 backlog = self.plan.scheduler.backlog(self.now)
@@ -122,6 +141,8 @@ class BoardPlanMachine(RuleBasedStateMachine):
             self.plan.scheduler.written(frame, self.now)
             self.wire.append((self.now, kind, frame))
             cmd = decode(frame)
+            if isinstance(cmd, (p.SetMotorSpeeds, p.StopMotors)):
+                self.motor_frames.append(cmd)
             if isinstance(cmd, p.BusMove):
                 for servo_id, position in cmd.items:
                     self.on_board[servo_id] = position
@@ -152,6 +173,7 @@ class BoardPlanMachine(RuleBasedStateMachine):
     def connect(self):
         if not self.connected:
             self.connected = True
+            self.motor_frames = []
             self.plan.connection(True, self.now)
             self.armed_at = self.now
             self.drain()
@@ -177,13 +199,40 @@ class BoardPlanMachine(RuleBasedStateMachine):
             self.dropped()
         self.drain()
 
-    @rule(speed=st.one_of(st.none(), st.floats(-6, 6)))
-    def motor_command(self, speed):
+    # A caller queues its frame, then drains; another thread's frames may be queued between
+    # (``drain`` False: the caller has not reached its drain yet).
+
+    @rule(speed=st.one_of(st.none(), st.floats(-6, 6)), drain=st.booleans())
+    def motor_command(self, speed, drain):
         frame = None if speed is None else p.encode_motor_speeds([(0, speed)])
         accepted = self.plan.motor_command(frame, self.now)
         assert accepted == self.plan.online
         if accepted and self.connected:
             self.armed_at = self.now
+        if drain:
+            self.drain()
+
+    @rule()
+    def a_caller_drains(self):
+        self.drain()
+
+    @rule(calls=st.lists(st.sampled_from(['motor', 'led', 'move', 'stop']), min_size=2,
+                         max_size=6))
+    def callers_at_once(self, calls):
+        """Several threads queue their frames before any of them drains."""
+        for k, call in enumerate(calls):
+            if call == 'motor':
+                if self.plan.motor_command(p.encode_motor_speeds([(1, 2.0)]), self.now) and \
+                        self.connected:
+                    self.armed_at = self.now
+            elif call == 'led':
+                self.plan.command(LED_FRAME)
+            elif call == 'move':
+                items = [(i, (k * 101 + i) % 1001) for i in SERVOS[:10]]
+                if self.plan.move(20, items):
+                    self.wanted.update(items)
+            else:
+                self.plan.stop_motors()
         self.drain()
 
     @rule()
@@ -192,14 +241,16 @@ class BoardPlanMachine(RuleBasedStateMachine):
         self.drain()
 
     @rule(ids=st.lists(st.sampled_from(SERVOS), min_size=1, max_size=8, unique=True),
-          position=st.integers(0, 1000), duration=st.sampled_from([0, 20, 100]))
-    def bus_servo_command(self, ids, position, duration):
+          position=st.integers(0, 1000), duration=st.sampled_from([0, 20, 100]),
+          drain=st.booleans())
+    def bus_servo_command(self, ids, position, duration, drain):
         items = [(i, (position + 13 * i) % 1001) for i in ids]
         if self.plan.move(duration, items):
             self.wanted.update(items)
         else:
             assert not self.plan.online
-        self.drain()
+        if drain:
+            self.drain()
 
     @rule(rounds=st.integers(5, 40), duration=st.sampled_from([0, 20]))
     def servo_command_flood(self, rounds, duration):
@@ -211,10 +262,11 @@ class BoardPlanMachine(RuleBasedStateMachine):
             self.drain()
             self.timer_until(self.now + 0.01)
 
-    @rule()
-    def led_command(self):
+    @rule(drain=st.booleans())
+    def led_command(self, drain):
         assert self.plan.command(LED_FRAME) == self.plan.online
-        self.drain()
+        if drain:
+            self.drain()
 
     @rule(count=st.integers(1, 40))
     def reads_left_unanswered(self, count):
@@ -236,6 +288,12 @@ class BoardPlanMachine(RuleBasedStateMachine):
         if self.armed_at is not None:
             late = self.now - self.armed_at
             assert late <= MOTOR_TIMEOUT_S + STOP_MARGIN_S, f'motors ran {late:.3f} s'
+
+    @invariant()
+    def motors_the_watchdog_lets_go_of_are_stopped(self):
+        if self.connected and self.plan.watchdog.deadline is None and self.motor_frames:
+            assert isinstance(self.motor_frames[-1], p.StopMotors), self.motor_frames[-1]
+            assert not any(motor for _, _, motor in self.plan.scheduler.commands)
 
     @invariant()
     def the_newest_target_of_each_servo_wins(self):
