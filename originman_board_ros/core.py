@@ -722,7 +722,7 @@ class OriginManCore:
             self._plan.scheduler.written(frame, self._pace_clock())
 
     def _run_timer(self) -> None:
-        """The watchdog and the paced frames: this thread never reads or waits on the board."""
+        """Fire the watchdog and release paced frames; never read or wait on the board."""
         while not self._stop.is_set():
             try:
                 now = self._clock()

@@ -72,16 +72,16 @@ class MotorWatchdog:
         self.fired = 0
 
     def command(self, now: float) -> None:
-        """A motor command (zeros and keep-alives too) was accepted at ``now``."""
+        """Note a motor command accepted at ``now``; zeros and keep-alives count too."""
         self.last_command_at = now
         self.stopped = False
 
     def connected(self, now: float) -> None:
-        """The port opened: the motors' state is unknown, as if commanded now (O38)."""
+        """Arm at a connect: the motors' state is unknown, as if commanded now (O38)."""
         self.command(now)
 
     def stop(self) -> None:
-        """Every motor was told to stop (a stop frame is on its way)."""
+        """Note that every motor was told to stop; its frame is on its way."""
         self.stopped = True
 
     @property
@@ -107,24 +107,24 @@ class OnlineJudge:
         self.online = False
 
     def connection(self, up: bool, now: float) -> Optional[Change]:
-        """The port opened (``up``) or closed; frames before this moment no longer count."""
+        """Judge a port that opened (``up``) or closed; frames before now no longer count."""
         self.connected = up
         self.last_frame_at = None
         return self._set(False, 'port open, no frame from the board yet' if up
                          else 'port closed')
 
     def frame(self, now: float) -> Optional[Change]:
-        """A valid frame from the board arrived at ``now``."""
+        """Judge a valid frame from the board that arrived at ``now``."""
         if not self.connected:
             return None
         self.last_frame_at = now
         return self._set(True, 'frames arriving')
 
     def tick(self, now: float) -> Optional[Change]:
-        """Judge silence at ``now``."""
-        if self.online and self.last_frame_at is not None and \
-                now - self.last_frame_at >= self.timeout_s:
-            return self._set(False, f'no frame from the board for {now - self.last_frame_at:.1f} s')
+        """Judge the silence at ``now``."""
+        last = self.last_frame_at
+        if self.online and last is not None and now - last >= self.timeout_s:
+            return self._set(False, f'no frame from the board for {now - last:.1f} s')
         return None
 
     @property
@@ -160,7 +160,7 @@ class FrameScheduler:
         self.coalesced = 0
 
     def push_stop(self, frame: bytes, ticket: object = None) -> None:
-        """A motor stop: ahead of everything queued, and it drops queued motor commands.
+        """Queue a motor stop ahead of everything; it drops queued motor commands.
 
         A motor command queued before the stop was given before it: sent after the stop, it
         would start the motors again with nothing left to stop them.
@@ -170,7 +170,7 @@ class FrameScheduler:
 
     def push_command(self, frame: bytes, ticket: object = None,
                      cancels: Sequence[int] = (), motor: bool = False) -> None:
-        """A command, after those queued; ``cancels`` drops queued targets of those servos.
+        """Queue a command after those queued; ``cancels`` drops queued targets of those servos.
 
         ``motor``: the command sets motor speeds (a stop drops it while it waits).
         """
@@ -181,7 +181,7 @@ class FrameScheduler:
         self.commands.append((frame, ticket, motor))
 
     def push_move(self, duration_ms: int, items: Sequence[Tuple[int, int]]) -> None:
-        """Bus servo targets: each replaces the queued target of its servo."""
+        """Queue bus servo targets: each replaces the queued target of its servo."""
         for servo_id, position in items:
             if servo_id in self.targets:
                 self.coalesced += 1
@@ -203,7 +203,7 @@ class FrameScheduler:
         self.board_free_at = max(self.board_free_at, now) + board_time(frame, self.baud)
 
     def take(self, now: float) -> Optional[Tuple[str, bytes, object]]:
-        """The next frame to write at ``now``: ``(kind, frame, ticket)``, or None."""
+        """Return the next frame to write at ``now``: ``(kind, frame, ticket)``, or None."""
         if self.stops:
             frame, ticket = self.stops.pop(0)
             return 'stop', frame, ticket
@@ -256,7 +256,7 @@ class BoardPlan:
         self.judge.timeout_s = offline_timeout_s
 
     def connection(self, up: bool, now: float) -> Optional[Change]:
-        """The port opened or closed at ``now``."""
+        """Take a port that opened or closed at ``now``."""
         if up:
             self.watchdog.connected(now)
         change = self.judge.connection(up, now)
@@ -264,17 +264,17 @@ class BoardPlan:
         return change
 
     def frame(self, now: float) -> Optional[Change]:
-        """A frame from the board arrived at ``now``."""
+        """Take a frame from the board that arrived at ``now``."""
         return self.judge.frame(now)
 
     def tick(self, now: float) -> Tuple[Optional[Change], bool]:
-        """Timers at ``now``: returns (an online change, whether the watchdog queued a stop)."""
+        """Run the timers at ``now``; return (an online change, whether a stop was queued)."""
         change = self.judge.tick(now)
         self._went_offline(change)
         return change, self.tick_watchdog(now)
 
     def tick_watchdog(self, now: float) -> bool:
-        """The watchdog alone at ``now``: whether it queued a stop (ahead of everything)."""
+        """Run the watchdog alone at ``now``; return whether it queued a stop (ahead of all)."""
         if self.judge.connected and self.watchdog.due(now):
             self.stop_motors()
             self.watchdog.fired += 1
@@ -310,7 +310,7 @@ class BoardPlan:
         return True
 
     def take(self, now: float) -> Optional[Tuple[str, bytes, object]]:
-        """The next frame to write at ``now``; only stops while offline."""
+        """Return the next frame to write at ``now``; only stops while offline."""
         if not self.judge.online and not self.scheduler.stops:
             self.scheduler.clear()
         return self.scheduler.take(now)

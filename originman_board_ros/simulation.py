@@ -325,8 +325,9 @@ class VirtualOriginManBoardModel(ClockedModel):
     (ids 1..2), ``buzzer``, ``buzzer_log``, ``oled_lines`` (1..2), ``rgb`` (pixels 0..1),
     ``sbus``, ``low_battery_alarms``, ``command_log`` ((time, command) handled, newest last).
     ``answer_reads`` (False: reads get no reply, reports go on), ``queue_log`` ((arrival, handled,
-    command), newest last). Counters: ``frames_handled``, ``commands_ignored``, ``bad_motor_ids``, ``bad_pwm_ids``,
-    ``bus_reads``, ``bus_read_failures``, ``reports_sent`` and the parser's ``parser.*``.
+    command), newest last). Counters: ``frames_handled``, ``commands_ignored``,
+    ``bad_motor_ids``, ``bad_pwm_ids``, ``bus_reads``, ``bus_read_failures``, ``reports_sent``
+    and the parser's ``parser.*``.
     """
 
     def __init__(self, now: float = 0.0, *, bus_servo_ids: Iterable[int] = (1, 2, 3),
