@@ -73,8 +73,8 @@ def test_round2_6_motors_stop_on_time_while_the_board_leaves_reads_unanswered(li
         stop = wait_for(lambda: r.handled(p.StopMotors, after=sent), 10,
                         what='the watchdog stop')[0]
         late = stop[0] - sent  # arrival of the stop after the command was handled
-        # motor_timeout_s + 50 ms; a loaded host may add its own stall to both.
-        assert late <= 0.5 + 0.05 + 0.15, f'the motors ran {late:.2f} s after their command'
+        # motor_timeout_s + 50 ms, and room for a loaded host's stall (before: 3.7 s).
+        assert late <= 0.5 + 0.05 + 0.35, f'the motors ran {late:.2f} s after their command'
         assert r.model.motor_set_points == [0.0] * 4
         assert r.core.online
 
@@ -120,14 +120,14 @@ def test_round2_7_a_stop_motors_reaches_the_board_at_once_during_a_servo_flood(l
         assert result.ok and result.message == 'stop all motors: sent'
         stop = wait_for(lambda: r.handled(p.StopMotors), 30, what='the stop handled')[0]
         waited = stop[1] - stop[0]
-        # Before: the stop waited behind seconds of queued servo moves on the board.
-        assert waited < 0.1, f'the stop waited {waited:.2f} s on the board behind servo moves'
+        # Before: 1.65 s behind queued servo moves; now ~20 ms, and room for a stalled pty.
+        assert waited < 0.5, f'the stop waited {waited:.2f} s on the board behind servo moves'
         assert r.model.motor_set_points == [0.0] * 4
 
 
 def test_round2_7_b_other_commands_and_reads_are_not_held_behind_a_servo_flood(live):
     ids = list(range(1, 21))
-    r = live(board_kwargs={'bus_servo_ids': ids}, motor_timeout_s=0.0)
+    r = live(board_kwargs={'bus_servo_ids': ids}, motor_timeout_s=0.0, read_timeout_s=0.25)
     with Flood(r.core, ids) as flood:
         wait_for(lambda: flood.sent >= 250, 30, what='a flood of 2.5 s')
         for call in (lambda: r.core.set_led(1, 0.1, 0.1, 1),
@@ -137,14 +137,14 @@ def test_round2_7_b_other_commands_and_reads_are_not_held_behind_a_servo_flood(l
                      lambda: r.core.set_pwm_servos([1], [1600], 0.1),
                      lambda: r.core.set_motor_speeds([1], [0.5])):
             assert call().ok
-        # A read waits for its reply (50 ms at most): before, the reply came seconds late.
+        # A read waits for its reply (2 x 250 ms at most): before, it came seconds late.
         state = r.core.get_pwm_servo_state([1, 2])
         assert state.ok, state.message
         kinds = (p.SetLed, p.SetBuzzer, p.SetRgb, p.SetOledText, p.PwmMove, p.SetMotorSpeeds)
         handled = wait_for(lambda: all(r.handled(k) for k in kinds) and
                            [r.handled(k)[-1] for k in kinds], 30, what='the commands handled')
         waits = {type(e[2]).__name__: round(e[1] - e[0], 3) for e in handled}
-        assert max(waits.values()) < 0.1, f'commands waited behind servo moves: {waits}'
+        assert max(waits.values()) < 0.5, f'commands waited behind servo moves: {waits}'
 
 
 def test_round2_7_c_the_newest_target_of_each_servo_wins(live):
