@@ -84,8 +84,8 @@ def test_round2_6_motors_stop_on_time_while_the_board_leaves_reads_unanswered(li
 class Flood:
     """``~/bus_servo/command`` at 100 Hz x 20 servos (one message of 20 each 10 ms)."""
 
-    def __init__(self, core, ids):
-        self.core, self.ids = core, ids
+    def __init__(self, core, ids, period_s=0.01):
+        self.core, self.ids, self.period_s = core, ids, period_s
         self.stop = threading.Event()
         self.sent = 0
         self.last = {}
@@ -99,7 +99,7 @@ class Flood:
             if self.core.set_bus_servos(self.ids, positions, 0.02).ok:
                 self.last = dict(zip(self.ids, positions))
                 self.sent += 1
-            time.sleep(0.01)
+            time.sleep(self.period_s)
 
     def __enter__(self):
         self.thread.start()
@@ -150,8 +150,9 @@ def test_round2_7_b_other_commands_and_reads_are_not_held_behind_a_servo_flood(l
 def test_round2_7_c_the_newest_target_of_each_servo_wins(live):
     ids = list(range(1, 21))
     r = live(board_kwargs={'bus_servo_ids': ids}, motor_timeout_s=0.0)
-    with Flood(r.core, ids) as flood:
-        wait_for(lambda: flood.sent >= 100, 30, what='a flood of 1 s')
+    # As fast as the host can (a loaded host could not keep 100 Hz): more than the bus carries.
+    with Flood(r.core, ids, period_s=0.0) as flood:
+        wait_for(lambda: flood.sent >= 300, 30, what='a flood of 300 messages')
     last = flood.last
 
     def arrived():
@@ -177,11 +178,11 @@ def test_round2_11a_a_command_sent_on_the_first_imu_after_a_reconnect_is_accepte
 
     r = live(on_imu=on_imu)
     state['rig'] = r
-    for _ in range(3):
+    for k in range(3):
         r.board.runner.unplug()
         wait_for(lambda: not r.core.online, 10, what='offline while unplugged')
         state['armed'] = True
         r.board.runner.replug()
-        wait_for(lambda: not state['armed'], 10, what='the first IMU after the reconnect')
+        wait_for(lambda: len(results) > k, 10, what='the command on the first IMU after it')
     assert [res.cause for res in results] == ['', '', '']
     assert all(res.ok for res in results), [res.message for res in results]
