@@ -832,7 +832,9 @@ class OriginManCore:
         with self._lock:
             ids = list(self._poll_ids)
         for servo_id in ids:
-            if self._stop.is_set() or not self.link.connected:
+            # A pass of unanswered reads takes seconds: the board's silence is judged between
+            # them, not only after the pass.
+            if self._stop.is_set() or not self._tick(self._clock()):
                 break
             self._poll_one(servo_id, now)
         with self._lock:
