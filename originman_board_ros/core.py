@@ -355,6 +355,12 @@ class OriginManSnapshot:
     settings_ok: bool
     settings_message: str
     bus_servos: Tuple[BusServoStatus, ...]
+    bus_targets_queued: int = 0
+    """Bus servo targets waiting for room on the servo bus (issue 21 item 7)."""
+    bus_targets_replaced: int = 0
+    """Queued targets a newer one of the same servo replaced before they left."""
+    board_backlog_s: float = 0.0
+    """The servo-bus work the board still has from frames sent, as estimated."""
 
 
 class Refused(ValueError):
@@ -981,7 +987,10 @@ class OriginManCore:
                 read_failures=link.read_failures, reconnects=link.serial.stats.reconnects,
                 refusals=dict(self._refusals), watchdog_stops=self._plan.watchdog.fired,
                 settings_ok=self._settings_ok, settings_message=self._settings_message,
-                bus_servos=tuple(self._servos[i] for i in self._poll_ids if i in self._servos))
+                bus_servos=tuple(self._servos[i] for i in self._poll_ids if i in self._servos),
+                bus_targets_queued=len(self._plan.scheduler.targets),
+                bus_targets_replaced=self._plan.scheduler.coalesced,
+                board_backlog_s=self._plan.scheduler.backlog(self._pace_clock()))
 
     @property
     def bus_servo_ids(self) -> List[int]:

@@ -163,6 +163,7 @@ def test_round2_7_c_the_newest_target_of_each_servo_wins(live):
     # Coalesced: the board got fewer servo moves than were asked for.
     moves = [m for m in r.board.commands() if isinstance(m, p.BusMove)]
     assert sum(len(m.items) for m in moves) < flood.sent * len(ids)
+    assert r.core.snapshot().bus_targets_replaced > 0  # and diagnostics say so
 
 
 # ----- item 11(a) -------------------------------------------------------------------------------
