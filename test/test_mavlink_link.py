@@ -325,6 +325,17 @@ def test_round2_23_handset_return_to_home_reaches_the_autopilot_once(rig):
 
 
 def test_round2_23_parachute_node_works_as_before_without_the_link(rig):
+    # First a release through the link, so the parachute node has met its gate (alone, this
+    # test would otherwise race the discovery of the gate service) ...
+    rig.autopilot_param('answer', 'accept')
+    rig.autopilot_param('silent', False)
+    rig.wait_autopilot()
+    rig.fresh()
+    rig.arm()
+    deploy(rig)
+    wait_for(lambda: any(r.get('called') is not False for r in gate_records(rig)), 10,
+             what='a release through the gate')
+    # ... then the link goes away.
     rig.node.stop()
     rig.fresh()
     rig.arm()

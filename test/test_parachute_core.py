@@ -1196,6 +1196,9 @@ def test_round2_1_a_confirmation_after_a_reconnect_claims_nothing_on_old_knowled
     wait_for(lambda: rig.snap.online and rig.wire.since(mark, p.CMD_ARMED), 5,
              what='online again, initializing')
     assert not rig.snap.fresh and rig.snap.armed  # as read before the unplug
+    # The module's 1 s has passed (so the confirmation cannot fire it, whatever it says) ...
+    wait_for(lambda: not rig.sim.pending_request, 3, what='the module to give up')
+    assert not rig.snap.fresh  # ... and the driver has still not read it again
     result = rig.session.answer_trigger_request(True)
     assert result.ok and 'was armed' not in result.message and 'not known' in \
         result.message, result.message
