@@ -35,8 +35,6 @@ class _Jobs:
 STREAM_GRACE = 0.5
 """Without a stream frame for this share of `offline_timeout_s` the driver asks the module: an
 answer leaves time before the silence would make it offline, and means the stream stopped."""
-
-
 STREAM_RETRY_S = (2.0, 60.0)
 """Back-off of the attempts to restore a stopped stream: first delay, longest delay."""
 
