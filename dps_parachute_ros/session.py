@@ -6,24 +6,43 @@ the driver decisions (D..) of ``docs/protocols.md``. It reports through a `Liste
 clock (monotonic seconds, for every rule that judges time; waits are bounded in real time) from
 the caller, and its services are calls that return a `Result`. The ROS node only translates.
 
+It is assembled here from one mixin class per responsibility, each in a module of its own whose
+docstring says which threads run its code and which of the state below it owns:
+
+- ``session_online``: online judgement (D2), the monitor thread, the link's counters;
+- ``session_worker``: the worker thread, its jobs, the poll and the status stream;
+- ``session_init``: (re-)initialization and reboots (D3, D15);
+- ``session_triggers``: the trigger-request policy (D8);
+- ``session_settings``: the settings rule every write passes (D16), the desired settings, the
+  settings services and parameter sets (D4, D5);
+- ``session_events``: deployments as events, one per deployment (D7);
+- ``session_deploy``: the deploy procedure (D6), arming, the deploy frames counted (P11);
+- ``session_preflight``: ``~/preflight_check`` (D17).
+
+This module holds the shared state, the life cycle, the request bookkeeping every request passes
+(``_req``), the dispatch of the frames the reader decodes, and the small services.
+
 Threads, what each owns, and the lock that guards what they share:
 
-- serial reader (``SerialLink``): decodes frames and handles unsolicited ones at once: the status
-  stream, reboot heartbeats, late deploy acknowledgements, and trigger requests, whose
-  confirmation is written right there (why a confirm takes milliseconds). It never waits for a
-  reply (only it delivers replies).
-- worker (``parachute-worker``): (re-)initializes the module, polls light, charging and voltage,
-  sends heartbeats, fetches trigger records. Owns its schedule (``next_*`` locals).
-- monitor (``parachute-monitor``): judges online/offline and the defer deadline from the clock
-  (``tick()``), and records the link's error counters in the black box when they change; no I/O.
-  It sleeps until the next of those deadlines (at most ``IDLE_WAKE_S``); a deferred request
-  wakes it.
+- serial reader (``SerialLink``): decodes frames and handles unsolicited ones at once
+  (``_on_message``): the status stream (``session_worker``), reboot heartbeats
+  (``session_init``), late deploy acknowledgements (``session_deploy``), and trigger requests,
+  whose confirmation is written right there (``session_triggers``: why a confirm takes
+  milliseconds). It never waits for a reply (only it delivers replies).
+- worker (``parachute-worker``, ``session_worker``): (re-)initializes the module, polls light,
+  charging and voltage, sends heartbeats, fetches trigger records. Owns its schedule
+  (``next_*`` locals).
+- monitor (``parachute-monitor``, ``session_online``): judges online/offline and the defer
+  deadline from the clock (``tick()``), and records the link's error counters in the black box
+  when they change; no I/O. It sleeps until the next of those deadlines (at most
+  ``IDLE_WAKE_S``); a deferred request wakes it.
 - callers (the node's service threads): deploy, arm, settings, queries. ``_actuation``
   serializes deploy and arm (never taken on the reader thread or by a trigger-request answer).
 
 All module state is one immutable `Snapshot` in ``_snap``; it and every other field marked
-"guarded by _lock" below are read and replaced only under ``_lock`` (a Condition's lock, so a
-deploy can wait for a re-read). Listener callbacks and link I/O never run under ``_lock``.
+"guarded by _lock" in ``__init__`` below (all are declared there; each module names those it
+owns) are read and replaced only under ``_lock`` (a Condition's lock, so a deploy can wait for a
+re-read). Listener callbacks and link I/O never run under ``_lock``.
 """
 
 from __future__ import annotations
@@ -413,6 +432,8 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         return Result(True, 'module acknowledged and is switching off; switch it on with its '
                             'button (2 s) or external power')
 
+    # -- diagnostics helpers -----------------------------------------------------------------
+
     def blackbox_problem(self, status: Optional[Any] = None) -> str:
         """Why the black box does not record, naming the parameter; '' when it does."""
         status = status or self.blackbox.status()
@@ -423,8 +444,6 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             return ''
         where = f'blackbox_dir {self.config.blackbox_dir!r}: ' if status.open_failed else ''
         return f'cannot write: {where}{status.error}; {status.lost} records lost'
-
-    # -- diagnostics helpers -----------------------------------------------------------------
 
     def link_info(self) -> Dict[str, Any]:
         """Counters of the link for the diagnostics."""

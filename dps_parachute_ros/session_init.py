@@ -9,9 +9,10 @@ lock are described there). Threads:
 - any thread that reads the boot count (the worker, a deploy or arm, preflight):
   ``_note_boot_count``: a changed count is a reboot.
 
-Owns, guarded by ``_lock``: ``_epoch`` (+1 whenever the module may have changed unseen; every
-thread reads it), ``_last_boot_heartbeat``, ``_initialized_at``, ``_init_retry_at``; the
-``boot_count`` and ``initialized`` fields of the snapshot.
+Owns, guarded by ``_lock``: ``_epoch`` (+1 whenever the module may have changed unseen: here on
+a reboot, and by ``_on_connection``; every thread reads it), ``_last_boot_heartbeat``,
+``_initialized_at``, ``_init_retry_at``; the ``boot_count`` and ``initialized`` fields of the
+snapshot.
 """
 
 from __future__ import annotations

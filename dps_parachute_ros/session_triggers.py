@@ -11,8 +11,9 @@ lock are described there). Threads:
   (``_void_pending``).
 - monitor: ``tick()`` denies a request nobody answered within ``defer_timeout_s``.
 
-Owns ``_pending`` (guarded by ``_lock``) and the ``pending_request`` field of the snapshot. No
-method here waits for a reply: a trigger-request confirmation never waits behind I/O.
+Owns ``_pending`` (guarded by ``_lock``; ``stop`` drops it, the monitor's ``tick`` times it out)
+and the ``pending_request`` field of the snapshot. No method here waits for a reply: a
+trigger-request confirmation never waits behind I/O.
 """
 
 from __future__ import annotations
