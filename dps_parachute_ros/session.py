@@ -78,7 +78,6 @@ class _Guarded(Listener):
     """The caller's listener; an exception in it is logged, never raised into the session."""
 
     def __init__(self, inner: Listener, log: Callable[..., None]) -> None:
-        self._inner = inner
         self._report = log
         # One wrapper per callback, made once: they run with every frame.
         for name in dir(inner):
