@@ -8,8 +8,10 @@ lock are described there). Threads:
 - callers: ``deploy`` and ``arm`` (the node's service threads), serialized by ``_actuation``
   (never taken on the reader thread or by a trigger-request answer). They decide around
   blocking requests; each decision is recorded (and synced) before the frame leaves.
-- serial reader: ``_on_tx`` counts every deploy frame that leaves; ``_on_deploy_reply`` takes a
-  late acknowledgement.
+- the thread that writes a frame (a deploy's caller): ``_on_tx`` counts every deploy frame as
+  it leaves, whatever ends the wait for its answer.
+- serial reader: ``_on_deploy_reply`` takes a late acknowledgement (a deploy call takes the one
+  it waits for).
 
 Owns, guarded by ``_lock``: ``_deploy_frame_left``, ``_deploy_frame_at``, ``_unknown_boot``; the
 ``armed``, ``unacked_deploys``, ``failed_deploys`` and ``deploy_outcome_unknown`` fields of the
@@ -26,26 +28,15 @@ from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
 from dps_parachute_ros.state import Result, Snapshot
 
-
 DEPLOY_TOKEN = 'DEPLOY'
-
-
 MAX_FAILED_DEPLOYS = 2
 """P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
-
-
 REREAD_WAIT_S = 1.0
 """A deploy or an arm waits this long for the module's state to be re-read (D15)."""
-
-
 ACTUATION_WAIT_S = 10.0
 """A deploy or arm waits this long for one already running."""
-
-
 SAFETY_SYNC_S = 0.5
 """Longest wait for the black box's fsync on a safety event; none while it is failing."""
-
-
 DEPLOY_FRAME = p.encode_deploy()
 
 

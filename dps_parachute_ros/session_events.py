@@ -26,7 +26,6 @@ from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkDown, LinkError, LinkTimeout
 from dps_parachute_ros.state import Deployment, Snapshot, source_name
 
-
 RECORDS_RETRY_S = (1.0, 30.0)
 """Back-off of the trigger-record fetch owed to a deployment of unknown source, while online."""
 

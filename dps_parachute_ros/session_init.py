@@ -22,7 +22,6 @@ from dataclasses import replace
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkError
 
-
 POWER_UP_HEARTBEATS_S = 0.2
 """Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
 

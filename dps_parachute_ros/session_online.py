@@ -23,8 +23,6 @@ from typing import Any, Dict, Optional, Tuple
 LINK_RECORD_PERIOD_S = 1.0
 """The link's error counters go to the black box when they change, at most this often (D10)."""
 LINK_PROBLEM_COUNTERS = ('checksum_errors', 'bytes_discarded', 'timeouts', 'reconnects')
-
-
 LINK_ERROR_COUNTERS = ('checksum_errors', 'timeouts', 'reconnects')
 """What preflight judges the link by. Not discarded bytes: they also come from the end of a
 trigger-record answer cut at its quiet gap (P15); not the flag query's silence (P14)."""

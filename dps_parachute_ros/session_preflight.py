@@ -17,15 +17,10 @@ from dps_parachute_ros.session_worker import STREAM_GRACE
 from dps_parachute_ros.settings_rule import conditions
 from dps_parachute_ros.state import FLAG_SETTINGS, Result, SessionConfig, SETTINGS
 
-
 LOW_BATTERY_V = 3.5
 """On battery, a cell below this is a warning (a 1S Li-ion cell is near empty there), D9."""
-
-
 LINK_QUIET_S = 10.0
 """Preflight: a link error (checksum, lost reply, reconnect) this recent fails."""
-
-
 Check = Tuple[bool, str, str]
 """A preflight line: passed, name, detail."""
 

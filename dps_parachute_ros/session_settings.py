@@ -28,7 +28,6 @@ from dps_parachute_ros.link import LinkError, LinkTimeout
 from dps_parachute_ros.settings_rule import JUDGED_STEPS, order, Step, Trigger, would_deploy
 from dps_parachute_ros.state import FLAG_SETTINGS, Result, SessionConfig, SETTINGS, Snapshot
 
-
 FLAGS_QUERY_TIMEOUT_S = 0.3
 """The auto-trigger flag query is our extension (P14): a real module may stay silent."""
 PARAM_WRITE_BUDGET_S = 1.8
