@@ -9,7 +9,9 @@ lock are described there). Threads:
   stream that stopped and tries it again, and fetches trigger records still owed. Owns its
   schedule (``next_*`` locals of ``_work``).
 - any thread may queue a job (``_schedule``, under ``_jobs_cond``).
-- serial reader: ``_on_status`` takes a status frame (streamed or answered).
+- ``_on_status`` takes a status frame: a streamed one on the serial reader, an answered one on
+  the thread that asked (the worker's poll, a caller's deploy, arm, settings write or
+  preflight). A caller's ``set_streaming`` turns the stream on or off (``_set_streaming``).
 
 Owns, guarded by ``_jobs_cond``: ``_jobs``. Guarded by ``_lock``: ``_last_status_time``,
 ``_last_stream_time``, ``_stream_on_at``, ``_stream_retry_at``, ``_stream_backoff``; the
