@@ -29,6 +29,8 @@ Threads, what each owns, and the lock that guards what they share:
   (``session_init``), late deploy acknowledgements (``session_deploy``), and trigger requests,
   whose confirmation is written right there (``session_triggers``: why a confirm takes
   milliseconds). It never waits for a reply (only it delivers replies).
+- gate (``parachute-gate``, ``session_triggers``): with a release gate (``release_gate.py``), a
+  short-lived thread per confirmed trigger request waits for the gate, then confirms.
 - worker (``parachute-worker``, ``session_worker``): (re-)initializes the module, polls light,
   charging and voltage, sends heartbeats, fetches trigger records. Owns its schedule
   (``next_*`` locals).
@@ -175,6 +177,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         # -- other ----------------------------------------------------------------------------
         self._actuation = threading.Lock()
         self._attempts = AttemptsFile(config.blackbox_dir, config.port)
+        self.release_gate: Optional[Any] = None  # a ReleaseGate (release_gate.py), or None
         self._stopping = threading.Event()
         self._monitor_wake = threading.Event()
         max_bytes = int(config.blackbox_max_mb * 1e6) if config.blackbox_max_mb > 0 else None

@@ -7,7 +7,8 @@ lock are described there). Threads:
 
 - callers: ``deploy`` and ``arm`` (the node's service threads), serialized by ``_actuation``
   (never taken on the reader thread or by a trigger-request answer). They decide around
-  blocking requests; each decision is recorded (and synced) before the frame leaves.
+  blocking requests; each decision is recorded (and synced) before the frame leaves, and the
+  release gate (``release_gate``, when the node sets one) is passed before the first frame.
 - the thread that writes a frame (a deploy's caller): ``_on_tx`` counts every deploy frame as
   it leaves, whatever ends the wait for its answer.
 - serial reader: ``_on_deploy_reply`` takes a late acknowledgement (a deploy call takes the one
@@ -237,6 +238,8 @@ class DeployProcedure:
                         'retrying (P11: three unsuccessful attempts put the module into '
                         'protection)', t0=t0)
                 return self._deploy_end('refused', self._guard_text(snap))
+            if not attempts and self.release_gate is not None:
+                self.release_gate.before_release('deploy')  # every refusal is decided above
             attempts += 1
             # The decision is on disk before the frame leaves: a crash between the two must
             # not leave a deployment the black box never heard of.

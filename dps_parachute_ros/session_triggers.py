@@ -6,19 +6,24 @@ lock are described there). Threads:
 - serial reader: ``_on_trigger_request`` decides at once under ``confirm`` and ``deny``, writing
   the confirmation first, before anything else (why a confirm takes milliseconds); under
   ``defer`` it parks the request in ``_pending`` and wakes the monitor for its deadline.
-- callers: ``answer_trigger_request`` (the node's service thread) and a policy change
-  (``reconfigure``) settle a pending request; a reboot seen on any thread voids it
-  (``_void_pending``).
+- gate (``parachute-gate``): under ``confirm`` with a release gate available (``release_gate``,
+  set by the node), one short-lived thread per request runs ``_confirm_after_gate``: the gate
+  (the motor stop) waits there, then the confirmation is written; the reader never waits.
+- callers: ``answer_trigger_request`` (the node's service thread; it passes the release gate
+  before the confirmation) and a policy change (``reconfigure``) settle a pending request; a
+  reboot seen on any thread voids it (``_void_pending``).
 - monitor: ``tick()`` denies a request nobody answered within ``defer_timeout_s``.
 
 Owns ``_pending`` (guarded by ``_lock``; ``stop`` drops it, the monitor's ``tick`` times it out)
 and the ``pending_request`` field of the snapshot. No method here waits for a reply: a
-trigger-request confirmation never waits behind I/O.
+trigger-request confirmation never waits behind I/O (only behind the release gate, off the
+reader thread).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import threading
 from typing import Optional
 
 from dps_parachute_ros import protocol as p
@@ -40,7 +45,12 @@ class TriggerRequests:
         with self._lock:
             policy = self._config.trigger_request_policy
             defer_s = self._config.defer_timeout_s
-        if policy == 'confirm':
+        if policy == 'confirm' and self.release_gate is not None and \
+                self.release_gate.available('trigger request'):
+            # The gate (the motor stop) waits: never on the reader thread, which delivers replies.
+            threading.Thread(target=self._confirm_after_gate, args=(t_rx, policy),
+                             name='parachute-gate', daemon=True).start()
+        elif policy == 'confirm':
             try:
                 self.link.write(p.encode_trigger_confirm())  # first, before anything else
             except LinkDown as exc:
@@ -65,6 +75,16 @@ class TriggerRequests:
             self._log('warn', f'trigger request from the module: answer ~/answer_trigger_request '
                               f'within {defer_s:.2f} s (else denied)')
             self.listener.on_diagnostics()
+
+    def _confirm_after_gate(self, t_rx: float, policy: str) -> None:
+        self.release_gate.before_release('trigger request', t_rx)
+        try:
+            self.link.write(p.encode_trigger_confirm())
+        except LinkDown as exc:
+            self._decide('denied', policy, f'could not send the confirmation: {exc}', t_rx, None)
+            return
+        self._decide('confirmed', policy, 'policy confirm: confirmed after the release gate',
+                     t_rx, self.clock())
 
     def _decide(self, decision: str, policy: str, reason: str, t_rx: float,
                 t_tx: Optional[float]) -> None:
@@ -105,6 +125,8 @@ class TriggerRequests:
             decision = 'timed_out' if age >= MODULE_WINDOW_S else 'denied'
             self._decide(decision, policy, f'{why}, but {problem}', pending.t_rx, None)
             return Result(False, f'not confirmed: {problem}')
+        if self.release_gate is not None:
+            self.release_gate.before_release('trigger request', pending.t_rx)
         try:
             self.link.write(p.encode_trigger_confirm())
         except LinkDown as exc:
