@@ -229,7 +229,10 @@ def test_failsafe_actions_are_constants_of_the_message():
 # Everything below each node: the device cores, their links, protocols, units, state, the black
 # box and the device models. None may import ROS (the layers are tested, and usable, without it).
 ROS_FREE = {
-    'dps_parachute_ros': ['protocol', 'link', 'state', 'session', 'blackbox', 'simulation'],
+    'dps_parachute_ros': ['protocol', 'link', 'state', 'session', 'session_online',
+                          'session_worker', 'session_init', 'session_triggers',
+                          'session_settings', 'session_events', 'session_deploy',
+                          'session_preflight', 'blackbox', 'simulation'],
     'parachute_blackbox': ['read', 'analysis', 'report'],
     'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],
     'handset_link_ros': ['protocol', 'link', 'core', 'simulation'],
@@ -245,6 +248,14 @@ def test_no_driver_module_imports_matplotlib():
              if 'matplotlib' in set(_imports(path))
              or re.search(r'^\s*(from|import) matplotlib', path.read_text(), re.M)]
     assert not found, found
+
+
+def test_issue22_4_no_module_of_the_parachute_session_over_600_lines():
+    # Smaller rooms: ParachuteSession is assembled in session.py from one module per
+    # responsibility (deploy, trigger requests, online, worker, init, settings, events, preflight).
+    paths = sorted((ROOT / 'dps_parachute_ros').glob('session*.py'))
+    long = {path.name: n for path in paths if (n := len(path.read_text().splitlines())) > 600}
+    assert len(paths) > 1 and not long, long
 
 
 @pytest.mark.parametrize('package', sorted(ROS_FREE))

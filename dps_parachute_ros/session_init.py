@@ -1,0 +1,146 @@
+"""(Re-)initialization of the module and what a reboot changes (D2, D3, D15).
+
+Part of `ParachuteSession` (``dps_parachute_ros.session`` assembles it; the shared state and the
+lock are described there). Threads:
+
+- worker: ``_initialize`` (the ``init`` job) reads the module afresh after the port opens, the
+  module comes back online, or it rebooted.
+- serial reader: ``_on_heartbeat``: an unsolicited heartbeat is a reboot (P5).
+- any thread that reads the boot count (the worker, a deploy or arm, preflight):
+  ``_note_boot_count``: a changed count is a reboot.
+
+Owns, guarded by ``_lock``: ``_epoch`` (+1 whenever the module may have changed unseen: here on
+a reboot, and by ``_on_connection``; every thread reads it), ``_last_boot_heartbeat``,
+``_initialized_at``, ``_init_retry_at``; the ``boot_count`` and ``initialized`` fields of the
+snapshot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.link import LinkError
+
+POWER_UP_HEARTBEATS_S = 0.2
+"""Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
+
+
+class Initialization:
+    """Initialization and reboots of `ParachuteSession` (a mixin: it uses the session's state)."""
+
+    def _on_heartbeat(self) -> None:
+        # P5: nobody asked, so the module has just (re)booted. It sends two, 50 ms apart: one
+        # reboot (D3). Until it is re-read its armed state is unknown (D15).
+        now = self.clock()
+        with self._lock:
+            first = now - self._last_boot_heartbeat > POWER_UP_HEARTBEATS_S
+            self._last_boot_heartbeat = now
+            if first:
+                self._epoch += 1
+                self._snap = replace(self._snap, streaming=False, armed=None, triggered=None,
+                                     fresh=False, initialized=False)
+        if not first:
+            return
+        self._log('warn', 'unsolicited heartbeat: the module has (re)booted')
+        self.blackbox.record('state', event='module reboot (unsolicited heartbeat)')
+        self._void_pending('the module rebooted while the request was pending')
+        self._schedule('init', force=True)
+        self._emit_status()
+        self.listener.on_diagnostics()
+        with self._lock:
+            # The second heartbeat of this power-up may have waited (in the port) for all of
+            # this to finish, long on a loaded host: the 0.2 s run from here, not from before.
+            self._last_boot_heartbeat = max(self._last_boot_heartbeat, self.clock())
+
+    def _initialize(self) -> None:
+        """Read the module afresh and bring it to the desired settings (D2)."""
+        if not self.snapshot.port_open:
+            return
+        with self._lock:
+            self._init_retry_at = self.clock() + 1.0
+        try:
+            epoch = self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count,
+                                          reinit=False)
+            # Armed and triggered first: a deploy waiting for them never waits behind a stream
+            # the module does not turn on.
+            armed = self._req(p.encode_armed_query(), retries=1).armed
+            triggered = self._req(p.encode_triggered_query(), retries=1).triggered
+            if self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True) is None:
+                return  # it rebooted meanwhile: that schedules another initialization
+            self._start_stream()
+            with self._lock:
+                same_boot = self._unknown_boot in (None, self._snap.boot_count)
+            if same_boot:
+                # After a reboot the flag is clear whatever happened before it: the trigger
+                # records settle that deploy (_report_at_init).
+                self._resolve_unknown_deploy(triggered, 'read after reconnecting')
+            self._read_config(reinit=False)
+            self._apply_desired()
+            self._report_at_init(triggered)
+        except LinkError as exc:
+            self._log('warn', f'initialization failed ({exc}); retrying', key='init')
+            return
+        now = self.clock()
+        with self._lock:
+            if epoch != self._epoch:
+                return
+            self._initialized_at = now
+            self._snap = replace(self._snap, initialized=True)
+            snap = self._snap
+        self.blackbox.record('state', event='initialized', boot_count=snap.boot_count,
+                             mismatch=list(snap.mismatch))
+        self._log('info', f'module initialized: boot count {snap.boot_count}, streaming '
+                          f'{snap.streaming}, settings '
+                          f'{"verified" if not snap.mismatch else "MISMATCH"}')
+        self.listener.on_config(snap)
+        self._emit_status()
+        self.listener.on_diagnostics()
+
+    def _note_boot_count(self, count: int, reinit: bool = True) -> int:
+        """Take a boot count read; return the epoch after it.
+
+        A change is a reboot (D3): the module is read afresh (unless `reinit` is False: the
+        initialization in progress does that).
+        """
+        stored = self._attempts.load() if self.snapshot.boot_count is None else None
+        with self._lock:
+            previous = self._snap.boot_count
+            self._snap = replace(self._snap, boot_count=count)
+            restored = previous is None and stored is not None and \
+                stored.boot_count == count and stored.failed > self._snap.failed_deploys
+            if restored:
+                # The same power-up as an earlier run's unsuccessful deploy frames (P11).
+                self._snap = replace(self._snap, failed_deploys=stored.failed,
+                                     unacked_deploys=max(stored.unacked,
+                                                         self._snap.unacked_deploys))
+            if None in self._reported_boots and previous is None:
+                # A deployment reported before the first boot count read happened in this boot.
+                self._reported_boots.discard(None)
+                self._reported_boots.add(count)
+                if None in self._events:
+                    self._events[count] = self._events.pop(None)
+                if None in self._source_owed:
+                    self._source_owed.discard(None)
+                    self._source_owed.add(count)
+            rebooted = previous is not None and previous != count
+            if rebooted:
+                self._epoch += 1
+                # A new power-up clears the module's count of unsuccessful attempts (P19).
+                self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=0, fresh=False,
+                                     armed=None)
+            epoch = self._epoch
+        if restored:
+            self._log('warn', f'{stored.failed} deploy frame(s) without a successful '
+                              f'acknowledgement in this power-up (boot {count}), sent by an '
+                              'earlier run of the driver: they count (P11)')
+            self.blackbox.record('state', event='deploy attempts of an earlier run',
+                                 boot_count=count, failed_deploys=stored.failed,
+                                 unacked_deploys=stored.unacked)
+            self.listener.on_diagnostics()
+        if rebooted:
+            self._log('warn', f'module boot count {previous} -> {count}: it rebooted')
+            self._void_pending('the module rebooted while the request was pending')
+            if reinit:
+                self._schedule('init', force=True)
+        return epoch
