@@ -56,7 +56,8 @@ def test_issue22_5_every_virtual_device_has_the_shared_cable_wire_faults_and_noi
         assert runner.faults.garbage_probability == 0.0
 
         # ~/inject_garbage: the device's noise reaches whoever has the port open.
-        port = serial.Serial(str(link), 115200, timeout=0.1)
+        # At the device's own baud: at another one the runner garbles the bytes, as a wire does.
+        port = serial.Serial(str(link), node.get_parameter('baud').value, timeout=0.1)
         reply = ros.call(Trigger, f'/{name}/inject_garbage')
         assert reply.success, reply.message
         assert node.garbage in _read_until(port, node.garbage, 15.0)
