@@ -21,7 +21,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import (bad_inputs, blackbox_kill9, cpu, decoders, fuzz, latency,  # noqa: E402
-                   reconnects, report_memory, servo_latency, servo_rate, soak)
+                   mavlink_latency, reconnects, report_memory, servo_latency, servo_rate, soak)
 from bench.common import claim_domain_id  # noqa: E402
 
 Row = Tuple[str, str, str, str]  # name, value, goal, verdict
@@ -119,6 +119,27 @@ def bench_latency(res: Results, a: argparse.Namespace) -> None:
     res.note(f'handset latency max {h["handset_latency_max_ms"]:.2f} ms over '
              f'{h["handset_latency_n"]} stick frames, {h["handset_latency_missed"]} missed '
              f'(the document allows 20 ms)')
+
+
+def bench_mavlink(res: Results, a: argparse.Namespace) -> None:
+    n = 30 if a.quick else 200
+    r = mavlink_latency.run(release_count=n, stop_count=n)
+    res.add('mavlink_release_p99_ms', r['mavlink_release_p99_ms'], '<= 50',
+            r['mavlink_release_p99_ms'] <= 50.0)
+    res.add('mavlink_release_n', r['mavlink_release_n'], f'{n}, 0 failed',
+            r['mavlink_release_failed'] == 0)
+    res.add('mavlink_stop_release_p99_ms', r['mavlink_stop_release_p99_ms'], '<= 300',
+            r['mavlink_stop_release_p99_ms'] <= 300.0)
+    res.add('mavlink_stop_release_n', r['mavlink_stop_release_n'],
+            f'{n}, 0 missed, stop first', r['mavlink_stop_release_missed'] == 0
+            and r['mavlink_stop_release_late_stops'] == 0 and r['alive'])
+    res.note(f'mavlink release (DO_PARACHUTE RELEASE -> deploy frame, no motor stop): p50 '
+             f'{r["mavlink_release_p50_ms"]:.1f} ms, max {r["mavlink_release_max_ms"]:.1f} ms; '
+             f'stop + release (trigger request -> disarm ACCEPTED -> confirmation): p50 '
+             f'{r["mavlink_stop_release_p50_ms"]:.1f} ms, max '
+             f'{r["mavlink_stop_release_max_ms"]:.1f} ms, '
+             f'{r["mavlink_stop_release_late_stops"]} confirmations before their motor stop '
+             f'(trials {r["mavlink_stop_release_late_trials"][:10]})')
 
 
 def bench_imu_latency(res: Results, a: argparse.Namespace) -> None:
@@ -266,6 +287,7 @@ FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'servo_rate': bench_servo_rate,
     'latency': bench_latency,
     'imu_latency': bench_imu_latency,
+    'mavlink': bench_mavlink,
     'servo_latency': bench_servo_latency,
     'cpu': bench_cpu,
     'reconnects': bench_reconnects,

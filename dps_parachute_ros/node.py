@@ -19,7 +19,7 @@ import threading
 import time
 from typing import Any, Callable, Dict, Optional, Tuple
 
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import BatteryState
@@ -27,6 +27,7 @@ from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
 from dps_parachute_ros import messages as m
+from dps_parachute_ros.release_gate import ReleaseGate
 from dps_parachute_ros.session import LOW_BATTERY_V, ParachuteSession
 from dps_parachute_ros.state import (Deployment, FLAG_SETTINGS, LAYOUTS, Listener, POLICIES,
                                      RequestDecision, Result, SessionConfig, SETTINGS, Snapshot,
@@ -80,6 +81,12 @@ PARAMS = (
               choices=TRIGGER_MODES),
     ParamSpec('freefall_trigger', 'keep', 'desired free-fall auto-trigger',
               choices=TRIGGER_MODES),
+    ParamSpec('release_gate', 'parachute_mavlink/release_gate', 'std_srvs/Trigger service '
+              'called just before a release leaves, when it is there (the motor stop of '
+              'parachute_mavlink); empty = never', startup_only=True),
+    ParamSpec('release_gate_timeout_s', 0.5, 'longest wait for the release gate; a trigger '
+              "request's confirmation never waits past its 1 s window [s]",
+              float_range=(0.01, 1.0), startup_only=True),
 )
 THRESHOLD_FIELDS = (('attitude_threshold_deg', 'attitude_deg'),
                     ('freefall_threshold_g', 'freefall_g'),
@@ -141,6 +148,9 @@ class ParachuteNode(Node, Listener):
         self._service(Trigger, 'preflight_check',
                       lambda q, r: self._reply(r, s.preflight_check(), log=False))
 
+        if values['release_gate']:
+            s.release_gate = self._make_gate(values['release_gate'],
+                                             values['release_gate_timeout_s'])
         self.on_config(s.snapshot)
         # Desired module settings must be confirmed by the module (commit, all or nothing);
         # the rest only changes the driver (apply, once the whole set is accepted). The commit
@@ -153,6 +163,25 @@ class ParachuteNode(Node, Listener):
             f'DPS-S parachute driver on {config.port} at {config.baud} baud; trigger requests: '
             f'{config.trigger_request_policy}; black box: '
             f'{status.path or "NONE (" + status.error + ")"}')
+
+    # -- the release gate (release_gate.py) ----------------------------------------------------
+
+    def _make_gate(self, name: str, timeout_s: float) -> ReleaseGate:
+        client = self.create_client(Trigger, name, callback_group=ReentrantCallbackGroup())
+
+        def call(timeout: float) -> Tuple[Optional[bool], str]:
+            if not client.service_is_ready():
+                return None, f'{client.srv_name} is not available'
+            done = threading.Event()
+            future = client.call_async(Trigger.Request())
+            future.add_done_callback(lambda _: done.set())
+            if not done.wait(timeout):
+                client.remove_pending_request(future)
+                return None, f'no answer within {timeout * 1000:.0f} ms'
+            reply = future.result()
+            return bool(reply.success), reply.message
+        return ReleaseGate(name, call, timeout_s, self.session.blackbox.record, self.on_log,
+                           ready=client.service_is_ready)
 
     # -- parameters -------------------------------------------------------------------------
 

@@ -208,6 +208,7 @@ class ParachuteSession:
         # -- other ----------------------------------------------------------------------------
         self._actuation = threading.Lock()
         self._attempts = AttemptsFile(config.blackbox_dir, config.port)
+        self.release_gate: Optional[Any] = None  # a ReleaseGate (release_gate.py), or None
         self._stopping = threading.Event()
         self._monitor_wake = threading.Event()
         max_bytes = int(config.blackbox_max_mb * 1e6) if config.blackbox_max_mb > 0 else None
@@ -480,7 +481,12 @@ class ParachuteSession:
         with self._lock:
             policy = self._config.trigger_request_policy
             defer_s = self._config.defer_timeout_s
-        if policy == 'confirm':
+        if policy == 'confirm' and self.release_gate is not None and \
+                self.release_gate.available('trigger request'):
+            # The gate (the motor stop) waits: never on the reader thread, which delivers replies.
+            threading.Thread(target=self._confirm_after_gate, args=(t_rx, policy),
+                             name='parachute-gate', daemon=True).start()
+        elif policy == 'confirm':
             try:
                 self.link.write(p.encode_trigger_confirm())  # first, before anything else
             except LinkDown as exc:
@@ -505,6 +511,16 @@ class ParachuteSession:
             self._log('warn', f'trigger request from the module: answer ~/answer_trigger_request '
                               f'within {defer_s:.2f} s (else denied)')
             self.listener.on_diagnostics()
+
+    def _confirm_after_gate(self, t_rx: float, policy: str) -> None:
+        self.release_gate.before_release('trigger request', t_rx)
+        try:
+            self.link.write(p.encode_trigger_confirm())
+        except LinkDown as exc:
+            self._decide('denied', policy, f'could not send the confirmation: {exc}', t_rx, None)
+            return
+        self._decide('confirmed', policy, 'policy confirm: confirmed after the release gate',
+                     t_rx, self.clock())
 
     def _decide(self, decision: str, policy: str, reason: str, t_rx: float,
                 t_tx: Optional[float]) -> None:
@@ -545,6 +561,8 @@ class ParachuteSession:
             decision = 'timed_out' if age >= MODULE_WINDOW_S else 'denied'
             self._decide(decision, policy, f'{why}, but {problem}', pending.t_rx, None)
             return Result(False, f'not confirmed: {problem}')
+        if self.release_gate is not None:
+            self.release_gate.before_release('trigger request', pending.t_rx)
         try:
             self.link.write(p.encode_trigger_confirm())
         except LinkDown as exc:
@@ -1696,6 +1714,8 @@ class ParachuteSession:
                         'retrying (P11: three unsuccessful attempts put the module into '
                         'protection)', t0=t0)
                 return self._deploy_end('refused', self._guard_text(snap))
+            if not attempts and self.release_gate is not None:
+                self.release_gate.before_release('deploy')  # every refusal is decided above
             attempts += 1
             # The decision is on disk before the frame leaves: a crash between the two must
             # not leave a deployment the black box never heard of.

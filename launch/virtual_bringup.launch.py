@@ -1,10 +1,12 @@
 """Every virtual device and every driver wired to it: the whole stack without hardware.
 
 ros2 launch uav_serial_drivers virtual_bringup.launch.py
+ros2 launch uav_serial_drivers virtual_bringup.launch.py mavlink:=true   # + the autopilot link
 """
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
@@ -18,7 +20,11 @@ def generate_launch_description():
     handset_link = LaunchConfiguration('handset_link')
     originman_link = LaunchConfiguration('originman_link')
     namespace = LaunchConfiguration('namespace')
+    mavlink = LaunchConfiguration('mavlink')
     return LaunchDescription([
+        DeclareLaunchArgument('mavlink', default_value='false',
+                              description='also run parachute_mavlink against a virtual '
+                                          'autopilot (udp 127.0.0.1:14550)'),
         DeclareLaunchArgument('namespace', default_value='',
                               description='namespace of every node'),
         DeclareLaunchArgument('parachute_link', default_value='/tmp/vparachute',
@@ -57,6 +63,15 @@ def generate_launch_description():
         Node(package='uav_serial_drivers', executable='virtual_handset',
              name='virtual_handset', namespace=namespace,
              parameters=[{'link': handset_link}], output='screen'),
+        Node(package='uav_serial_drivers', executable='virtual_autopilot',
+             name='virtual_autopilot', namespace=namespace, condition=IfCondition(mavlink),
+             parameters=[{'mavlink_url': 'udpin:127.0.0.1:14550'}], output='screen'),
+        Node(package='uav_serial_drivers', executable='parachute_mavlink',
+             name='parachute_mavlink', namespace=namespace, condition=IfCondition(mavlink),
+             parameters=[PathJoinSubstitution([share, 'config', 'parachute_mavlink.yaml']),
+                         {'mavlink_url': 'udpout:127.0.0.1:14550',
+                          'handset_failsafe_to_autopilot': True}],
+             output='screen'),
         Node(package='uav_serial_drivers', executable='handset_link_node', name='handset_link',
              namespace=namespace,
              parameters=[PathJoinSubstitution([share, 'config', 'handset_link.yaml']),

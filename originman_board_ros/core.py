@@ -7,27 +7,32 @@ polls the bus servos, validates every command before anything reaches the wire, 
 units and reports through callbacks. A node is a thin adapter on top of it. Decisions O1..
 refer to ``docs/protocols.md``.
 
+The decisions that must not wait (the motor watchdog, the online judgement, the order and pace
+of outgoing frames) live in :class:`~originman_board_ros.plan.BoardPlan`, which has no I/O,
+thread or clock; this module feeds it events with their time and carries out what it decides.
+
 Threads and state (who owns what):
 
-* the link's **reader thread** decodes frames and calls :meth:`_on_report`, which converts a
-  report and calls the matching ``on_*`` callback directly (no queue, no copy); it writes
-  ``_battery_mv`` and the report counters under ``_lock``. It never does I/O of its own.
-  ``_on_connection`` (also the reader thread) only sets flags under ``_lock`` and wakes the
-  worker.
+* the link's **reader thread** decodes frames; ``_on_frames`` tells the plan a frame came (the
+  board is online from that frame on, before any report of it is published), then
+  :meth:`_on_report` converts each report and calls the matching ``on_*`` callback directly; it
+  writes ``_battery_mv`` and the report counters under ``_lock``. ``_on_connection`` (also the
+  reader thread) tells the plan the port opened or closed.
+* the **timer thread** fires the motor watchdog at its deadline and releases paced bus servo
+  moves; it never reads or waits for the board, so a read that is not answered cannot hold a
+  stop back (issue 21 item 6).
 * the **worker thread** runs :meth:`poll` when a duty may be due (:meth:`next_wake`: at
-  most ``IDLE_MAX_S`` apart, every ``WORKER_PERIOD_S`` while offline): online judgement (and
-  ``on_online_change``), desired settings, the motor watchdog, the settings check and the bus
-  servo poll (blocking reads, one at a time) with ``on_bus_servo_states``. It alone writes
-  ``_online``, ``_status``, ``_settings_*`` (under ``_lock``, as snapshots read them) and the
-  poll schedule (``_next_poll``, ``_telemetry_at``, ``_reprobe_at``, ``_check_at``: worker
-  only, no lock).
-* **caller threads** (a node's executor) call the command methods. They validate, then write or
-  read through the link (its write lock keeps frames whole; a lock per FUNCTION keeps one read
-  outstanding).
-* shared, always under ``_lock``: ``_motor_command_at`` / ``_motor_stopped`` (callers, the
-  worker's watchdog, the reader at connect), ``_servos`` (the poll and the read services),
-  ``_poll_ids`` (renamed by ``set_bus_servo_id``), ``_expected_offsets`` (the worker and
-  ``set_pwm_servo_offset``), the refusal and report counters.
+  most ``IDLE_MAX_S`` apart, every ``WORKER_PERIOD_S`` while offline): the silence judgement
+  (and ``on_online_change``), desired settings, the settings check and the bus servo poll
+  (blocking reads, one at a time) with ``on_bus_servo_states``. It owns the poll schedule
+  (``_next_poll``, ``_telemetry_at``, ``_reprobe_at``, ``_check_at``: worker only, no lock).
+* **caller threads** (a node's executor) call the command methods. They validate, queue their
+  frame in the plan and write what it has ready (``_drain``: one writer at a time, stops
+  first); a read goes through the link (a lock per FUNCTION keeps one read outstanding).
+* shared, always under ``_lock``: ``_plan``, ``_status``, ``_settings_*``, ``_servos`` (the
+  poll and the read services), ``_poll_ids`` (renamed by ``set_bus_servo_id``),
+  ``_expected_offsets`` (the worker and ``set_pwm_servo_offset``), the refusal and report
+  counters.
 
 ``_lock`` is never held while calling a callback or doing I/O. Callbacks must be quick and must
 not call back into blocking methods of the core from the reader thread.
@@ -43,7 +48,8 @@ import time
 from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from originman_board_ros import protocol as p
-from originman_board_ros.link import BusServoFailure, LinkError, OriginManLink
+from originman_board_ros.link import BusServoFailure, LinkDown, LinkError, OriginManLink
+from originman_board_ros.plan import BoardPlan
 
 __all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'BusServoStatesResult',
            'ButtonSample', 'CommandResult', 'ConfigError', 'GamepadSample', 'ImuSample',
@@ -61,6 +67,8 @@ SERVO_OFFLINE_AFTER = 3
 SERVO_REPROBE_S = 1.0
 """An offline bus servo is read once per this period, without retries."""
 SETTINGS_RETRY_S = 1.0
+TIMER_IDLE_S = 0.5
+"""The longest the timer thread sleeps without a deadline (commands wake it earlier)."""
 DEFAULT_BATTERY_WARN_MV = 6300
 """The firmware's own alarm threshold, used for warnings when ``low_battery_mv`` is -1."""
 MOTOR_TYPES = ('keep',) + tuple(t.name for t in p.MotorType)
@@ -347,6 +355,12 @@ class OriginManSnapshot:
     settings_ok: bool
     settings_message: str
     bus_servos: Tuple[BusServoStatus, ...]
+    bus_targets_queued: int = 0
+    """Bus servo targets waiting for room on the servo bus (issue 21 item 7)."""
+    bus_targets_replaced: int = 0
+    """Queued targets a newer one of the same servo replaced before they left."""
+    board_backlog_s: float = 0.0
+    """The servo-bus work the board still has from frames sent, as estimated."""
 
 
 class Refused(ValueError):
@@ -450,28 +464,38 @@ class OriginManCore:
                  on_asr: Optional[Callable[[AsrSample], None]] = None,
                  on_bus_servo_states: Optional[Callable[[List[BusServoStatus]], None]] = None,
                  on_online_change: Optional[Callable[[bool, str], None]] = None,
-                 logger: Optional[Any] = None) -> None:
+                 logger: Optional[Any] = None,
+                 pace_clock: Callable[[], float] = time.monotonic) -> None:
         self.config = config.validated()
         self._clock = clock
+        # The board's own time runs on the wall: pacing uses a real clock even when ``clock``
+        # is a test's fake one.
+        self._pace_clock = pace_clock
         self._log = logger or logging.getLogger('originman_core')
         self._callbacks = {'imu': on_imu, 'battery': on_battery, 'button': on_button,
                            'sbus': on_sbus, 'gamepad': on_gamepad, 'asr': on_asr,
                            'states': on_bus_servo_states, 'online': on_online_change}
         self.link = OriginManLink(self.config.port, self.config.baud,
                                   on_report=self._on_report, on_connection=self._on_connection,
+                                  on_frames=self._on_frames, on_tx=self._on_written,
                                   clock=clock, timeout_s=self.config.read_timeout_s,
                                   retries=self.config.read_retries, logger=logger)
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
+        # The decisions (watchdog, online judgement, outgoing frames): under _lock.
+        self._plan = BoardPlan(self.config.motor_timeout_s, self.config.offline_timeout_s)
+        # One writer at a time drains the plan's frames; a caller's own frame has left (or
+        # failed: the reason) when its ticket is in _results after its drain.
+        self._send_lock = threading.Lock()
+        self._results: Dict[object, Optional[str]] = {}
+        self._timer_wake = threading.Event()
+        self._timer: Optional[threading.Thread] = None
         # Reader thread (under _lock).
         self._battery_mv: Optional[int] = None
         self._reports = {'imu': 0, 'battery': 0, 'button': 0, 'sbus': 0, 'gamepad': 0,
                          'asr': 0}
-        self._connected_at: Optional[float] = None
-        # Worker thread.
-        self._online = False
         self._status = 'port not open yet'
         self._settings_due: Optional[float] = None
         self._settings_ok = False
@@ -481,9 +505,6 @@ class OriginManCore:
         self._telemetry_at: Dict[int, float] = {}
         self._reprobe_at: Dict[int, float] = {}
         # Callers and worker (under _lock).
-        self._motor_command_at: Optional[float] = None
-        self._motor_stopped = True
-        self._watchdog_stops = 0
         self._refusals: Dict[str, int] = {}
         self._poll_ids: List[int] = list(self.config.bus_servo_ids)
         self._servos: Dict[int, BusServoStatus] = {i: BusServoStatus(i)
@@ -505,6 +526,11 @@ class OriginManCore:
             return
         self._stop.clear()
         self.link.start()
+        # The watchdog and the paced frames have a thread of their own that never waits
+        # behind a read (issue 21 item 6).
+        self._timer = threading.Thread(target=self._run_timer, name='originman-timer',
+                                       daemon=True)
+        self._timer.start()
         if worker:
             self._thread = threading.Thread(target=self._run, name='originman-core',
                                             daemon=True)
@@ -521,6 +547,10 @@ class OriginManCore:
             self.stop_all_motors()
         self._stop.set()
         self._wake.set()
+        self._timer_wake.set()
+        if self._timer is not None:
+            self._timer.join(3.0)
+            self._timer = None
         if self._thread is not None:
             self._thread.join(3.0)
             worker_ran = True
@@ -545,6 +575,7 @@ class OriginManCore:
         desired = ('low_battery_mv', 'motor_type', 'pwm_servo_offsets_us')
         with self._lock:
             self.config = new
+            self._plan.configure(new.motor_timeout_s, new.offline_timeout_s)
             if new.bus_servo_ids != old.bus_servo_ids:
                 self._poll_ids = list(new.bus_servo_ids)
                 self._servos = {i: self._servos.get(i, BusServoStatus(i))
@@ -552,11 +583,12 @@ class OriginManCore:
             if any(getattr(new, k) != getattr(old, k) for k in desired):
                 self._expected_offsets = {
                     i + 1: v for i, v in enumerate(new.pwm_servo_offsets_us)}
-                if self._online:
+                if self._plan.online:
                     self._settings_due = self._clock()
                     self._settings_ok = False
                     self._settings_message = 'writing'
         self._wake.set()
+        self._timer_wake.set()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -575,10 +607,8 @@ class OriginManCore:
         cfg = self.config
         waits = [IDLE_MAX_S]
         with self._lock:
-            if cfg.motor_timeout_s > 0 and not self._motor_stopped and \
-                    self._motor_command_at is not None:
-                waits.append(self._motor_command_at + cfg.motor_timeout_s - now)
-            online = self._online
+            # Not the motor watchdog: the timer thread keeps it (issue 21 item 6).
+            online = self._plan.online
             if self._settings_due is not None:
                 waits.append(self._settings_due - now)
         last = self.link.last_frame_time
@@ -600,8 +630,7 @@ class OriginManCore:
         The worker thread calls it; call it yourself only after ``start(worker=False)``.
         """
         now = self._clock() if now is None else now
-        self._watchdog(now)
-        online = self._judge(now)
+        online = self._tick(now)
         if online:
             self._apply_settings(now)
             self._check_settings(now)
@@ -610,27 +639,34 @@ class OriginManCore:
     @property
     def online(self) -> bool:
         """Whether the board sent a frame within ``offline_timeout_s`` on an open port."""
-        return self._online
+        return self._plan.online
 
-    def _judge(self, now: float) -> bool:
-        connected = self.link.connected
-        last = self.link.last_frame_time
+    def _tick(self, now: float) -> bool:
+        """Judge silence and run the watchdog at ``now``; send what is due. Return online."""
         with self._lock:
-            connected_at = self._connected_at
-        if not connected:
-            online, why = False, f'port {self.config.port} not open: ' \
-                                 f'{self.link.serial.last_error or "connecting"}'
-        elif last is None or (connected_at is not None and last < connected_at):
-            online, why = False, 'port open, no frame from the board yet'
-        elif now - last >= self.config.offline_timeout_s:
-            online, why = False, f'no frame from the board for {now - last:.1f} s'
-        else:
-            online, why = True, 'frames arriving'
+            change, fired = self._plan.tick(now)
+            online = self._plan.online
+            if not self.link.connected:
+                self._status = f'port {self.config.port} not open: ' \
+                               f'{self.link.serial.last_error or "connecting"}'
+            elif not online and self._plan.judge.last_frame_at is None:
+                self._status = 'port open, no frame from the board yet'
+            last = self._plan.watchdog.last_command_at
+        if change is not None:
+            self._changed(change, now)
+        if fired:
+            self._log.warning(f'no motor command for {now - (last or now):.2f} s '
+                              f'(motor_timeout_s {self.config.motor_timeout_s:g}): '
+                              'stopping every motor')
+        self._drain()
+        return online
+
+    def _changed(self, change: Tuple[bool, str], now: float) -> None:
+        """Carry out an online change the plan decided (from any thread, outside _lock)."""
+        online, why = change
         with self._lock:
             self._status = why
-            changed = online != self._online
-            self._online = online
-            if changed and online:
+            if online:
                 # Written at connect and after every return (a reboot loses them, §4).
                 self._settings_due = now
                 self._settings_ok = False
@@ -638,12 +674,84 @@ class OriginManCore:
                 self._expected_offsets = {
                     i + 1: v for i, v in enumerate(self.config.pwm_servo_offsets_us)}
                 self._next_poll = now
-        if changed:
-            if not online:
-                self._mark_servos_offline(why)
-            self._log.info(f'originman board {"online" if online else "offline"}: {why}')
-            self._call('online', online, why)
-        return online
+        if not online:
+            self._mark_servos_offline(why)
+        self._log.info(f'originman board {"online" if online else "offline"}: {why}')
+        self._call('online', online, why)
+        self._wake.set()
+
+    # -- sending ---------------------------------------------------------------------------------
+
+    def _drain(self) -> None:
+        """Write every frame the plan has ready, in its order (stops first, paced moves)."""
+        with self._send_lock:
+            while True:
+                with self._lock:
+                    item = self._plan.take(self._pace_clock())
+                if item is None:
+                    return
+                _, frame, ticket = item
+                error: Optional[str] = None
+                try:
+                    self.link.send(frame)
+                except LinkError as exc:
+                    error = str(exc) or type(exc).__name__
+                if ticket is not None:
+                    with self._lock:
+                        self._results[ticket] = error
+
+    def _outcome(self, ticket: object) -> Optional[str]:
+        """After a drain: None if the ticket's frame left, else why not."""
+        with self._lock:
+            if ticket in self._results:
+                return self._results.pop(ticket)
+        return 'dropped before it left (a motor stop came after it, or the board went offline)'
+
+    def _write(self, frame: bytes, cancels: Sequence[int] = ()) -> None:
+        """Send a command now, behind queued ones; raise LinkError when it did not leave.
+
+        ``cancels``: queued bus servo targets of these ids are dropped (a stop, torque off).
+        """
+        ticket = object()
+        with self._lock:
+            queued = self._plan.command(frame, ticket, cancels)
+        if not queued:
+            raise LinkDown(f'the board is offline ({self._status})')
+        self._drain()
+        error = self._outcome(ticket)
+        if error is not None:
+            raise LinkDown(error)
+
+    def _on_written(self, frame: bytes) -> None:
+        """Every frame that left, reads included: the board's work to come (link thread)."""
+        with self._lock:
+            self._plan.scheduler.written(frame, self._pace_clock())
+
+    def _run_timer(self) -> None:
+        """Fire the watchdog and release paced frames; never read or wait on the board."""
+        while not self._stop.is_set():
+            try:
+                now = self._clock()
+                with self._lock:
+                    fired = self._plan.tick_watchdog(now)
+                if fired:
+                    self._log.warning(f'no motor command for motor_timeout_s '
+                                      f'{self.config.motor_timeout_s:g} s: stopping every motor')
+                self._drain()
+                now, pace_now = self._clock(), self._pace_clock()
+                waits = [TIMER_IDLE_S]
+                with self._lock:
+                    deadline = self._plan.watchdog.deadline
+                    if deadline is not None and self._plan.judge.connected:
+                        waits.append(deadline - now)
+                    due = self._plan.scheduler.next_time(pace_now)
+                    if due is not None:
+                        waits.append(due - pace_now)
+            except Exception:  # noqa: BLE001 - the watchdog's thread must outlive a bug
+                self._log.exception('originman core: timer failed')
+                waits = [0.01]
+            self._timer_wake.wait(max(0.0005, min(waits)))
+            self._timer_wake.clear()
 
     def _apply_settings(self, now: float) -> None:
         if self._settings_due is None or now < self._settings_due:
@@ -654,11 +762,11 @@ class OriginManCore:
             expected = dict(self._expected_offsets)
         try:
             if cfg.low_battery_mv != -1:
-                self.link.send(p.encode_battery_limit(cfg.low_battery_mv))
+                self._write(p.encode_battery_limit(cfg.low_battery_mv))
             if cfg.motor_type != 'keep':
-                self.link.send(p.encode_motor_type(p.MotorType[cfg.motor_type]))
+                self._write(p.encode_motor_type(p.MotorType[cfg.motor_type]))
             for servo_id, offset in sorted(expected.items()):
-                self.link.send(p.encode_pwm_set_offset(servo_id, offset))
+                self._write(p.encode_pwm_set_offset(servo_id, offset))
             for servo_id, offset in sorted(expected.items()):
                 got = self.link.read_pwm_offset(servo_id)
                 if got != offset:
@@ -716,29 +824,6 @@ class OriginManCore:
                         i + 1: v for i, v in enumerate(self.config.pwm_servo_offsets_us)}
                 return
 
-    def _watchdog(self, now: float) -> None:
-        timeout = self.config.motor_timeout_s
-        if timeout <= 0 or not self.link.connected:
-            return
-        with self._lock:
-            last = self._motor_command_at
-            due = not self._motor_stopped and last is not None and now - last >= timeout
-            if due:
-                self._motor_stopped = True
-        if not due:
-            return
-        try:
-            self.link.send(p.encode_motor_stop_mask(STOP_ALL_MASK))
-        except LinkError as exc:
-            self._log.error(f'motor timeout: could not stop the motors: {exc}')
-            with self._lock:
-                self._motor_stopped = False
-            return
-        with self._lock:
-            self._watchdog_stops += 1
-        self._log.warning(f'no motor command for {now - last:.2f} s '
-                          f'(motor_timeout_s {timeout:g}): every motor stopped')
-
     # -- bus servo poll -------------------------------------------------------------------------
 
     def _poll_servos(self, now: float, online: bool) -> None:
@@ -753,7 +838,9 @@ class OriginManCore:
         with self._lock:
             ids = list(self._poll_ids)
         for servo_id in ids:
-            if self._stop.is_set() or not self.link.connected:
+            # A pass of unanswered reads takes seconds: the board's silence is judged between
+            # them, not only after the pass.
+            if self._stop.is_set() or not self._tick(self._clock()):
                 break
             self._poll_one(servo_id, now)
         with self._lock:
@@ -815,13 +902,20 @@ class OriginManCore:
     def _on_connection(self, up: bool, reason: str) -> None:
         now = self._clock()
         with self._lock:
-            if up:
-                self._connected_at = now
-                # O38: after (re)opening the port the motors' state is unknown; without a
-                # motor command within motor_timeout_s they are stopped.
-                self._motor_command_at = now
-                self._motor_stopped = False
+            # O38: after (re)opening the port the motors' state is unknown; without a motor
+            # command within motor_timeout_s they are stopped (the plan arms the watchdog).
+            change = self._plan.connection(up, now)
+        if change is not None:
+            self._changed(change, now)
         self._wake.set()
+        self._timer_wake.set()
+
+    def _on_frames(self, now: float) -> None:
+        # Issue 21 item 11(a): online from the frame itself, before anyone sees it published.
+        with self._lock:
+            change = self._plan.frame(now)
+        if change is not None:
+            self._changed(change, now)
 
     def _on_report(self, msg: Any) -> None:
         now = self._clock()
@@ -881,7 +975,7 @@ class OriginManCore:
             battery = self._battery_mv
             warn = self._battery_warn_mv()
             return OriginManSnapshot(
-                connected=link.connected, online=self._online, status=self._status,
+                connected=link.connected, online=self._plan.online, status=self._status,
                 port_error=link.serial.last_error,
                 last_frame_age_s=None if last is None else max(0.0, now - last),
                 battery_mv=battery, battery_low=battery is not None and battery < warn,
@@ -891,9 +985,12 @@ class OriginManCore:
                 unexpected_replies=link.unexpected_replies, reports=dict(self._reports),
                 reads=link.reads, read_timeouts=link.read_timeouts,
                 read_failures=link.read_failures, reconnects=link.serial.stats.reconnects,
-                refusals=dict(self._refusals), watchdog_stops=self._watchdog_stops,
+                refusals=dict(self._refusals), watchdog_stops=self._plan.watchdog.fired,
                 settings_ok=self._settings_ok, settings_message=self._settings_message,
-                bus_servos=tuple(self._servos[i] for i in self._poll_ids if i in self._servos))
+                bus_servos=tuple(self._servos[i] for i in self._poll_ids if i in self._servos),
+                bus_targets_queued=len(self._plan.scheduler.targets),
+                bus_targets_replaced=self._plan.scheduler.coalesced,
+                board_backlog_s=self._plan.scheduler.backlog(self._pace_clock()))
 
     @property
     def bus_servo_ids(self) -> List[int]:
@@ -912,13 +1009,14 @@ class OriginManCore:
         if not self.link.connected:
             raise Refused('offline', f'port {self.config.port} is not open: '
                                      f'{self.link.serial.last_error or "connecting"}')
-        if not self._online:
+        if not self._plan.online:
             raise Refused('offline', f'the board is offline ({self._status})')
 
-    def _send_all(self, frames: Sequence[bytes], what: str) -> CommandResult:
+    def _send_all(self, frames: Sequence[bytes], what: str,
+                  cancels: Sequence[int] = ()) -> CommandResult:
         try:
             for frame in frames:
-                self.link.send(frame)
+                self._write(frame, cancels)
         except LinkError as exc:
             return CommandResult(False, f'{what}: not sent: {exc}')
         # The board never acknowledges these: "sent" is all anyone can know.
@@ -1000,25 +1098,46 @@ class OriginManCore:
                 if abs(value) > p.MAX_RPS:
                     raise Refused('out_of_range', f'rps {value:g} is beyond +-{p.MAX_RPS:g} '
                                                   '(the fastest motor type)')
-            # Zeros and empty calls too; a refused one does not: its sender is not in control
-            # of the motors (O39).
-            with self._lock:
-                self._motor_command_at = self._clock()
-                was_stopped, self._motor_stopped = self._motor_stopped, False
-            if was_stopped:
-                self._wake.set()  # a new motor timeout: the worker may be sleeping past it
             if not ids:
                 return [], 'motor timeout restarted'
             frame = p.encode_motor_speeds([(i - 1, float(v)) for i, v in zip(ids, speeds)])
             return [frame], 'motors ' + ', '.join(
                 f'{i}: {v:g} r/s' for i, v in zip(ids, speeds))
-        return self._command(build)
+        try:
+            frames, what = build()
+            self._require_online()
+        except Refused as exc:
+            return self._refuse(exc)
+        ticket = object()
+        with self._lock:
+            # Zeros and empty calls restart the timeout too; a refused one does not: its
+            # sender is not in control of the motors (O39).
+            accepted = self._plan.motor_command(frames[0] if frames else None, self._clock(),
+                                                ticket)
+        if not accepted:
+            return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
+        self._timer_wake.set()  # a new motor deadline: the timer may be sleeping past it
+        if not frames:
+            return CommandResult(True, f'{what}: sent')
+        self._drain()
+        error = self._outcome(ticket)
+        if error is not None:
+            return CommandResult(False, f'{what}: not sent: {error}')
+        return CommandResult(True, f'{what}: sent')
 
     def stop_all_motors(self) -> CommandResult:
-        """Set every motor's speed to 0 (MOTOR 0x03, mask 0x0F), offline or not; for shutdown."""
+        """Set every motor's speed to 0 (MOTOR 0x03, mask 0x0F), offline or not; for shutdown.
+
+        The stop goes out ahead of every queued frame; the answer comes once it has left.
+        """
+        ticket = object()
         with self._lock:
-            self._motor_stopped = True
-        return self._send_all([p.encode_motor_stop_mask(STOP_ALL_MASK)], 'stop all motors')
+            self._plan.stop_motors(ticket)
+        self._drain()
+        error = self._outcome(ticket)
+        if error is not None:
+            return CommandResult(False, f'stop all motors: not sent: {error}')
+        return CommandResult(True, 'stop all motors: sent')
 
     def set_pwm_servos(self, ids: Sequence[int], pulses_us: Sequence[int],
                        duration_s: float) -> CommandResult:
@@ -1049,12 +1168,27 @@ class OriginManCore:
                 raise Refused('empty', 'no bus servo given')
             _distinct('ids', servo_ids)
             ms = _to_ms(_seconds('duration_s', duration_s, 0.0, BUS_DURATION_MAX_S))
-            items = list(zip(servo_ids, targets))
-            per_frame = (p.MAX_DATA - 4) // 3
-            frames = [p.encode_bus_move(ms, items[k:k + per_frame])
-                      for k in range(0, len(items), per_frame)]
-            return frames, f'bus servos {servo_ids} to {targets} in {ms} ms'
-        return self._command(build)
+            return (ms, list(zip(servo_ids, targets))), \
+                f'bus servos {servo_ids} to {targets} in {ms} ms'
+        try:
+            (ms, items), what = build()
+            self._require_online()
+        except Refused as exc:
+            return self._refuse(exc)
+        with self._lock:
+            # Issue 21 item 7: the newest target of each servo waits for room on the board's
+            # servo bus; a later command for the same servo replaces it.
+            accepted = self._plan.move(ms, items)
+        if not accepted:
+            return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
+        self._drain()
+        with self._lock:
+            waiting = [i for i, _ in items if i in self._plan.scheduler.targets]
+        if waiting:
+            self._timer_wake.set()
+            return CommandResult(True, f'{what}: queued (the servo bus is busy; a newer target '
+                                       f'of the same servo replaces it)')
+        return CommandResult(True, f'{what}: sent')
 
     # -- services -------------------------------------------------------------------------------
 
@@ -1118,7 +1252,8 @@ class OriginManCore:
         done, problems = [], []
         for servo_id in servo_ids:
             try:
-                self.link.send(p.encode_bus_torque(servo_id, bool(enable)))
+                self._write(p.encode_bus_torque(servo_id, bool(enable)),
+                            cancels=() if enable else (servo_id,))
                 loaded = self.link.bus_read(p.BusSub.READ_LOAD, servo_id)
             except LinkError as exc:
                 problems.append(f'servo {servo_id}: {exc}')
@@ -1139,7 +1274,9 @@ class OriginManCore:
             servo_ids = self._service(lambda: self._bus_ids(ids))
         except Refused as exc:
             return self._refuse(exc)
-        return self._send_all([p.encode_bus_stop(servo_ids)], f'stop bus servos {servo_ids}')
+        # Queued targets of these servos are dropped: a stop is not followed by an old move.
+        return self._send_all([p.encode_bus_stop(servo_ids)], f'stop bus servos {servo_ids}',
+                              cancels=servo_ids)
 
     def set_bus_servo_id(self, servo_id: int, new_id: int) -> CommandResult:
         """Give a servo a new id; refused if ``new_id`` answers. Renamed in the poll list too."""
@@ -1160,7 +1297,7 @@ class OriginManCore:
         try:
             if not self._answers(old):
                 return CommandResult(False, f'servo {old} does not answer; nothing written')
-            self.link.send(p.encode_bus_write_id(old, new))
+            self._write(p.encode_bus_write_id(old, new), cancels=(old,))
             if not self._answers(new):
                 return CommandResult(False, f'id {new} written to servo {old}, but nothing '
                                             f'answers at {new}')
@@ -1190,9 +1327,9 @@ class OriginManCore:
         except Refused as exc:
             return self._refuse(exc)
         try:
-            self.link.send(p.encode_bus_set_offset(sid, value))
+            self._write(p.encode_bus_set_offset(sid, value))
             if save:
-                self.link.send(p.encode_bus_save_offset(sid))
+                self._write(p.encode_bus_save_offset(sid))
             got = self.link.bus_read(p.BusSub.READ_OFFSET, sid)
         except LinkError as exc:
             return CommandResult(False, f'servo {sid} offset {value}: {exc}')
@@ -1242,7 +1379,7 @@ class OriginManCore:
         done = []
         for frame, sub, wanted, what in jobs:
             try:
-                self.link.send(frame)
+                self._write(frame)
                 got = self.link.bus_read(sub, sid)
             except LinkError as exc:
                 return CommandResult(False, f'servo {sid} {what}: {exc}'
@@ -1288,7 +1425,7 @@ class OriginManCore:
         except Refused as exc:
             return self._refuse(exc)
         try:
-            self.link.send(p.encode_pwm_set_offset(sid, value))
+            self._write(p.encode_pwm_set_offset(sid, value))
             got = self.link.read_pwm_offset(sid)
         except LinkError as exc:
             return CommandResult(False, f'PWM servo {sid} offset {value} us: {exc}')

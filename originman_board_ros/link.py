@@ -61,9 +61,11 @@ class BusServoFailure(LinkError):
 class _Decoder:
     """The host stream decoder, typing frames and noting when the board last sent one."""
 
-    def __init__(self, clock: Callable[[], float]) -> None:
+    def __init__(self, clock: Callable[[], float],
+                 on_frames: Optional[Callable[[float], None]] = None) -> None:
         self.inner = p.StreamDecoder()
         self.clock = clock
+        self.on_frames = on_frames
         self.last_frame_time: Optional[float] = None
         self.unknown_frames = 0
 
@@ -72,6 +74,9 @@ class _Decoder:
         if not frames:
             return []
         self.last_frame_time = self.clock()
+        if self.on_frames is not None:
+            # Before the frames are handed out: whoever sees a report sees the board online.
+            self.on_frames(self.last_frame_time)
         out = []
         for frame in frames:
             msg = p.decode_board_frame(frame)
@@ -89,13 +94,17 @@ class OriginManLink:
 
     ``on_report(msg)`` gets every report (``REPORT_TYPES``) from the reader thread; it must not
     block and must not start a read. ``on_connection(up, reason)`` is called from the reader
-    thread when the port opens or closes. ``clock`` stamps ``last_frame_time`` (default
+    thread when the port opens or closes; ``on_frames(time)`` from the reader thread when valid
+    frames arrived, before they are handed out; ``on_tx(frame)`` after every write (from the
+    writing thread). ``clock`` stamps ``last_frame_time`` (default
     ``time.monotonic``).
     """
 
     def __init__(self, port: str, baud: int = p.BAUD, *,
                  on_report: Optional[Callable[[Any], None]] = None,
                  on_connection: Optional[Callable[[bool, str], None]] = None,
+                 on_frames: Optional[Callable[[float], None]] = None,
+                 on_tx: Optional[Callable[[bytes], None]] = None,
                  clock: Callable[[], float] = time.monotonic,
                  timeout_s: float = READ_TIMEOUT_S, retries: int = 1,
                  logger: Optional[Any] = None, backoff_max_s: float = 1.0) -> None:
@@ -108,11 +117,11 @@ class OriginManLink:
         self.read_failures = 0
         self.unexpected_replies = 0
         self._on_report = on_report
-        self._decoder = _Decoder(clock)
+        self._decoder = _Decoder(clock, on_frames)
         self._locks: Dict[int, threading.Lock] = {
             p.Function.PWM_SERVO: threading.Lock(), p.Function.BUS_SERVO: threading.Lock()}
         self.serial = SerialLink(port, baud, self._decoder, on_frame=self._on_frame,
-                                 on_connection=on_connection, logger=logger,
+                                 on_connection=on_connection, on_tx=on_tx, logger=logger,
                                  backoff_max_s=backoff_max_s, read_timeout_s=0.02)
 
     # -- lifecycle ------------------------------------------------------------------------------

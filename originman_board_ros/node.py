@@ -142,7 +142,6 @@ class OriginManBoardNode(Node):
                              lambda stat: m.bus_servo_status(stat, self.core.snapshot()))
 
         c = self.core
-        topics = MutuallyExclusiveCallbackGroup()
         for msg_type, name, handler in (
                 (LedPattern, '~/set_led', lambda q: c.set_led(q.led_id, q.on_s, q.off_s,
                                                               q.repeat)),
@@ -157,7 +156,9 @@ class OriginManBoardNode(Node):
                     q.ids, q.pulses_us, q.duration_s)),
                 (BusServoCommand, '~/bus_servo/command', lambda q: c.set_bus_servos(
                     q.ids, q.positions, q.duration_s))):
-            self._topic(msg_type, name, handler, topics)
+            # A group per topic: a flood on one (a servo stream) never holds a motor command
+            # or another topic's message behind its callbacks (issue 21 item 7).
+            self._topic(msg_type, name, handler, MutuallyExclusiveCallbackGroup())
 
         # Bus servo services share the board's one outstanding bus read (O41) anyway: one
         # group keeps them from holding several executor threads waiting on the same lock.

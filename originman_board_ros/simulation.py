@@ -22,7 +22,11 @@ What is modelled, with the decisions of ``docs/protocols.md`` (O1..):
   timed moves, loading on a move (O32), voltage, temperature, id, deviation, limits with the
   firmware's clamps (O24), stop; a read of an absent servo answers -1 after 5 ms, O14);
 * the board's own behaviour (§8): a beep on every click, the low-battery alarm with the SYS
-  0x01 threshold; ``buzzer_log`` records every beep pattern with its source.
+  0x01 threshold; ``buzzer_log`` records every beep pattern with its source;
+* a fault: with ``answer_reads`` False the board handles every frame (commands act, reads
+  take their servo-bus time) but sends no reply to a read, while its reports keep coming
+  (issue 21 item 6). ``queue_log`` records how long each command waited for the receive task,
+  behind the servo-bus work of the frames before it (item 7).
 """
 
 from __future__ import annotations
@@ -320,8 +324,10 @@ class VirtualOriginManBoardModel(ClockedModel):
     ``pwm_servos`` (ids 1..4), ``bus_servos`` (list of :class:`SimBusServo`), ``leds``
     (ids 1..2), ``buzzer``, ``buzzer_log``, ``oled_lines`` (1..2), ``rgb`` (pixels 0..1),
     ``sbus``, ``low_battery_alarms``, ``command_log`` ((time, command) handled, newest last).
-    Counters: ``frames_handled``, ``commands_ignored``, ``bad_motor_ids``, ``bad_pwm_ids``,
-    ``bus_reads``, ``bus_read_failures``, ``reports_sent`` and the parser's ``parser.*``.
+    ``answer_reads`` (False: reads get no reply, reports go on), ``queue_log`` ((arrival, handled,
+    command), newest last). Counters: ``frames_handled``, ``commands_ignored``,
+    ``bad_motor_ids``, ``bad_pwm_ids``, ``bus_reads``, ``bus_read_failures``, ``reports_sent``
+    and the parser's ``parser.*``.
     """
 
     def __init__(self, now: float = 0.0, *, bus_servo_ids: Iterable[int] = (1, 2, 3),
@@ -349,6 +355,9 @@ class VirtualOriginManBoardModel(ClockedModel):
         self.bus_reads = 0
         self.bus_read_failures = 0
         self.reports_sent = 0
+        self.answer_reads = True
+        self.queue_log: Deque[Tuple[float, float, p.HostCommand]] = deque(
+            maxlen=COMMAND_LOG_SIZE)
         self.low_battery_alarms = 0
         self.boots = 0
         self.powered = False
@@ -552,8 +561,9 @@ class VirtualOriginManBoardModel(ClockedModel):
     def _process_events(self) -> None:
         now = self._now
         if self._inbox and max(self._inbox[0][0], self._handler_free_at) <= now:
-            _, frame = self._inbox.popleft()
+            arrived, frame = self._inbox.popleft()
             self._handler_free_at = now + self._handle(frame, now)
+            self.queue_log.append((arrived, now, self.command_log[-1][1]))
         if self._imu_at is not None and self._imu_at <= now:
             self._imu_at += 1.0 / self.imu_rate_hz
             if self.imu_source is not None:
@@ -607,6 +617,10 @@ class VirtualOriginManBoardModel(ClockedModel):
             return
         self.reports_sent += 1
         self._queue(due, frame)
+
+    def _reply(self, due: float, frame: bytes) -> None:
+        if self.answer_reads:
+            self._report(due, frame)
 
     def _beep(self, t: float, frequency_hz: int, on_ms: int, off_ms: int, repeat: int,
               source: str) -> None:
@@ -685,9 +699,9 @@ class VirtualOriginManBoardModel(ClockedModel):
         if isinstance(cmd, p.PwmSetOffset):
             servo.set_offset(cmd.offset_us)
         elif cmd.sub == p.PwmSub.READ_PULSE:
-            self._report(t, p.encode_pwm_pulse_reply(cmd.servo_id, servo.pulse_at(t)))
+            self._reply(t, p.encode_pwm_pulse_reply(cmd.servo_id, servo.pulse_at(t)))
         else:
-            self._report(t, p.encode_pwm_offset_reply(cmd.servo_id, servo.offset_us))
+            self._reply(t, p.encode_pwm_offset_reply(cmd.servo_id, servo.offset_us))
 
     def _pwm_servo(self, servo_id: int) -> Optional[PwmServo]:
         servo = self.pwm_servos.get(servo_id)
@@ -748,7 +762,7 @@ class VirtualOriginManBoardModel(ClockedModel):
         else:
             reply = p.encode_bus_reply(cmd.servo_id, cmd.sub, self._bus_value(servo, cmd.sub,
                                                                               done))
-        self._report(done, reply)
+        self._reply(done, reply)
         return duration
 
     def _bus_value(self, servo: SimBusServo, sub: int, t: float) -> p.BusValue:

@@ -202,6 +202,7 @@ PARAMS = (
               float_range=(0.0, 1.0), check=_check_probability),
     ParamSpec('garbage_probability', 0.0, 'chance of noise before a frame of the board',
               float_range=(0.0, 1.0), check=_check_probability),
+    ParamSpec('answer_reads', True, 'False: reads get no reply while reports go on (a fault)'),
     ParamSpec('reply_delay_s', 0.0, 'extra delay before every reply to a frame [s]',
               float_range=(0.0, 5.0)),
     ParamSpec('state_period_s', 0.1, 'period of ~/state [s]', read_only=True,
@@ -243,6 +244,8 @@ class VirtualOriginManBoardNode(Node):
                     model.set_battery_mv(int(value))
                 elif name == 'imu_rate_hz':
                     model.set_imu(rate_hz=float(value))
+                elif name == 'answer_reads':
+                    model.answer_reads = bool(value)
                 elif name in ('drop_probability', 'corrupt_probability', 'garbage_probability',
                               'reply_delay_s'):
                     setattr(runner.faults, name, float(value))

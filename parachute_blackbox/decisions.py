@@ -245,6 +245,18 @@ def _decision_preflight(a: FlightAnalysis, record: Dict[str, Any], t: float) -> 
     a.event(t, 'calls', 'ok' if ok else 'bad', short(text, 200))
 
 
+def _decision_release_gate(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    route = record.get('route', '?')
+    if record.get('called') is False:
+        text = f'release gate not called for the {route}: {record.get("reason", "")}'
+    elif record.get('success') is True:
+        text = f'release gate for the {route}: {record.get("message", "")}'
+    else:
+        text = (f'release gate for the {route} gave no go ({record.get("message", "")}): '
+                'released anyway')
+    a.event(t, 'deploy', 'ok' if record.get('success') is True else 'warn', short(text, 200))
+
+
 def decision_other(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     """Show a decision whose ``what`` this version does not know, and count it."""
     what = str(record.get('what'))
@@ -267,5 +279,6 @@ DECISIONS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = 
     'settings refused': _decision_settings_refused,
     'settings write withheld': _decision_withheld,
     'preflight': _decision_preflight,
+    'release gate': _decision_release_gate,
 }
 """``decision`` records by their ``what``; any other ``what`` is shown as it is."""

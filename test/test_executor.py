@@ -164,3 +164,17 @@ def test_round2_9_a_callback_queued_for_the_pool_at_shutdown_prints_nothing(capf
     assert 'never retrieved' not in err, err
     assert 'Traceback' not in err, err
     assert ran.count('hold') == 1 and 'queued' not in ran, ran
+
+
+def test_round2_23_a_done_callback_of_a_client_call_keeps_the_executor_spinning(ros, driver):
+    # A future's done callback runs as a task of the executor, with no entity: parachute_node's
+    # release gate and parachute_mavlink wait on call_async this way.
+    driver.release.set()
+    client = driver.node.create_client(Trigger, '/executor_under_test/slow_0')
+    assert client.wait_for_service(timeout_sec=10.0)
+    done = threading.Event()
+    future = client.call_async(Trigger.Request())
+    future.add_done_callback(lambda _: done.set())
+    assert done.wait(10.0), 'the done callback never ran'
+    _publish_until_seen(ros, driver, 11)
+    assert driver.errors == []

@@ -13,11 +13,13 @@ from uav_serial_common.process import executable_path
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILES = ['parachute.launch.py', 'servo_bus.launch.py', 'handset_link.launch.py',
-                'originman_board.launch.py', 'virtual_bringup.launch.py']
+                'originman_board.launch.py', 'virtual_bringup.launch.py',
+                'parachute_mavlink.launch.py']
 CONFIGS = {'parachute.yaml': ('parachute_node', '/parachute'),
            'servo_bus.yaml': ('servo_bus_node', '/servo_bus'),
            'handset_link.yaml': ('handset_link_node', '/handset_link'),
-           'originman_board.yaml': ('originman_board_node', '/originman_board')}
+           'originman_board.yaml': ('originman_board_node', '/originman_board'),
+           'parachute_mavlink.yaml': ('parachute_mavlink', '/parachute_mavlink')}
 
 
 def _string_args(tree, func_name):
@@ -50,9 +52,10 @@ def test_launch_file_is_installed_compiles_and_names_installed_things(name, tmp_
 def test_virtual_bringup_wires_each_driver_to_its_virtual_device():
     tree = ast.parse((ROOT / 'launch' / 'virtual_bringup.launch.py').read_text())
     executables = sorted(n['executable'] for n in _string_args(tree, 'Node'))
-    assert executables == ['handset_link_node', 'originman_board_node', 'parachute_node',
-                           'servo_bus_node', 'virtual_handset', 'virtual_originman_board',
-                           'virtual_parachute', 'virtual_servo_bus']
+    assert executables == ['handset_link_node', 'originman_board_node', 'parachute_mavlink',
+                           'parachute_node', 'servo_bus_node', 'virtual_autopilot',
+                           'virtual_handset', 'virtual_originman_board', 'virtual_parachute',
+                           'virtual_servo_bus']
 
 
 @pytest.mark.parametrize('config', sorted(CONFIGS))

@@ -7,7 +7,7 @@ from xml.dom import minidom
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros',
-            'originman_board_ros', 'handset_link_ros']
+            'originman_board_ros', 'handset_link_ros', 'parachute_mavlink_ros']
 PYTHON_DIRS = PACKAGES + ['test', 'bench', 'launch', 'tools']
 
 

@@ -434,3 +434,30 @@ def test_next_event_time_names_the_next_report():
     sim.receive(p.encode_bus_read_position(1), 0.001)
     assert sim.next_event_time() == pytest.approx(0.001 + s._servo_bus_time(6)
                                                   + s.SERVO_ANSWER_S)
+
+
+# ----- faults and the servo bus's capacity (issue 21 items 6, 7) -------------------------------
+
+def test_a_board_that_stops_answering_reads_still_streams_and_obeys():
+    sim = VirtualOriginManBoardModel(0.0, battery_period_s=1000.0)
+    sim.answer_reads = False
+    got = ask(sim, p.encode_bus_read(BusSub.READ_POSITION, 1), 0.1)
+    got += ask(sim, p.encode_pwm_read_pulse(1), 0.1)
+    assert not [m for m in got if not isinstance(m, p.ImuReport)]
+    assert len([m for m in got if isinstance(m, p.ImuReport)]) >= 8
+    sim.receive(p.encode_motor_speeds([(0, 1.5)]), sim.now)
+    run(sim, sim.now + 0.01)
+    assert sim.motor_speed(0) == 1.5
+    sim.answer_reads = True
+    assert any(isinstance(m, p.BusServoReply) for m in
+               ask(sim, p.encode_bus_read(BusSub.READ_POSITION, 1)))
+
+
+def test_commands_wait_behind_the_servo_bus_work_of_the_frames_before_them():
+    sim = quiet(bus_servo_ids=range(20))
+    move = p.encode_bus_move(20, [(i, 600) for i in range(20)])  # 20 x 10 bytes at 115200
+    sim.receive(move * 10 + p.encode_motor_stop_mask(0xF), 0.0)
+    run(sim, 1.0)
+    arrived, handled, cmd = sim.queue_log[-1]
+    assert isinstance(cmd, p.StopMotors)
+    assert handled - arrived == pytest.approx(10 * 20 * 10 * 10 / 115200, rel=0.01)

@@ -12,7 +12,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = ['uav_serial_common', 'dps_parachute_ros', 'parachute_blackbox', 'desheng_servo_ros',
-           'originman_board_ros', 'handset_link_ros']
+           'originman_board_ros', 'handset_link_ros', 'parachute_mavlink_ros']
 CONTRACT_MESSAGES = {
     'ParachuteStatus': ['header', 'online', 'armed', 'triggered', 'tilt_deg', 'accel_g',
                         'streaming', 'light_level_v', 'bay_open', 'charging', 'cell_voltage_v',
@@ -78,7 +78,7 @@ CONTRACT_SERVICES = {
 }
 # Imports that are not ROS packages of the same name, mapped to their rosdep keys.
 ROSDEP_KEYS = {'serial': 'python3-serial', 'yaml': 'python3-yaml',
-               'matplotlib': 'python3-matplotlib'}
+               'matplotlib': 'python3-matplotlib', 'pymavlink': 'python3-pymavlink-pip'}
 
 
 def setup_cfg() -> configparser.ConfigParser:
@@ -146,8 +146,9 @@ def test_installed_executables_are_the_console_scripts_of_setup_cfg():
     scripts = setup_cfg()['options.entry_points']['console_scripts'].split('\n')
     names = sorted(line.split('=')[0].strip() for line in scripts if line.strip())
     assert names == ['blackbox_report', 'handset_link_node', 'originman_board_node',
-                     'parachute_node', 'servo_bus_node', 'virtual_handset',
-                     'virtual_originman_board', 'virtual_parachute', 'virtual_servo_bus']
+                     'parachute_mavlink', 'parachute_node', 'servo_bus_node',
+                     'virtual_autopilot', 'virtual_handset', 'virtual_originman_board',
+                     'virtual_parachute', 'virtual_servo_bus']
     lib = Path(get_package_prefix('uav_serial_drivers'), 'lib', 'uav_serial_drivers')
     assert sorted(p.name for p in lib.iterdir()) == names
     for line in scripts:
@@ -233,6 +234,7 @@ ROS_FREE = {
     'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],
     'handset_link_ros': ['protocol', 'link', 'core', 'simulation'],
     'originman_board_ros': ['protocol', 'link', 'core', 'simulation'],
+    'parachute_mavlink_ros': ['core'],
 }
 
 

@@ -387,6 +387,68 @@ def run_mission(m: Mission, procs: Processes) -> str:
             f'deployment recorded, settings re-applied after reboot')
 
 
+# -- the autopilot link ------------------------------------------------------------------------
+
+MAVLINK_PORT = 14550 + random.randint(100, 900)
+"""The loopback UDP port between parachute_mavlink and the virtual autopilot (per run)."""
+
+
+def start_autopilot(procs: Processes) -> None:
+    """Start the virtual autopilot and the autopilot link (the parachute's gate is set)."""
+    procs.start('virtual_autopilot', {'mavlink_url': f'udpin:127.0.0.1:{MAVLINK_PORT}'})
+    procs.start('parachute_mavlink', {'mavlink_url': f'udpout:127.0.0.1:{MAVLINK_PORT}'})
+
+
+def run_autopilot(m: Mission, procs: Processes) -> str:
+    """Release the parachute from the autopilot's side: DO_PARACHUTE ENABLE, then RELEASE."""
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+    from uav_serial_drivers.msg import MavlinkLink
+    received: List[str] = []
+    links: List[Any] = []
+    m.node.create_subscription(String, '/virtual_autopilot/received',
+                               m._append('data', owner=_Lines(received)), 50,
+                               callback_group=m.group)
+    m.node.create_subscription(MavlinkLink, '/parachute_mavlink/link', m._append(
+        'data', owner=_Lines(links)), 10, callback_group=m.group)
+    m.step(procs, 'the autopilot link: the flight controller hears a MAVLink parachute')
+    link = m.wait(lambda: next((x for x in links if x.autopilot_heard and
+                                x.system_status != 0), None), 20,
+                  'the autopilot heard and the parachute state known')
+    m.say(f'  parachute 1/161 heartbeats with system_status {link.system_status}; autopilot '
+          f'{link.autopilot_system_id}/{link.autopilot_component_id} heard')
+    m.step(procs, 'the autopilot arms the parachute: MAV_CMD_DO_PARACHUTE ENABLE')
+    reply = m.call(Trigger, '/virtual_autopilot/parachute_enable', Trigger.Request(), 15.0)
+    if not reply.success:
+        raise DemoFailure(f'DO_PARACHUTE ENABLE: {reply.message}')
+    m.say(f'  COMMAND_ACK {reply.message}')
+    m.wait(lambda: m.status.armed, 5, 'status armed')
+    m.step(procs, 'the autopilot releases it: MAV_CMD_DO_PARACHUTE RELEASE (motors stopped '
+           'first)')
+    start = len(received)
+    reply = m.call(Trigger, '/virtual_autopilot/parachute_release', Trigger.Request(), 20.0)
+    if not reply.success:
+        raise DemoFailure(f'DO_PARACHUTE RELEASE: {reply.message}')
+    m.wait(lambda: m.status.triggered, 5, 'status triggered')
+    with m.lock:
+        lines = [x.data for x in received[start:]]
+    stop = next((x for x in lines if 'command 400' in x), None)
+    if stop is None:
+        raise DemoFailure(f'the autopilot got no motor stop; it received: {lines}')
+    m.say(f'  the autopilot received: {stop}')
+    for text in [x for x in lines if 'STATUSTEXT' in x][:4]:
+        m.say(f'  the autopilot received: {text}')
+    m.say(f'  COMMAND_ACK {reply.message}')
+    return f'autopilot: motors stopped, then DO_PARACHUTE RELEASE → {reply.message}'
+
+
+class _Lines:
+    """A holder whose ``data`` list the mission's `_append` callback fills."""
+
+    def __init__(self, data: List[Any]) -> None:
+        self.data = data
+
+
 def write_report(blackbox: Path, earlier_runs: set) -> str:
     """Write the black-box report of this run (blackbox_report) beside its file."""
     from parachute_blackbox.report import build_report
@@ -619,13 +681,16 @@ def main() -> int:
         procs.start_device('virtual_parachute', {'external_power': False}, chute)
         procs.start_device('virtual_servo_bus', {'servo_ids': [1, 2, 3]}, bus)
         procs.start('parachute_node', {'port': chute, 'blackbox_dir': str(blackbox),
-                                       'trigger_request_policy': 'confirm'})
+                                       'trigger_request_policy': 'confirm',
+                                       'release_gate': 'parachute_mavlink/release_gate'})
+        start_autopilot(procs)
         procs.start('servo_bus_node', {'port': bus, 'servo_ids': [1, 2, 3],
                                        'torque_on_start': True})
         start_handset(procs, workdir)
         start_board(procs, workdir)
         mission = Mission(tty)
         summary = run_mission(mission, procs)
+        summary += '; ' + run_autopilot(mission, procs)
         summary += '; ' + run_handset(mission, procs)
         summary += '; ' + run_board_mission(mission, procs)
         mission.close()

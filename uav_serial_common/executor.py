@@ -79,7 +79,8 @@ class DriverExecutor(Executor):
         except (ExternalShutdownException, ShutdownException, TimeoutException,
                 ConditionReachedException):
             return
-        if isinstance(entity.callback_group, InlineCallbackGroup):
+        # entity None: a task of create_task, e.g. a future's done callback (call_async).
+        if entity is not None and isinstance(entity.callback_group, InlineCallbackGroup):
             handler()
             handler.result()  # raises what the callback raised, as rclpy's executors do
             return

@@ -1,0 +1,326 @@
+"""The OriginMan driver's time-critical decisions, without I/O, thread or clock.
+
+Events come in with their time, decisions go out; the caller (``core.OriginManCore``) owns the
+port, the threads and the clocks, and carries the decisions out in the order given. Here:
+
+* :class:`MotorWatchdog`: when the motors must be stopped (the board has none, §8, O38, O39);
+* :class:`OnlineJudge`: online from the first frame after the port opened, offline after
+  ``offline_timeout_s`` without one or when the port closes;
+* :class:`FrameScheduler`: what goes to the board next. Motor stops first, then commands in
+  the order given, then bus-servo moves, coalesced (the newest target of each servo wins) and
+  paced by what the board's servo bus can carry, so that the board never holds more than
+  ``ahead_s`` of servo-bus work in front of a stop (issue 21 item 7);
+* :class:`BoardPlan`: the three together, with the rules that join them (no command but a stop
+  to a board judged offline; queued commands are dropped when it goes offline).
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Sequence, Tuple
+
+from originman_board_ros import protocol as p
+
+__all__ = ['BoardPlan', 'FrameScheduler', 'MotorWatchdog', 'OnlineJudge', 'PACE_AHEAD_S',
+           'STOP_ALL_FRAME', 'board_time']
+
+SERVO_BUS_BAUD = 115200
+"""The board's servo bus (§6): 10 bits a byte."""
+SERVO_TIMEOUT_S = 0.005
+"""The firmware waits this long for a servo's answer (a read costs at most this)."""
+BUS_MOVE_ITEM_BYTES = 10
+"""One servo of a move is one 10-byte servo frame on the servo bus."""
+PACE_AHEAD_S = 0.02
+"""At most this much servo-bus work (plus one servo move) is left queued on the board; moves are
+released once half of it is done."""
+STOP_ALL_FRAME = p.encode_motor_stop_mask((1 << p.MOTOR_COUNT) - 1)
+PER_FRAME = (p.MAX_DATA - 4) // 3
+"""Servos in one BUS_SERVO 0x01 frame."""
+
+Change = Tuple[bool, str]
+"""An online change: (online, reason)."""
+
+
+def _bus_bytes_time(nbytes: int) -> float:
+    return nbytes * 10 / SERVO_BUS_BAUD
+
+
+def board_time(frame: bytes, baud: int = p.BAUD) -> float:
+    """How long the board is busy with ``frame``: its bytes on the wire and its servo bus."""
+    wire = len(frame) * 10 / baud
+    frames = p.BoardParser().feed(frame)
+    if not frames:
+        return wire
+    cmd = p.decode_host_command(frames[0])
+    if isinstance(cmd, p.BusMove):
+        return wire + len(cmd.items) * _bus_bytes_time(BUS_MOVE_ITEM_BYTES)
+    if isinstance(cmd, p.BusStop):
+        return wire + len(cmd.ids) * _bus_bytes_time(6)
+    if isinstance(cmd, p.BusRead):
+        return wire + _bus_bytes_time(6) + SERVO_TIMEOUT_S
+    if type(cmd).__name__.startswith('Bus'):
+        return wire + _bus_bytes_time(10)
+    return wire
+
+
+class MotorWatchdog:
+    """When every motor must be stopped: ``timeout_s`` after the last motor command (0: never)."""
+
+    def __init__(self, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        self.last_command_at: Optional[float] = None
+        self.stopped = True
+        self.fired = 0
+
+    def command(self, now: float) -> None:
+        """Note a motor command accepted at ``now``; zeros and keep-alives count too."""
+        self.last_command_at = now
+        self.stopped = False
+
+    def connected(self, now: float) -> None:
+        """Arm at a connect: the motors' state is unknown, as if commanded now (O38)."""
+        self.command(now)
+
+    def stop(self) -> None:
+        """Note that every motor was told to stop; its frame is on its way."""
+        self.stopped = True
+
+    @property
+    def deadline(self) -> Optional[float]:
+        """When the motors must be stopped, None when nothing is running."""
+        if self.timeout_s <= 0 or self.stopped or self.last_command_at is None:
+            return None
+        return self.last_command_at + self.timeout_s
+
+    def due(self, now: float) -> bool:
+        """Whether the stop is due at ``now``."""
+        deadline = self.deadline
+        return deadline is not None and now >= deadline
+
+
+class OnlineJudge:
+    """Online from the first frame on an open port; offline without one for ``timeout_s``."""
+
+    def __init__(self, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        self.connected = False
+        self.last_frame_at: Optional[float] = None
+        self.online = False
+
+    def connection(self, up: bool, now: float) -> Optional[Change]:
+        """Judge a port that opened (``up``) or closed; frames before now no longer count."""
+        self.connected = up
+        self.last_frame_at = None
+        return self._set(False, 'port open, no frame from the board yet' if up
+                         else 'port closed')
+
+    def frame(self, now: float) -> Optional[Change]:
+        """Judge a valid frame from the board that arrived at ``now``."""
+        if not self.connected:
+            return None
+        self.last_frame_at = now
+        return self._set(True, 'frames arriving')
+
+    def tick(self, now: float) -> Optional[Change]:
+        """Judge the silence at ``now``."""
+        last = self.last_frame_at
+        if self.online and last is not None and now - last >= self.timeout_s:
+            return self._set(False, f'no frame from the board for {now - last:.1f} s')
+        return None
+
+    @property
+    def deadline(self) -> Optional[float]:
+        """When silence makes the board offline, None while it is offline."""
+        if not self.online or self.last_frame_at is None:
+            return None
+        return self.last_frame_at + self.timeout_s
+
+    def _set(self, online: bool, reason: str) -> Optional[Change]:
+        if online == self.online:
+            return None
+        self.online = online
+        return online, reason
+
+
+class FrameScheduler:
+    """The outgoing frames, in the order they must leave, paced by the board's servo bus.
+
+    Three lines: motor stops, commands (first come, first out), and the newest target of each
+    bus servo (a servo keeps its place in the line when its target changes). :meth:`take`
+    gives the next frame to write; :meth:`written` is told about every frame that left (reads
+    included), to estimate when the board will be through with them.
+    """
+
+    def __init__(self, ahead_s: float = PACE_AHEAD_S, baud: int = p.BAUD) -> None:
+        self.ahead_s = ahead_s
+        self.baud = baud
+        self.stops: List[Tuple[bytes, object]] = []
+        self.commands: List[Tuple[bytes, object, bool]] = []  # (frame, ticket, motor)
+        self.targets: Dict[int, Tuple[int, int]] = {}  # id -> (position, duration ms)
+        self.board_free_at = 0.0
+        self.coalesced = 0
+
+    def push_stop(self, frame: bytes, ticket: object = None) -> None:
+        """Queue a motor stop ahead of everything; it drops queued motor commands.
+
+        A motor command queued before the stop was given before it: sent after the stop, it
+        would start the motors again with nothing left to stop them.
+        """
+        self.commands = [c for c in self.commands if not c[2]]
+        self.stops.append((frame, ticket))
+
+    def push_command(self, frame: bytes, ticket: object = None,
+                     cancels: Sequence[int] = (), motor: bool = False) -> None:
+        """Queue a command after those queued; ``cancels`` drops queued targets of those servos.
+
+        ``motor``: the command sets motor speeds (a stop drops it while it waits).
+        """
+        if p.BUS_BROADCAST_ID in cancels:
+            self.targets.clear()
+        for servo_id in cancels:
+            self.targets.pop(servo_id, None)
+        self.commands.append((frame, ticket, motor))
+
+    def push_move(self, duration_ms: int, items: Sequence[Tuple[int, int]]) -> None:
+        """Queue bus servo targets: each replaces the queued target of its servo."""
+        for servo_id, position in items:
+            if servo_id in self.targets:
+                self.coalesced += 1
+            self.targets[servo_id] = (position, duration_ms)
+
+    def clear(self) -> int:
+        """Drop every queued command and target (not the stops); return how many."""
+        n = len(self.commands) + len(self.targets)
+        self.commands.clear()
+        self.targets.clear()
+        return n
+
+    def backlog(self, now: float) -> float:
+        """Seconds of work the board still has from frames written before ``now``."""
+        return max(0.0, self.board_free_at - now)
+
+    def written(self, frame: bytes, now: float) -> None:
+        """``frame`` left at ``now``."""
+        self.board_free_at = max(self.board_free_at, now) + board_time(frame, self.baud)
+
+    def take(self, now: float) -> Optional[Tuple[str, bytes, object]]:
+        """Return the next frame to write at ``now``: ``(kind, frame, ticket)``, or None."""
+        if self.stops:
+            frame, ticket = self.stops.pop(0)
+            return 'stop', frame, ticket
+        if self.commands:
+            frame, ticket, motor = self.commands.pop(0)
+            return 'motor' if motor else 'command', frame, ticket
+        if not self.targets:
+            return None
+        if now < self.board_free_at - self.ahead_s / 2:
+            return None  # released in batches of at least half the room, not one by one
+        room = self.ahead_s - self.backlog(now)
+        budget = max(1, min(PER_FRAME, int(room / _bus_bytes_time(BUS_MOVE_ITEM_BYTES))))
+        duration = next(iter(self.targets.values()))[1]
+        items = []
+        for servo_id, (position, ms) in self.targets.items():
+            if ms == duration:
+                items.append((servo_id, position))
+                if len(items) == budget:
+                    break
+        for servo_id, _ in items:
+            del self.targets[servo_id]
+        return 'move', p.encode_bus_move(duration, items), None
+
+    def next_time(self, now: float) -> Optional[float]:
+        """When :meth:`take` will next give a frame (now if one is ready), None if never."""
+        if self.stops or self.commands:
+            return now
+        if self.targets:
+            return max(now, self.board_free_at - self.ahead_s / 2)
+        return None
+
+
+class BoardPlan:
+    """The watchdog, the online judgement and the scheduler, with the rules between them."""
+
+    def __init__(self, motor_timeout_s: float, offline_timeout_s: float,
+                 ahead_s: float = PACE_AHEAD_S, baud: int = p.BAUD) -> None:
+        self.watchdog = MotorWatchdog(motor_timeout_s)
+        self.judge = OnlineJudge(offline_timeout_s)
+        self.scheduler = FrameScheduler(ahead_s, baud)
+
+    @property
+    def online(self) -> bool:
+        """Whether the board is judged online."""
+        return self.judge.online
+
+    def configure(self, motor_timeout_s: float, offline_timeout_s: float) -> None:
+        """Take changed timeouts."""
+        self.watchdog.timeout_s = motor_timeout_s
+        self.judge.timeout_s = offline_timeout_s
+
+    def connection(self, up: bool, now: float) -> Optional[Change]:
+        """Take a port that opened or closed at ``now``."""
+        if up:
+            self.watchdog.connected(now)
+        change = self.judge.connection(up, now)
+        self._went_offline(change)
+        return change
+
+    def frame(self, now: float) -> Optional[Change]:
+        """Take a frame from the board that arrived at ``now``."""
+        return self.judge.frame(now)
+
+    def tick(self, now: float) -> Tuple[Optional[Change], bool]:
+        """Run the timers at ``now``; return (an online change, whether a stop was queued)."""
+        change = self.judge.tick(now)
+        self._went_offline(change)
+        return change, self.tick_watchdog(now)
+
+    def tick_watchdog(self, now: float) -> bool:
+        """Run the watchdog alone at ``now``; return whether it queued a stop (ahead of all)."""
+        if self.judge.connected and self.watchdog.due(now):
+            self.stop_motors()
+            self.watchdog.fired += 1
+            return True
+        return False
+
+    def motor_command(self, frame: Optional[bytes], now: float, ticket: object = None) -> bool:
+        """Queue a motor command (None: a keep-alive); refused (False) while offline."""
+        if not self.judge.online:
+            return False
+        self.watchdog.command(now)
+        if frame is not None:
+            self.scheduler.push_command(frame, ticket, motor=True)
+        return True
+
+    def stop_motors(self, ticket: object = None) -> None:
+        """Queue a stop of every motor ahead of everything, online or not."""
+        self.watchdog.stop()
+        self.scheduler.push_stop(STOP_ALL_FRAME, ticket)
+
+    def command(self, frame: bytes, ticket: object = None, cancels: Sequence[int] = ()) -> bool:
+        """Queue a command; refused (False) while offline."""
+        if not self.judge.online:
+            return False
+        self.scheduler.push_command(frame, ticket, cancels)
+        return True
+
+    def move(self, duration_ms: int, items: Sequence[Tuple[int, int]]) -> bool:
+        """Queue bus servo targets (the newest of each servo wins); False while offline."""
+        if not self.judge.online:
+            return False
+        self.scheduler.push_move(duration_ms, items)
+        return True
+
+    def take(self, now: float) -> Optional[Tuple[str, bytes, object]]:
+        """Return the next frame to write at ``now``; only stops while offline."""
+        if not self.judge.online and not self.scheduler.stops:
+            self.scheduler.clear()
+        return self.scheduler.take(now)
+
+    def next_time(self, now: float) -> Optional[float]:
+        """When :meth:`tick` or :meth:`take` next has something to do."""
+        times = [t for t in (self.watchdog.deadline, self.judge.deadline,
+                             self.scheduler.next_time(now)) if t is not None]
+        return min(times) if times else None
+
+    def _went_offline(self, change: Optional[Change]) -> None:
+        if change is not None and not change[0]:
+            self.scheduler.clear()

@@ -1,0 +1,1 @@
+"""The autopilot link of the DPS-S parachute driver: a MAVLink parachute component."""
