@@ -15,6 +15,8 @@ VIRTUAL_NODES = [
     ('dps_parachute_ros.virtual_node', 'VirtualParachuteNode', 'virtual_parachute', True, True),
     ('desheng_servo_ros.virtual_node', 'VirtualServoBusNode', 'virtual_servo_bus', True, False),
     ('handset_link_ros.virtual_node', 'VirtualHandsetNode', 'virtual_handset', False, False),
+    ('originman_board_ros.virtual_node', 'VirtualOriginManBoardNode', 'virtual_originman_board',
+     True, False),
 ]
 
 
