@@ -3,8 +3,9 @@
 :class:`VirtualServoBus` (no ROS) joins the plain-Python :class:`ServoBusSim` to a
 :class:`VirtualDeviceRunner`, which gives it real time, wire timing at the baud for request and
 reply bytes, and the wire faults (``runner.faults``, ``runner.inject_garbage``). Tests use the
-class directly; the node adds parameters and scenario services (``~/set_fault``,
-``~/disconnect``, ``~/inject_garbage``).
+class directly; the node adds parameters and scenario services (``~/set_fault``, and the
+``~/disconnect`` and ``~/inject_garbage`` of every virtual device,
+:class:`uav_serial_common.virtual_node.VirtualDeviceNode`).
 """
 
 from __future__ import annotations
@@ -13,19 +14,16 @@ import sys
 from typing import Any, Dict, Iterable, List, Optional
 
 from desheng_servo_ros.simulation import ServoBusSim
-from rclpy.node import Node
-from std_srvs.srv import SetBool, Trigger
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import declare_parameters, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
+from uav_serial_common.virtual_node import VirtualDeviceNode, WIRE_FAULTS, wire_fault_params
 from uav_serial_drivers.srv import SimServoFault
 
 # A real servo answers a few hundred microseconds after the last request byte (firmware parse
 # time); 0.2 ms is the order of magnitude, and what the virtual bus adds to every reply.
 DEFAULT_RESPONSE_DELAY_S = 0.0002
 GARBAGE = bytes((0xFF, 0xF5, 0x07, 0x13, 0xFF, 0x00, 0xA5, 0xFF, 0xFF, 0x5A))
-WIRE_FAULTS = ('drop_probability', 'corrupt_probability', 'garbage_probability',
-               'reply_delay_s')
 PARAMETERS = (
     ParamSpec('link', '/tmp/vservobus', 'symlink to the pty the driver opens', read_only=True),
     ParamSpec('baud', 115200, 'wire timing baud rate; 0 = no wire delay. A driver at another '
@@ -33,13 +31,7 @@ PARAMETERS = (
     ParamSpec('servo_ids', [1, 2, 3], 'ids of the simulated servos', read_only=True),
     ParamSpec('response_delay_s', DEFAULT_RESPONSE_DELAY_S,
               "the servo's own reply latency after a request [s]", float_range=(0.0, 1.0)),
-    ParamSpec('drop_probability', 0.0, 'chance that a reply is lost', float_range=(0.0, 1.0)),
-    ParamSpec('corrupt_probability', 0.0, 'chance that a reply has a bad checksum',
-              float_range=(0.0, 1.0)),
-    ParamSpec('garbage_probability', 0.0, 'chance of noise before a reply',
-              float_range=(0.0, 1.0)),
-    ParamSpec('reply_delay_s', 0.0, 'extra delay before every reply (fault) [s]',
-              float_range=(0.0, 1.0)),
+    *wire_fault_params('reply', reply_delay_max_s=1.0),
 )
 
 
@@ -106,11 +98,13 @@ class VirtualServoBus:
         return f'servo {servo_id}: {fault}{state}'
 
 
-class VirtualServoBusNode(Node):
+class VirtualServoBusNode(VirtualDeviceNode):
     """ROS wrapper of :class:`VirtualServoBus`."""
 
-    def __init__(self) -> None:
-        super().__init__('virtual_servo_bus')
+    garbage = GARBAGE
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__('virtual_servo_bus', **node_kwargs)
         values = declare_parameters(self, PARAMETERS)
         self.bus = VirtualServoBus(values['link'], list(values['servo_ids']),
                                    baud=values['baud'],
@@ -118,8 +112,7 @@ class VirtualServoBusNode(Node):
         self._apply({name: values[name] for name in WIRE_FAULTS})
         ParameterBinding(self, PARAMETERS, apply=self._apply)
         self.create_service(SimServoFault, '~/set_fault', self._srv_set_fault)
-        self.create_service(SetBool, '~/disconnect', self._srv_disconnect)
-        self.create_service(Trigger, '~/inject_garbage', self._srv_garbage)
+        self.serve_wire(self.bus.runner)
         self.bus.start()
         self.get_logger().info(f'virtual servo bus {list(values["servo_ids"])} at '
                                f'{self.bus.path} ({values["baud"]} baud)')
@@ -130,8 +123,7 @@ class VirtualServoBusNode(Node):
             for name, value in changes.items():
                 if name == 'response_delay_s':
                     runner.response_delay_s = float(value)
-                elif name in WIRE_FAULTS:
-                    setattr(runner.faults, name, float(value))
+            self.apply_wire_faults(changes, runner)
 
     def _srv_set_fault(self, req: SimServoFault.Request,
                        resp: SimServoFault.Response) -> SimServoFault.Response:
@@ -142,26 +134,6 @@ class VirtualServoBusNode(Node):
             resp.success = False
             resp.message = str(exc).strip('"')
         return resp
-
-    def _srv_disconnect(self, req: SetBool.Request, resp: SetBool.Response) -> SetBool.Response:
-        if req.data:
-            self.bus.runner.unplug()
-            resp.message = 'unplugged'
-        else:
-            self.bus.runner.replug()
-            resp.message = 'plugged in'
-        resp.success = True
-        return resp
-
-    def _srv_garbage(self, req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-        self.bus.runner.inject_garbage(GARBAGE)
-        resp.success = True
-        resp.message = f'{len(GARBAGE)} bytes of noise sent'
-        return resp
-
-    def on_shutdown(self) -> None:
-        """Remove the pty."""
-        self.bus.stop()
 
 
 def main(args: Optional[List[str]] = None) -> int:

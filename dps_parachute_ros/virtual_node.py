@@ -4,6 +4,8 @@ The device model (``simulation.VirtualParachute``) runs in a ``VirtualDeviceRunn
 real time with wire timing; a driver opens the ``link`` path as it would a USB adapter.
 Parameters set the scene (tilt, acceleration, light, external power) and the wire faults;
 services script events (power cycle, free fall, cable pulled, noise, lost or spoiled replies).
+The cable, the wire faults and their services are those of every virtual device
+(:class:`uav_serial_common.virtual_node.VirtualDeviceNode`).
 """
 
 from __future__ import annotations
@@ -13,15 +15,15 @@ import time
 from typing import Any, Dict, List, Optional
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
-from std_srvs.srv import SetBool, Trigger
+from std_srvs.srv import Trigger
 
 from dps_parachute_ros.simulation import VirtualParachute
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import declare_parameters, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
+from uav_serial_common.virtual_node import VirtualDeviceNode, wire_fault_params
 
 GARBAGE = bytes.fromhex('00 ff 41 13 75 42 61 37 a5')
 """Noise for ~/inject_garbage: stray bytes and broken headers of both directions."""
@@ -60,13 +62,7 @@ PARAMS = (
               float_range=(-1.0, 25.5)),
     ParamSpec('free_fall_duration_s', 2.0, 'length of a ~/free_fall [s]',
               float_range=(0.0, 60.0)),
-    ParamSpec('drop_probability', 0.0, 'chance a reply is lost', float_range=(0.0, 1.0)),
-    ParamSpec('corrupt_probability', 0.0, 'chance a reply has a bad checksum',
-              float_range=(0.0, 1.0)),
-    ParamSpec('garbage_probability', 0.0, 'chance of noise before a reply',
-              float_range=(0.0, 1.0)),
-    ParamSpec('reply_delay_s', 0.0, 'extra delay before every reply [s]',
-              float_range=(0.0, 5.0)),
+    *wire_fault_params('reply', reply_delay_max_s=5.0),
     ParamSpec('lost_commands', Parameter.Type.INTEGER_ARRAY, 'command codes 0..255 of host '
               'frames lost before the module sees them, e.g. [17] (0x11): every deploy frame',
               check=_codes_problem),
@@ -75,11 +71,13 @@ PARAMS = (
 )
 
 
-class VirtualParachuteNode(Node):
+class VirtualParachuteNode(VirtualDeviceNode):
     """ROS wrapper of one virtual DPS-S module."""
 
-    def __init__(self) -> None:
-        super().__init__('virtual_parachute')
+    garbage = GARBAGE
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__('virtual_parachute', **node_kwargs)
         values = declare_parameters(self, PARAMS)
         link, baud = values['link'], values['baud']
         self.sim = VirtualParachute(now=time.monotonic(),
@@ -92,22 +90,19 @@ class VirtualParachuteNode(Node):
         group = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, '~/power_cycle', self._power_cycle, callback_group=group)
         self.create_service(Trigger, '~/free_fall', self._free_fall, callback_group=group)
-        self.create_service(SetBool, '~/disconnect', self._disconnect, callback_group=group)
-        self.create_service(Trigger, '~/inject_garbage', self._garbage, callback_group=group)
-        self.create_service(Trigger, '~/drop_next_reply', self._drop_next, callback_group=group)
-        self.create_service(Trigger, '~/corrupt_next_reply', self._corrupt_next,
-                            callback_group=group)
+        self.serve_wire(self.runner, callback_group=group, next_reply_services=True)
         self._state_pub = self.create_publisher(String, '~/state', 10)
         self.create_timer(0.2, self._publish_state, callback_group=group)
         self.get_logger().info(f'virtual DPS-S module on {link} ({self.runner.port.device_name}) '
                                f'at {baud} baud')
 
     def _apply_all(self, values: Dict[str, Any]) -> None:
+        self.apply_wire_faults(values, self.runner)
         for name, value in values.items():
             self._apply(name, value)
 
     def _apply(self, name: str, value) -> None:
-        sim, faults = self.sim, self.runner.faults
+        sim = self.sim
         with self.runner.locked():
             if name == 'stream_rate_hz':
                 sim.stream_period_s = 1.0 / value
@@ -119,14 +114,6 @@ class VirtualParachuteNode(Node):
                 sim.set_accel(value)
             elif name == 'light_v':
                 sim.set_light(None if value < 0 else value)
-            elif name == 'drop_probability':
-                faults.drop_probability = value
-            elif name == 'corrupt_probability':
-                faults.corrupt_probability = value
-            elif name == 'garbage_probability':
-                faults.garbage_probability = value
-            elif name == 'reply_delay_s':
-                faults.reply_delay_s = value
             elif name == 'lost_commands':
                 sim.lost_commands = set(value or ())
             elif name == 'stream_dead':
@@ -146,31 +133,6 @@ class VirtualParachuteNode(Node):
         with self.runner.locked():
             self.sim.start_free_fall(duration)
         response.success, response.message = True, f'free fall for {duration:.2f} s'
-        return response
-
-    def _disconnect(self, request, response):
-        if request.data:
-            self.runner.unplug()
-            response.message = 'unplugged'
-        else:
-            self.runner.replug()
-            response.message = 'plugged back in'
-        response.success = True
-        return response
-
-    def _garbage(self, request, response):
-        self.runner.inject_garbage(GARBAGE)
-        response.success, response.message = True, f'{len(GARBAGE)} bytes of noise queued'
-        return response
-
-    def _drop_next(self, request, response):
-        self.runner.faults.drop_next += 1
-        response.success, response.message = True, 'the next reply will be lost'
-        return response
-
-    def _corrupt_next(self, request, response):
-        self.runner.faults.corrupt_next += 1
-        response.success, response.message = True, 'the next reply will have a bad checksum'
         return response
 
     def _publish_state(self) -> None:
@@ -193,10 +155,6 @@ class VirtualParachuteNode(Node):
                 'plugged': self.runner.port.plugged,
             }
         self._state_pub.publish(String(data=json.dumps(state)))
-
-    def on_shutdown(self) -> None:
-        """Remove the pty and its symlink."""
-        self.runner.stop()
 
 
 def main(args=None) -> int:

@@ -7,6 +7,8 @@ applies them to it (``fault_unsolicited``; a corrupted frame has its checksum fl
 before the end byte). Parameters set the sticks, the auxiliary controls and the encoding at
 runtime; ``~/setpoint_in`` drives the sticks from a topic; services unplug the
 modem (``~/disconnect``), cut the radio link (``~/set_radio_link``), and send noise or any bytes.
+The modem's cable, the wire faults and their services are those of every virtual device
+(:class:`uav_serial_common.virtual_node.VirtualDeviceNode`).
 """
 
 from __future__ import annotations
@@ -17,8 +19,7 @@ import time
 from typing import Any, Callable, Dict, List, Optional
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
-from std_srvs.srv import SetBool, Trigger
+from std_srvs.srv import SetBool
 from uav_serial_drivers.msg import HandsetSetpoint
 from uav_serial_drivers.srv import SendRaw
 
@@ -27,12 +28,12 @@ from handset_link_ros.simulation import VirtualHandset
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import declare_and_check, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
+from uav_serial_common.virtual_node import VirtualDeviceNode, wire_fault_params
 
 GARBAGE = bytes.fromhex('00 ff 55 aa ff 13 7b 22 7d aa 01 55 aa')
 """Noise for ~/inject_garbage: stray bytes, a false start (LEN 0xFF), LEN < 2, a lone 0xAA."""
 STICKS = ('yaw_deg', 'pitch_deg', 'roll_deg', 'altitude_m')
 MODEL_VALUES = STICKS + ('lights_percent', 'camera_angle_deg', 'camera_recording')
-FAULTS = ('drop_probability', 'corrupt_probability', 'garbage_probability')
 
 
 def _finite(name: str):
@@ -62,10 +63,8 @@ SPECS = (
     _spec('camera_recording', False, 'SET_CAMERA_RECORD: recording on or off'),
     _spec('encoding', 'json', 'payload encoding of every frame (H5; int8/int16 round and '
           'saturate, H23)', choices=p.ENCODINGS),
-    _spec('drop_probability', 0.0, 'chance that a frame is lost', float_range=(0.0, 1.0)),
-    _spec('corrupt_probability', 0.0, 'chance that a frame has a bad checksum',
-          float_range=(0.0, 1.0)),
-    _spec('garbage_probability', 0.0, 'chance of noise before a frame', float_range=(0.0, 1.0)),
+    # The handset only sends: no reply, no reply delay.
+    *wire_fault_params('frame', reply_delay_max_s=None),
 )
 
 
@@ -82,11 +81,15 @@ def create_runner(sim: VirtualHandset, link_path: Optional[str], baud: int = 115
                                fault_unsolicited=True, checksum_from_end=2)
 
 
-class VirtualHandsetNode(Node):
+class VirtualHandsetNode(VirtualDeviceNode):
     """ROS wrapper of one virtual handset behind its radio modem."""
 
-    def __init__(self) -> None:
-        super().__init__('virtual_handset')
+    garbage = GARBAGE
+    unplugged_message = 'modem unplugged: its port is gone'
+    replugged_message = 'modem plugged back in'
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__('virtual_handset', **node_kwargs)
         values = declare_and_check(self, SPECS)
         self.sim = VirtualHandset(now=time.monotonic(), rate_hz=values['rate_hz'],
                                   encoding=values['encoding'])
@@ -96,10 +99,9 @@ class VirtualHandsetNode(Node):
         group = MutuallyExclusiveCallbackGroup()
         self.create_subscription(HandsetSetpoint, '~/setpoint_in', self._on_setpoint_in, 10,
                                  callback_group=group)
-        self.create_service(SetBool, '~/disconnect', self._disconnect, callback_group=group)
+        self.serve_wire(self.runner, callback_group=group)
         self.create_service(SetBool, '~/set_radio_link', self._set_radio_link,
                             callback_group=group)
-        self.create_service(Trigger, '~/inject_garbage', self._garbage, callback_group=group)
         self.create_service(SendRaw, '~/send_raw', self._send_raw, callback_group=group)
         self.runner.start()
         self.get_logger().info(f'virtual handset on {values["link"]} '
@@ -107,7 +109,7 @@ class VirtualHandsetNode(Node):
                                f'{values["encoding"]}, {values["baud"]} baud')
 
     def _apply(self, changes: Dict[str, Any]) -> None:
-        sim, faults = self.sim, self.runner.faults
+        sim = self.sim
         with self.runner.locked():
             for name, value in changes.items():
                 if name in MODEL_VALUES:
@@ -116,8 +118,7 @@ class VirtualHandsetNode(Node):
                     sim.set_encoding(value)
                 elif name == 'rate_hz':
                     sim.set_rate(value)
-                elif name in FAULTS:
-                    setattr(faults, name, float(value))
+            self.apply_wire_faults(changes, self.runner)
 
     def _on_setpoint_in(self, msg: HandsetSetpoint) -> None:
         # The fields the message names in `updated`; all of them when it names none.
@@ -131,27 +132,12 @@ class VirtualHandsetNode(Node):
         with self.runner.locked():
             self.sim.set_sticks(**finite)
 
-    def _disconnect(self, request: SetBool.Request, response: SetBool.Response) -> Any:
-        if request.data:
-            self.runner.unplug()
-            response.message = 'modem unplugged: its port is gone'
-        else:
-            self.runner.replug()
-            response.message = 'modem plugged back in'
-        response.success = True
-        return response
-
     def _set_radio_link(self, request: SetBool.Request, response: SetBool.Response) -> Any:
         with self.runner.locked():
             self.sim.set_radio_link(request.data)
         response.success = True
         response.message = 'radio link up: transmitting' if request.data else \
             'radio link down: nothing is transmitted'
-        return response
-
-    def _garbage(self, request: Trigger.Request, response: Trigger.Response) -> Any:
-        self.runner.inject_garbage(GARBAGE)
-        response.success, response.message = True, f'{len(GARBAGE)} bytes of noise queued'
         return response
 
     def _send_raw(self, request: SendRaw.Request, response: SendRaw.Response) -> Any:
@@ -163,10 +149,6 @@ class VirtualHandsetNode(Node):
             self.sim.send_raw(data)
         response.success, response.message = True, f'{len(data)} bytes queued: {data.hex(" ")}'
         return response
-
-    def on_shutdown(self) -> None:
-        """Remove the pty and its symlink."""
-        self.runner.stop()
 
 
 def main(args: Optional[List[str]] = None) -> int:

@@ -7,7 +7,8 @@ baud, and the shared wire faults, applied to everything the board sends (its rep
 bus-servo replies leave the model on ticks, so ``fault_unsolicited``). A
 :class:`CommandRecorder` taps what the driver writes, parsed as the firmware's parser reads it,
 so tests and the demo can see the wire. The node adds parameters, scenario services and a
-``~/state`` topic (JSON).
+``~/state`` topic (JSON); its cable, wire faults and their services are those of every virtual
+device (:class:`uav_serial_common.virtual_node.VirtualDeviceNode`).
 """
 
 from __future__ import annotations
@@ -20,9 +21,8 @@ import threading
 from typing import Any, Deque, Dict, List, Optional, Sequence, Tuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
 from std_msgs.msg import String
-from std_srvs.srv import SetBool, Trigger
+from std_srvs.srv import SetBool
 from uav_serial_drivers.srv import PressKey, SetImu, SetSbus
 
 from originman_board_ros import protocol as p
@@ -30,6 +30,7 @@ from originman_board_ros.simulation import VirtualOriginManBoardModel
 from uav_serial_common.node_main import run_node
 from uav_serial_common.params import declare_parameters, ParameterBinding, ParamSpec
 from uav_serial_common.virtual_device import VirtualDeviceRunner
+from uav_serial_common.virtual_node import VirtualDeviceNode, wire_fault_params
 
 GARBAGE = bytes.fromhex('00 ff aa 13 aa 55 07 ff 41 55 aa 00 aa 55 0c')
 """Noise for ``~/inject_garbage``: stray bytes, a header with an impossible LENGTH (O34), and a
@@ -181,10 +182,6 @@ class VirtualOriginManBoard:
         return state
 
 
-def _check_probability(value: Any) -> str:
-    return '' if 0.0 <= value <= 1.0 else f'a probability is 0..1, got {value!r}'
-
-
 PARAMS = (
     ParamSpec('link', '/tmp/voriginman', 'path of the symlink to the pty the driver opens',
               read_only=True),
@@ -196,25 +193,20 @@ PARAMS = (
               int_range=(0, 65535)),
     ParamSpec('imu_rate_hz', 50.0, 'IMU report rate [Hz]; 0 = silent (O8)',
               float_range=(0.0, 1000.0)),
-    ParamSpec('drop_probability', 0.0, 'chance that a frame of the board is lost',
-              float_range=(0.0, 1.0), check=_check_probability),
-    ParamSpec('corrupt_probability', 0.0, 'chance that a frame of the board has a bad CRC',
-              float_range=(0.0, 1.0), check=_check_probability),
-    ParamSpec('garbage_probability', 0.0, 'chance of noise before a frame of the board',
-              float_range=(0.0, 1.0), check=_check_probability),
+    *wire_fault_params('frame of the board', checksum='CRC', reply_delay_max_s=5.0),
     ParamSpec('answer_reads', True, 'False: reads get no reply while reports go on (a fault)'),
-    ParamSpec('reply_delay_s', 0.0, 'extra delay before every reply to a frame [s]',
-              float_range=(0.0, 5.0)),
     ParamSpec('state_period_s', 0.1, 'period of ~/state [s]', read_only=True,
               float_range=(0.02, 10.0)),
 )
 
 
-class VirtualOriginManBoardNode(Node):
+class VirtualOriginManBoardNode(VirtualDeviceNode):
     """ROS wrapper of :class:`VirtualOriginManBoard`."""
 
-    def __init__(self) -> None:
-        super().__init__('virtual_originman_board')
+    garbage = GARBAGE
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__('virtual_originman_board', **node_kwargs)
         values = declare_parameters(self, PARAMS)
         self.board = VirtualOriginManBoard(
             values['link'], baud=values['baud'], bus_servo_ids=list(values['bus_servo_ids']),
@@ -225,10 +217,9 @@ class VirtualOriginManBoardNode(Node):
         for srv_type, name, handler in (
                 (PressKey, '~/press_key', self._press_key), (SetImu, '~/set_imu', self._set_imu),
                 (SetSbus, '~/set_sbus', self._set_sbus),
-                (SetBool, '~/disconnect', self._disconnect),
-                (SetBool, '~/set_power', self._set_power),
-                (Trigger, '~/inject_garbage', self._garbage)):
+                (SetBool, '~/set_power', self._set_power)):
             self.create_service(srv_type, name, self._guarded(handler), callback_group=group)
+        self.serve_wire(self.board.runner, callback_group=group)
         self._state_pub = self.create_publisher(String, '~/state', 10)
         self.create_timer(values['state_period_s'], self._publish_state, callback_group=group)
         self.board.start()
@@ -246,9 +237,7 @@ class VirtualOriginManBoardNode(Node):
                     model.set_imu(rate_hz=float(value))
                 elif name == 'answer_reads':
                     model.answer_reads = bool(value)
-                elif name in ('drop_probability', 'corrupt_probability', 'garbage_probability',
-                              'reply_delay_s'):
-                    setattr(runner.faults, name, float(value))
+            self.apply_wire_faults(values, runner)
 
     def _guarded(self, handler: Any) -> Any:
         def call(request: Any, response: Any) -> Any:
@@ -294,13 +283,6 @@ class VirtualOriginManBoardNode(Node):
                                       q.failsafe)
         return 'SBUS stopped' if not channels else 'SBUS frames every 14 ms'
 
-    def _disconnect(self, q: SetBool.Request) -> str:
-        if q.data:
-            self.board.runner.unplug()
-            return 'unplugged'
-        self.board.runner.replug()
-        return 'plugged back in'
-
     def _set_power(self, q: SetBool.Request) -> str:
         with self.board.locked():
             if q.data:
@@ -309,16 +291,8 @@ class VirtualOriginManBoardNode(Node):
                 self.board.model.power_off()
             return f'powered {"on" if q.data else "off"}; boots {self.board.model.boots}'
 
-    def _garbage(self, q: Trigger.Request) -> str:
-        self.board.runner.inject_garbage(GARBAGE)
-        return f'{len(GARBAGE)} bytes of noise queued'
-
     def _publish_state(self) -> None:
         self._state_pub.publish(String(data=json.dumps(self.board.state())))
-
-    def on_shutdown(self) -> None:
-        """Remove the pty and its symlink."""
-        self.board.stop()
 
 
 def _triple_or_none(values: Sequence[float], name: str) -> Optional[List[float]]:

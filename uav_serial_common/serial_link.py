@@ -12,11 +12,9 @@ exponential backoff until `stop()`.
 
 from __future__ import annotations
 
-import errno
 import logging
 import os
 import select
-import termios
 import threading
 import time
 import traceback
@@ -30,13 +28,15 @@ try:
 except ImportError:  # pragma: no cover - not a POSIX system
     _PosixSerial = None
 
-Match = Callable[[Any], bool]
+from uav_serial_common.request_chain import Match, RequestChain, RunningChain
+from uav_serial_common.serial_errors import (
+    describe_open_error, LinkDown, LinkError, LinkTimeout, PORT_ERRORS,
+)
 
-# What a port can raise besides SerialException and OSError: termios.error (tcflush/tcgetattr on a
-# vanished device; not an OSError), and TypeError/AttributeError/ValueError when its descriptor
-# was closed under a concurrent close. None of them may escape the link or stop its reader.
-PORT_ERRORS = (serial.SerialException, OSError, termios.error, TypeError, AttributeError,
-               ValueError)
+__all__ = [
+    'Decoder', 'describe_open_error', 'LinkDown', 'LinkError', 'LinkStats', 'LinkTimeout',
+    'Match', 'PORT_ERRORS', 'RequestChain', 'SerialLink',
+]
 
 
 class Decoder(Protocol):
@@ -53,24 +53,6 @@ class Decoder(Protocol):
 
     def reset(self) -> None:
         """Forget any partial frame."""
-
-
-class LinkError(Exception):
-    """Base class of link errors.
-
-    `sent` says whether the request's frame had left when the error ended it (set by
-    `SerialLink.request`): then the device may have acted on it, and only asking it tells.
-    """
-
-    sent: bool = False
-
-
-class LinkDown(LinkError):
-    """The port is not open (missing, unplugged or failing)."""
-
-
-class LinkTimeout(LinkError):
-    """No matching reply arrived in time, after every retry."""
 
 
 @dataclass
@@ -100,119 +82,6 @@ class _Waiter:
         self.frame = frame
         self.event.set()
         return True
-
-
-class RequestChain(Protocol):
-    """Requests sent one after the other, each the moment the previous one is settled."""
-
-    def next_request(self) -> Optional[Tuple[bytes, Optional[Match], float]]:
-        """Return the next (data, match, timeout), or None to end the chain.
-
-        `match` None: a frame that gets no reply; the chain holds the line for `timeout` (its
-        wire time and a guard), then goes on without a result (``on_result`` is not called).
-        """
-
-    def on_result(self, frame: Any) -> None:
-        """Take the reply of the request before (None: it timed out)."""
-
-
-class _Chain:
-    """A running :class:`RequestChain`: the reader thread sends each next request itself.
-
-    On a reply the next request goes out first and ``on_result`` runs while it is on the wire,
-    so the bus never waits for the handling of a reply; on a timeout (detected by the caller's
-    thread) ``on_result(None)`` comes first, so the chain can retry that request at once.
-    """
-
-    def __init__(self, link: 'SerialLink', chain: RequestChain, flush: bool) -> None:
-        self.link = link
-        self.chain = chain
-        self.flush = flush
-        self.lock = threading.Lock()
-        self.event = threading.Event()
-        self.match: Match = _match_nothing
-        self.no_reply = False
-        self.deadline = 0.0
-        self.sent = 0
-        self.done = False
-        self.error: Optional[LinkError] = None
-
-    def offer(self, frame: Any) -> bool:
-        """Take `frame` if it answers the current request, and send the next (reader thread)."""
-        with self.lock:
-            if self.done or not self.match(frame):
-                return False
-            # The reader thread has just taken in everything the port had: no stale reply can
-            # be waiting there, and flushing a pty costs a slow ioctl per request.
-            self.send_next(flush_port=False)
-            self._deliver(frame)
-            return True
-
-    def expire(self) -> None:
-        """Report the current request as timed out and go on (caller's thread, lock held)."""
-        if self.no_reply:
-            # A frame without a reply has had its time on the line: nothing timed out.
-            self.send_next()
-            return
-        self.link.stats.timeouts += 1
-        self._deliver(None)
-        self.send_next()
-
-    def send_next(self, flush_port: bool = True) -> None:
-        """Send the chain's next request, or finish (lock held).
-
-        With `flush` set, input is discarded first: the port's (when `flush_port`; a late reply
-        may be on its way after a timeout) and the decoder's partial frame.
-        """
-        try:
-            item = self.chain.next_request()
-        except Exception:  # noqa: BLE001 - a planner bug ends the chain, not the reader
-            self.link._log.error(f'request chain failed:\n{traceback.format_exc()}')
-            item = None
-        if item is None:
-            self.finish()
-            return
-        data, match, timeout = item
-        self.no_reply = match is None
-        self.match = _match_nothing if match is None else match
-        try:
-            if self.flush:
-                self.link.flush_input(port=flush_port)
-            self.link.write(data)
-        except LinkError as exc:
-            self.error = exc
-            self.finish()
-            return
-        self.sent += 1
-        self.deadline = time.monotonic() + timeout
-        if self.no_reply:
-            self.link._hold(self)
-
-    def end_hold(self) -> None:
-        """End a hold that is over and send on (reader thread)."""
-        with self.lock:
-            if self.done or not self.no_reply:
-                return
-            if time.monotonic() >= self.deadline:
-                self.expire()
-            else:
-                self.link._hold(self)  # a newer hold began meanwhile: watch that one
-
-    def _deliver(self, frame: Any) -> None:
-        try:
-            self.chain.on_result(frame)
-        except Exception:  # noqa: BLE001 - a handler bug must not kill the reader
-            self.link._log.error(f'request chain handler failed:\n{traceback.format_exc()}')
-
-    def finish(self) -> None:
-        """Wake the caller (lock held)."""
-        self.done = True
-        self.match = _match_nothing
-        self.event.set()
-
-
-def _match_nothing(frame: Any) -> bool:
-    return False
 
 
 class SerialLink:
@@ -263,8 +132,8 @@ class SerialLink:
         self._fast_fd: Optional[int] = None
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
-        # _Waiter and _Chain objects. Copy-on-write under the lock: the reader thread reads it
-        # without the lock, so a waiter may close the port (a failed write) while it is offered.
+        # _Waiter and RunningChain objects. Copy-on-write under the lock: the reader thread reads
+        # it without the lock, so a waiter may close the port (a failed write) while it is offered.
         self._waiters: Tuple[Any, ...] = ()
         self._waiters_lock = threading.Lock()
         self._stop = threading.Event()
@@ -272,7 +141,7 @@ class SerialLink:
         self._thread: Optional[threading.Thread] = None
         # A request chain holding the line after a frame without a reply, and until when: the
         # reader thread ends the hold itself (no hand-off to the chain's caller).
-        self._holder: Optional[_Chain] = None
+        self._holder: Optional[RunningChain] = None
         self._hold_until = 0.0
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -381,7 +250,7 @@ class SerialLink:
         thread (timeouts, None), never two at a time. Raises LinkDown when the port is not open
         or closes meanwhile; the request in flight then gets no result.
         """
-        run = _Chain(self, chain, flush)
+        run = RunningChain(self, chain, flush)
         self._add_waiter(run)
         try:
             with run.lock:
@@ -474,7 +343,7 @@ class SerialLink:
                 holder.end_hold()
         return backoff
 
-    def _hold(self, chain: _Chain) -> None:
+    def _hold(self, chain: RunningChain) -> None:
         """Have the reader thread end `chain`'s hold at its deadline (lock of `chain` held)."""
         if self._fast_fd is None:
             # No timed wake-up of the reader here: the chain's caller ends the hold.
@@ -670,40 +539,3 @@ class SerialLink:
                 self._on_connection(up, reason)
             except Exception:  # noqa: BLE001 - a handler bug must not kill the reader
                 self._log.error(f'connection handler failed ({reason})')
-
-
-def _errno_of(exc: BaseException) -> Optional[int]:
-    """Return the errno behind `exc`: its own, or that of the error it was raised from."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        number = getattr(exc, 'errno', None)
-        if isinstance(number, int):
-            return number
-        if isinstance(exc, termios.error) and exc.args and isinstance(exc.args[0], int):
-            return exc.args[0]
-        exc = exc.__cause__ or exc.__context__
-    return None
-
-
-def describe_open_error(url: str, exc: BaseException) -> str:
-    """Turn an open failure into a message that tells the user what to do (by its errno)."""
-    number = _errno_of(exc)
-    if number in (errno.EACCES, errno.EPERM):
-        return (f'cannot open {url}: permission denied. Add your user to the dialout group '
-                f'(sudo usermod -aG dialout $USER, then log in again) or fix the udev rule.')
-    if number == errno.EISDIR or (number is None and os.path.isdir(url)):
-        return (f'cannot open {url}: {url} is a directory, not a serial device. Check the port '
-                f'parameter (e.g. /dev/ttyUSB0 or a /dev/serial/by-id/ name); retrying.')
-    if number == errno.ENOTTY:
-        return (f'cannot open {url}: it is not a serial device (a regular file or another '
-                f'kind of device?). Check the port parameter; retrying.')
-    if number == errno.ENOTDIR:
-        return (f'cannot open {url}: a part of the path is not a directory. Check the port '
-                f'parameter; retrying.')
-    if number in (errno.ENOENT, errno.ENODEV, errno.ENXIO):
-        return (f'cannot open {url}: no such device. Is it plugged in? Check `ls -l {url}` '
-                f'and the port parameter; retrying.')
-    if number in (errno.EBUSY, errno.EAGAIN):
-        return f'cannot open {url}: the port is in use by another program; retrying.'
-    return f'cannot open {url}: {exc}; retrying.'
