@@ -237,7 +237,7 @@ ROS_FREE = {
     'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],
     'handset_link_ros': ['protocol', 'link', 'core', 'simulation'],
     'originman_board_ros': ['protocol', 'link', 'core', 'simulation'],
-    'parachute_mavlink_ros': ['core'],
+    'parachute_mavlink_ros': ['events', 'core'],
 }
 
 
