@@ -94,6 +94,9 @@ class FlightAnalysis:
         self._port_seen = False
         self._reboots_unread = 0
         self._heartbeat_at: Optional[float] = None    # first power-up heartbeat not yet claimed
+        # A boot count read between a power-up heartbeat and the driver's record of that reboot
+        # (its reader can be slow to write it) already counts that reboot as seen.
+        self._reboot_counted_early = False
         self._last_heartbeat: Optional[float] = None  # the last unsolicited heartbeat frame
 
     # -- input ------------------------------------------------------------------------------
@@ -347,7 +350,10 @@ class FlightAnalysis:
         at, self._heartbeat_at = self._heartbeat_at, None
         if at is not None and not 0.0 <= t - at <= REBOOT_RECORD_DELAY_S:
             at = None  # no heartbeat frame just before it (a lost record): the record's time
+        early, self._reboot_counted_early = self._reboot_counted_early, False
         self.note_reboot(t, 'the driver saw the power-up heartbeat', at=at)
+        if early:
+            self._reboots_unread -= 1  # the boot count read before this record took it in
 
     def note_reboot(self, t: float, evidence: str, level: str = 'warn',
                     at: Optional[float] = None) -> None:
@@ -382,6 +388,12 @@ class FlightAnalysis:
             self.event(t, 'module', 'info', f'boot count {count}')
             return
         self.event(t, 'module', 'info', f'boot count {previous} → {count}')
+        pending = self._heartbeat_at
+        if pending is not None and 0.0 <= t - pending <= REBOOT_RECORD_DELAY_S \
+                and not self._reboot_counted_early:
+            # A power-up heartbeat whose reboot record is still to come: that reboot is seen.
+            seen += 1
+            self._reboot_counted_early = True
         # Each power-up adds one (wrapping after 255); reboots nobody saw are added here.
         unseen = ((count - previous) & 0xFF) - seen
         if unseen > 0:

@@ -509,6 +509,43 @@ class _StalledOnReboot(Listener):
             self.clock.advance(self.stall_s)  # its log line (rclpy) took this long
 
 
+def test_round2_11b_a_boot_count_read_before_the_drivers_reboot_record_is_the_same_reboot(
+        tmp_path):
+    # Found in the full suite after the dead-stream check came in: another thread of the
+    # driver read the new boot count while the reader was still handling the power-up
+    # heartbeat, so the boot count change came before the driver's reboot record. The report
+    # counted the change as a reboot nobody saw, then the record as another: two for one.
+    heartbeat = p.encode_module_heartbeat().hex(' ')
+    query = p.encode_boot_count_query().hex(' ')
+
+    def boot(n):
+        return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
+
+    _jsonl(tmp_path / 'early.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
+        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        ('state', 0.2, {'event': 'initialized', 'boot_count': 5, 'mismatch': []}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 10.05, {'dir': 'rx', 'hex': heartbeat}),
+        ('request', 10.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 10.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 10.11, {'dir': 'rx', 'hex': boot(6)}),
+        ('state', 10.35, {'event': 'module reboot (unsolicited heartbeat)'}),
+        ('state', 10.5, {'event': 'initialized', 'boot_count': 6, 'mismatch': []}),
+        # A reboot the driver never saw (no heartbeat): still counted from the boot count.
+        ('request', 20.4, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 20.4, {'dir': 'tx', 'hex': query}),
+        ('frame', 20.41, {'dir': 'rx', 'hex': boot(7)}),
+        ('stop', 30.0, {}),
+    ])
+    summary, _ = report(tmp_path, tmp_path / 'early.jsonl')
+    assert summary.counts['reboots'] == 2, summary.reboots
+    assert [round(t, 2) for t in summary.reboots] == [10.0, 20.41]
+
+
 def test_round2_11b_the_driver_records_one_reboot_per_power_up_however_slow_its_reader(
         tmp_path):
     # The module's two power-up heartbeats come 50 ms apart (P5); the driver took the second
