@@ -21,7 +21,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import (bad_inputs, blackbox_kill9, cpu, decoders, fuzz, latency,  # noqa: E402
-                   mavlink_latency, reconnects, report_memory, servo_latency, servo_rate, soak)
+                   mavlink_latency, models, reconnects, report_memory, servo_latency, servo_rate,
+                   soak)
 from bench.common import claim_domain_id  # noqa: E402
 
 Row = Tuple[str, str, str, str]  # name, value, goal, verdict
@@ -64,6 +65,18 @@ def bench_decoders(res: Results, a: argparse.Namespace) -> None:
         x = r[f'decoder_x_1mbit_{kind}']
         res.add(f'decoder_mb_s_{kind}', r[f'decoder_mb_s_{kind}'])
         res.add(f'decoder_x_1mbit_{kind}', x, '>= 10', x >= 10)
+
+
+def bench_models(res: Results, a: argparse.Namespace) -> None:
+    n = 500 if a.quick else 20000
+    r = models.run(examples=n)
+    for device in models.MODELS:
+        count = r[f'model_sequences_{device}']
+        res.add(f'model_sequences_{device}', count, f'>= {n}', count >= n)
+        failure = r.get(f'model_failure_{device}')
+        if failure:
+            res.note(f'model {device}: a violation (or an error); the end of its run:\n{failure}')
+    res.add('model_violations', r['model_violations'], '== 0', r['model_violations'] == 0)
 
 
 def bench_fuzz(res: Results, a: argparse.Namespace) -> None:
@@ -284,6 +297,7 @@ def bench_report(res: Results, a: argparse.Namespace) -> None:
 FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'decoders': bench_decoders,
     'fuzz': bench_fuzz,
+    'models': bench_models,
     'servo_rate': bench_servo_rate,
     'latency': bench_latency,
     'imu_latency': bench_imu_latency,

@@ -22,14 +22,14 @@ from __future__ import annotations
 
 import math
 
-from hypothesis import HealthCheck, settings, strategies as st
-from hypothesis.stateful import (initialize, invariant, rule, RuleBasedStateMachine,
-                                 run_state_machine_as_test)
+from hypothesis import strategies as st
+from hypothesis.stateful import initialize, invariant, rule, RuleBasedStateMachine
 
 from handset_link_ros import protocol as p
 from handset_link_ros.core import (ACTION_NONE, ACTION_RETURN_TO_HOME, BATTERY_CLEAR_MARGIN,
                                    HandsetConfig, HandsetCore)
 from handset_link_ros.rules import STICKS
+from model_runs import search
 from support import FakeClock
 
 T = p.CommandType
@@ -195,6 +195,4 @@ class HandsetLinkModel(RuleBasedStateMachine):
 
 
 def test_round2_8_handset_failsafe_invariants_hold_over_random_sequences():
-    run_state_machine_as_test(HandsetLinkModel, settings=settings(
-        max_examples=200, stateful_step_count=30, deadline=None,
-        suppress_health_check=[HealthCheck.too_slow]))
+    search(HandsetLinkModel, 'handset', steps=30)

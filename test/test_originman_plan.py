@@ -7,11 +7,12 @@ stops, disconnects, reconnects and frames from the board, and checks its invaria
 every step (issue 22, OriginMan).
 """
 
-from hypothesis import HealthCheck, settings, strategies as st
+from hypothesis import strategies as st
 from hypothesis.stateful import initialize, invariant, precondition, rule, RuleBasedStateMachine
 from originman_board_ros import protocol as p
 from originman_board_ros.plan import (BoardPlan, board_time, FrameScheduler, PACE_AHEAD_S,
                                       STOP_ALL_FRAME)
+from model_runs import search
 import pytest
 
 MOTOR_TIMEOUT_S = 0.5
@@ -315,7 +316,5 @@ class BoardPlanMachine(RuleBasedStateMachine):
         assert not self.plan.scheduler.targets, 'targets stuck with the servo bus idle'
 
 
-BoardPlanMachine.TestCase.settings = settings(
-    max_examples=200, stateful_step_count=40, deadline=None,
-    suppress_health_check=[HealthCheck.too_slow])
-test_board_plan_invariants = BoardPlanMachine.TestCase
+def test_round2_6_7_11a_board_plan_invariants_hold_over_random_sequences():
+    search(BoardPlanMachine, 'originman', steps=40)

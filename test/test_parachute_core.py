@@ -27,6 +27,7 @@ from dps_parachute_ros.settings_rule import conditions, order, Trigger, would_de
 from dps_parachute_ros.state import Listener, SessionConfig, SETTINGS
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
+from model_runs import EXAMPLES, PHASES
 from support import FakeClock
 from uav_serial_common.process import wait_for
 
@@ -1226,19 +1227,20 @@ def _frame(step):
     return SETTINGS[name].encode_set(value)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None, database=None, phases=PHASES)
 @given(attitude=st.integers(10, 90), freefall=st.integers(1, 9), freefall_time=st.integers(1, 255),
        attitude_on=st.booleans(), freefall_on=st.booleans(), armed=st.booleans(),
        tilt=st.integers(0, 95), accel=st.integers(0, 20), steps=st.lists(_STEP, max_size=4))
 @example(attitude=70, freefall=5, freefall_time=160, attitude_on=True, freefall_on=True,
          armed=True, tilt=30, accel=10, steps=[('attitude_threshold_deg', 20),
                                                ('attitude', False)])  # issue 21 item 1
-def test_round2_1_no_write_the_rule_lets_through_fires_the_module(
+def _no_write_the_rule_lets_through_fires_the_module(
         attitude, freefall, freefall_time, attitude_on, freefall_on, armed, tilt, accel, steps):
     """The settings rule as an invariant, against the module model itself (P21): whatever
     settings, flags, tilt and |a|, a sequence of writes (and an arm) that the rule lets
     through, in the order the driver writes it, never makes the module ask or fire, even after
     the longest free-fall time."""
+    _RULE_RUNS.append(steps)
     trigger = Trigger(attitude, freefall, attitude_on, freefall_on)
     # A module already meeting a condition while armed has fired before any write of ours.
     assume(not (armed and conditions(trigger, tilt, accel / 10)))
@@ -1259,3 +1261,14 @@ def test_round2_1_no_write_the_rule_lets_through_fires_the_module(
         sim.receive(_frame(step), now)
     sim.step(now + 3.0)
     assert sim.requests_sent == 0 and not sim.triggered and sim.deployments == 0, ordered
+
+
+_RULE_RUNS = []
+
+
+def test_round2_1_no_write_the_rule_lets_through_fires_the_module():
+    """The settings rule over ``UAV_MODEL_EXAMPLES`` generated modules and write sequences."""
+    _RULE_RUNS.clear()
+    _no_write_the_rule_lets_through_fires_the_module()
+    print(f'model_sequences_parachute_settings={len(_RULE_RUNS)} model_violations=0')
+    assert len(_RULE_RUNS) >= EXAMPLES
