@@ -27,6 +27,8 @@ from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, Option
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Reply, StreamDecoder
+from desheng_servo_ros.schedule import (IDLE_GUARD_S, next_on_bus, POSTED, REPLY_OVERHEAD,
+                                        sync_write_frames, YIELD)
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 from uav_serial_common.usb_latency import BASE_MARGIN_S, inspect_latency_timer, LatencyReport
@@ -39,8 +41,6 @@ __all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'PRIORITY_LOOP',
 PRIORITY_URGENT = 0    # emergency stop, shutdown torque-off
 PRIORITY_SERVICE = 1   # commands and service calls
 PRIORITY_LOOP = 2      # the read loop
-# Reply frame = FF F5 ID LEN STATUS params CHK.
-REPLY_OVERHEAD = 6
 # Margin beyond the wire time of request + reply when response_timeout_ms is 0 ("derived") and the
 # port has not been looked at yet: the servo answers within ~0.1..1 ms, but a USB-serial adapter
 # holds received bytes for up to its latency timer (16 ms by default on FTDI, twice when a reply
@@ -55,9 +55,6 @@ FORGET_AFTER_REPLIES = 20
 # How long a scan listens for late replies after its last PING, and waits for a reply when it
 # confirms an id that answered late (or garbled).
 LATE_REPLY_WINDOW_S = 0.1
-# After a frame without a reply, wait this much beyond its wire time before the next one, so a
-# servo still parsing it never sees the next header glued to it.
-IDLE_GUARD_S = 0.0001
 BUS_LOCK_TIMEOUT_S = 2.0
 # Weight of the newest outcome in an id's garbled-reply level (GARBLE_WEIGHT of a garbled reply
 # raises it, a clean one lowers it): four garbled replies in a row take it past one half, which
@@ -93,13 +90,6 @@ class Posted:
         self.error = error
         self.written_at = time.monotonic()
         self.event.set()
-
-
-def sync_write_frames(targets: Sequence[Tuple[int, int, int]]) -> List[bytes]:
-    """Return the SYNC WRITE frames of (id, ticks, ms) targets (50 servos per frame, S18)."""
-    step = proto.MAX_SYNC_WRITE_POSITIONS
-    return [proto.encode_sync_write_positions(targets[k:k + step])
-            for k in range(0, len(targets), step)]
 
 
 class _PriorityLock:
@@ -170,12 +160,14 @@ class _ReadChain:
         if bus._posted_item is not None:
             bus._posted_done()  # the frame before this request left without an error
         entry, self.retry = self.retry, None
-        if bus._lock.waiting_above(self.priority):
+        step = next_on_bus(bus._lock.waiting_above(self.priority), bool(bus._posted),
+                           entry is not None)
+        if step == YIELD:
             # Yield the bus between two READs; a retry that cannot go out has failed.
             if entry is not None:
                 self._settle(entry[0], None)
             return None
-        if bus._posted:
+        if step == POSTED:
             # A frame without a reply (a command) goes out between two READs; the READ to be
             # retried, if any, follows it.
             self.retry = entry
@@ -267,6 +259,7 @@ class ServoBusLink:
                                on_connection=on_connection, on_tx=self._on_tx, logger=logger,
                                backoff_max_s=backoff_max_s, on_open=self._on_port_open)
         self._lock = _PriorityLock()
+        self._closed = False  # after send_last: no transaction any more
         self._idle_at = 0.0
         self._matchers: Dict[Tuple[int, int], Callable[[Reply], bool]] = {}
 
@@ -389,6 +382,9 @@ class ServoBusLink:
     def _take(self, priority: int) -> None:
         if not self._lock.acquire(priority, BUS_LOCK_TIMEOUT_S):
             raise BusBusy(f'the bus on {self.port} stayed busy for {BUS_LOCK_TIMEOUT_S:.0f} s')
+        if self._closed:
+            self._lock.release()
+            raise LinkDown(f'{self.port}: the driver is shutting down')
         idle_at = self._idle_at
         if idle_at:
             delay = idle_at - time.monotonic()
@@ -550,6 +546,21 @@ class ServoBusLink:
         self._take(priority)
         try:
             self._write_held(frame)
+        finally:
+            self._lock.release()
+
+    def send_last(self, frames: Sequence[bytes]) -> None:
+        """Send `frames` ahead of every waiter, then close the bus to all others for good.
+
+        The shutdown's frames (torque off): a service or command that wanted the bus meanwhile
+        gets LinkDown, so nothing follows them on the wire. Returns once they left the line.
+        """
+        self._take(PRIORITY_URGENT)
+        try:
+            self._closed = True
+            for frame in frames:
+                self._write_held(frame)
+            self.drain()
         finally:
             self._lock.release()
 
