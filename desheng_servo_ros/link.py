@@ -408,22 +408,45 @@ class ServoBusLink:
                  timeout: Optional[float] = None, flush: bool = True) -> Reply:
         """Send one request and return the reply of ``servo_id`` with ``reply_params`` params.
 
-        `flush` False keeps what arrived before the request (a scan collects late replies).
+        Sent again up to `retries` times when no reply comes; a caller of higher priority that
+        waits (an emergency stop) goes between two attempts. `flush` False keeps what arrived
+        before the request (a scan collects late replies).
         """
         if timeout is None:
             timeout = self.timeout_for(len(frame), reply_params, servo_id)
         if retries is None:
             retries = self.max_retries
         match = self._matcher(servo_id, reply_params)
-        with self._holding(priority):
+        self._take(priority)
+        held = True
+        attempt = 0
+        try:
             self.transactions += 1
             stats = self.link.stats
             mark = (stats.bytes_in, stats.frames_in)
-            try:
-                return self.link.request(frame, match, timeout, retries, flush=flush)
-            except LinkTimeout:
-                self._note_silence(servo_id, mark)
-                raise
+            while True:
+                try:
+                    return self.link.request(frame, match, timeout, 0, flush=flush)
+                except LinkTimeout:
+                    if attempt >= retries:
+                        self._note_silence(servo_id, mark)
+                        raise
+                attempt += 1
+                stats.timeouts -= 1  # one per request, as SerialLink counts them
+                stats.retries += 1
+                if next_on_bus(self._lock.waiting_above(priority), False, True) == YIELD:
+                    # An emergency stop waits: it goes between two attempts (schedule.py).
+                    held = False
+                    self._lock.release()
+                    self._take(priority)
+                    held = True
+        except LinkError as exc:
+            self.failed_transactions += 1
+            exc.sent = exc.sent or attempt > 0
+            raise
+        finally:
+            if held:
+                self._lock.release()
 
     def probe(self, frame: bytes, servo_id: int, reply_params: int,
               priority: int = PRIORITY_SERVICE) -> Tuple[Optional[Reply], bool]:
