@@ -266,10 +266,8 @@ class BusSchedule:
             if started == EMPTY:
                 self.cycles_done += 1
                 return False
-        s, kind, cycle_start, last, retries = reads.take()
-        frame, nparams = s.frames[kind]
-        self._start(now, _Tx(frame, s.id, nparams, retries, 'read',
-                             (s, kind, cycle_start, last)), actions)
+        frame, servo_id, nparams, retries, tag = reads.take()
+        self._start(now, _Tx(frame, servo_id, nparams, retries, 'read', tag), actions)
         return True
 
     def _serve(self, now: float, actions: List[Any]) -> bool:

@@ -62,9 +62,7 @@ class ReadCycles:
         schedule = self.schedule
         if schedule.pos >= len(schedule.plan) and not self._start_cycle():
             return None
-        s, kind, started, last, retries = schedule.take()
-        frame, nparams = s.frames[kind]
-        return frame, s.id, nparams, retries, (s, kind, started, last)
+        return schedule.take()
 
     def on_read(self, tag: Tuple[ServoRecord, int, float, bool],
                 reply: Optional[proto.Reply]) -> None:

@@ -158,13 +158,17 @@ class ReadSchedule:
             return NOT_DUE
         return self.plan_cycle(servos)
 
-    def take(self) -> Tuple[ServoRecord, int, float, bool, int]:
-        """Return the next READ of the cycle: (servo, READ_*, cycle start, last, retries)."""
+    def take(self) -> Tuple[bytes, int, int, int, Tuple[ServoRecord, int, float, bool]]:
+        """Return the next READ of the cycle as the link's ReadItem.
+
+        (frame, servo id, reply params, retries, (servo, READ_*, cycle start, last of cycle)).
+        """
         s, kind = self.plan[self.pos]
         self.pos += 1
+        frame, nparams = s.frames[kind]
         # A servo that failed as often as it takes to be offline is probed without retries.
-        retries = self.retries if s.failures < OFFLINE_AFTER_FAILURES else 0
-        return s, kind, self.started, self.pos == len(self.plan), retries
+        return (frame, s.id, nparams, self.retries if s.failures < OFFLINE_AFTER_FAILURES else 0,
+                (s, kind, self.started, self.pos == len(self.plan)))
 
 
 # -- online / offline ----------------------------------------------------------------------------
