@@ -172,13 +172,14 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         self.bus.discard_posted()
         try:
             frames = shutdown_frames(self.config.torque_off_on_shutdown)
-            if frames and not self.bus.connected:
-                # Said, not silently skipped: the servos may still hold their torque.
-                raise LinkDown(f'{self.config.port} is not open '
-                               f'({self.bus.link.last_error or "not connected"})')
-            # The last frames: the bus takes none after them (a service still running gets
-            # LinkDown), so torque off is the last frame of a shutdown.
-            self.bus.send_last(frames)
+            if frames:
+                if not self.bus.connected:
+                    # Said, not silently skipped: the servos may still hold their torque.
+                    raise LinkDown(f'{self.config.port} is not open '
+                                   f'({self.bus.link.last_error or "not connected"})')
+                # The last frames: the bus takes none after them (a service still running
+                # gets LinkDown), so torque off is the last frame of a shutdown.
+                self.bus.send_last(frames)
         except LinkError as exc:
             self.log_error(f'torque off on shutdown NOT sent: {exc}; servos that had torque on '
                            'still hold it')
