@@ -234,7 +234,15 @@ class BusSchedule:
 
     def _next(self, now: float, actions: List[Any]) -> bool:
         """Put the next thing on the bus at `now`; False when nothing is due."""
-        higher = bool(self.urgent or self.services or self.service is not None)
+        svc = self.service
+        if self.urgent or (svc is not None and svc.retry is not None):
+            # An emergency stop goes first (it dropped the queued commands), and a service's
+            # retry follows its attempt; a READ to retry then has failed.
+            retry, self._retry = self._retry, None
+            if retry is not None:
+                self._done(now, retry, None)
+            return self._serve(now, actions)
+        higher = bool(self.services or svc is not None)
         step = next_on_bus(higher, self.commands.due(now), self._retry is not None)
         retry, self._retry = self._retry, None
         if step == YIELD:

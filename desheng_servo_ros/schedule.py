@@ -54,16 +54,17 @@ YIELD, POSTED, RETRY, READ = range(4)
 
 
 def next_on_bus(higher_waiting: bool, posted: bool, retry: bool) -> int:
-    """Return what the read chain does at a READ boundary: YIELD, POSTED, RETRY or READ.
+    """Return what goes at a READ boundary: POSTED, YIELD, RETRY or READ.
 
-    A caller of higher priority (an emergency stop, a service) takes the bus first: the chain
-    yields (a READ to be retried then counts as failed). A pending command goes next, ahead of
-    the READ to be retried, which follows it.
+    A pending command goes first (an emergency stop drops them before it waits), so a service
+    never holds the newest targets back; then a caller of higher priority (an emergency stop, a
+    service) takes the bus: the chain yields (a READ to be retried then counts as failed); else
+    the READ to be retried, else the next READ. A retry follows a command.
     """
-    if higher_waiting:
-        return YIELD
     if posted:
         return POSTED
+    if higher_waiting:
+        return YIELD
     return RETRY if retry else READ
 
 
