@@ -22,11 +22,16 @@ from collections import deque
 from contextlib import contextmanager
 import threading
 import time
-from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, Optional, Protocol,
-                    Sequence, Set, Tuple)
+from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, Optional, Sequence,
+                    Set, Tuple)
 
 from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.bus_chain import (  # noqa: F401 - re-exported
+    _PriorityLock, _ReadChain, BusBusy, Posted, PRIORITY_LOOP, PRIORITY_SERVICE,
+    PRIORITY_URGENT, ReadItem, ReadPlan)
 from desheng_servo_ros.protocol import Reply, StreamDecoder
+from desheng_servo_ros.schedule import (IDLE_GUARD_S, next_on_bus, REPLY_OVERHEAD,
+                                        sync_write_frames, YIELD)
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 from uav_serial_common.usb_latency import BASE_MARGIN_S, inspect_latency_timer, LatencyReport
@@ -35,12 +40,6 @@ __all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'PRIORITY_LOOP',
            'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ReadItem', 'ReadPlan',
            'Posted', 'ServoBusLink', 'REPLY_OVERHEAD', 'sync_write_frames']
 
-# Priorities of the bus lock: lower number goes first.
-PRIORITY_URGENT = 0    # emergency stop, shutdown torque-off
-PRIORITY_SERVICE = 1   # commands and service calls
-PRIORITY_LOOP = 2      # the read loop
-# Reply frame = FF F5 ID LEN STATUS params CHK.
-REPLY_OVERHEAD = 6
 # Margin beyond the wire time of request + reply when response_timeout_ms is 0 ("derived") and the
 # port has not been looked at yet: the servo answers within ~0.1..1 ms, but a USB-serial adapter
 # holds received bytes for up to its latency timer (16 ms by default on FTDI, twice when a reply
@@ -55,162 +54,11 @@ FORGET_AFTER_REPLIES = 20
 # How long a scan listens for late replies after its last PING, and waits for a reply when it
 # confirms an id that answered late (or garbled).
 LATE_REPLY_WINDOW_S = 0.1
-# After a frame without a reply, wait this much beyond its wire time before the next one, so a
-# servo still parsing it never sees the next header glued to it.
-IDLE_GUARD_S = 0.0001
 BUS_LOCK_TIMEOUT_S = 2.0
 # Weight of the newest outcome in an id's garbled-reply level (GARBLE_WEIGHT of a garbled reply
 # raises it, a clean one lowers it): four garbled replies in a row take it past one half, which
 # random line noise on one id practically never does, two servos answering at once (S24) soon.
 GARBLE_WEIGHT = 0.2
-
-
-class BusBusy(LinkError):
-    """The bus stayed taken by others for too long."""
-
-
-class Posted:
-    """Frames without a reply handed to the read chain (`ServoBusLink.post`), and their fate."""
-
-    __slots__ = ('frames', 'size', 'event', 'error', 'written_at')
-
-    def __init__(self, frames: Sequence[bytes]) -> None:
-        self.frames = list(frames)
-        self.size = sum(map(len, frames))
-        """Bytes of all the frames."""
-        self.event = threading.Event()
-        self.error: Optional[LinkError] = None
-        self.written_at = 0.0
-        """When the last frame had left the line (monotonic), once `done`."""
-
-    @property
-    def done(self) -> bool:
-        """Whether every frame was written (or failed: `error`)."""
-        return self.event.is_set()
-
-    def settle(self, error: Optional[LinkError] = None) -> None:
-        """Record the outcome and wake whoever waits."""
-        self.error = error
-        self.written_at = time.monotonic()
-        self.event.set()
-
-
-def sync_write_frames(targets: Sequence[Tuple[int, int, int]]) -> List[bytes]:
-    """Return the SYNC WRITE frames of (id, ticks, ms) targets (50 servos per frame, S18)."""
-    step = proto.MAX_SYNC_WRITE_POSITIONS
-    return [proto.encode_sync_write_positions(targets[k:k + step])
-            for k in range(0, len(targets), step)]
-
-
-class _PriorityLock:
-    """A lock whose waiters are served by priority (lower number first), then arrival order."""
-
-    def __init__(self, levels: int = 3) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self._busy = False
-        self._waiting = [0] * levels
-
-    def acquire(self, level: int, timeout: float) -> bool:
-        with self._cond:
-            if not self._busy and not any(self._waiting[:level]):
-                self._busy = True
-                return True
-            deadline = time.monotonic() + timeout
-            self._waiting[level] += 1
-            try:
-                while self._busy or any(self._waiting[:level]):
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        return False
-                    self._cond.wait(remaining)
-                self._busy = True
-                return True
-            finally:
-                self._waiting[level] -= 1
-
-    def release(self) -> None:
-        with self._cond:
-            self._busy = False
-            self._cond.notify_all()
-
-    def waiting_above(self, level: int) -> bool:
-        """Whether someone of a higher priority than ``level`` is waiting."""
-        return any(self._waiting[:level])
-
-
-# One READ of a chain: (frame, servo id, reply params, retries, tag for the plan).
-ReadItem = Tuple[bytes, int, int, int, Any]
-
-
-class ReadPlan(Protocol):
-    """What :meth:`ServoBusLink.read_chain` asks of its caller."""
-
-    def next_read(self) -> Optional[ReadItem]:
-        """Return the next READ, or None to end the chain (called on the reader thread)."""
-
-    def on_read(self, tag: Any, reply: Optional[Reply]) -> None:
-        """Take the reply of the READ tagged `tag` (None: no reply after its retries)."""
-
-
-class _ReadChain:
-    """A :class:`ReadPlan` as a request chain of the serial link, with retries per READ."""
-
-    __slots__ = ('bus', 'plan', 'priority', 'sent', 'retry')
-    # An entry of `sent` is [item, attempts, (bytes_in, frames_in) when it was sent].
-
-    def __init__(self, bus: 'ServoBusLink', plan: ReadPlan, priority: int) -> None:
-        self.bus = bus
-        self.plan = plan
-        self.priority = priority
-        self.sent: Deque[list] = deque()  # [item, attempts] of READs awaiting their result
-        self.retry: Optional[list] = None
-
-    def next_request(self) -> Optional[Tuple[bytes, Optional[Callable[[Reply], bool]], float]]:
-        bus = self.bus
-        if bus._posted_item is not None:
-            bus._posted_done()  # the frame before this request left without an error
-        entry, self.retry = self.retry, None
-        if bus._lock.waiting_above(self.priority):
-            # Yield the bus between two READs; a retry that cannot go out has failed.
-            if entry is not None:
-                self._settle(entry[0], None)
-            return None
-        if bus._posted:
-            # A frame without a reply (a command) goes out between two READs; the READ to be
-            # retried, if any, follows it.
-            self.retry = entry
-            frame = bus._next_posted()
-            return frame, None, wire_time(len(frame), bus.baud) + IDLE_GUARD_S
-        stats = bus.link.stats
-        if entry is None:
-            item = self.plan.next_read()
-            if item is None:
-                return None
-            entry = [item, 0, None]
-        else:
-            stats.retries += 1  # counted as it goes out: one that yields the bus never does
-        entry[2] = (stats.bytes_in, stats.frames_in)
-        self.sent.append(entry)
-        frame, servo_id, nparams = entry[0][:3]
-        return (frame, bus._matcher(servo_id, nparams),
-                bus.timeout_for(len(frame), nparams, servo_id))
-
-    def on_result(self, reply: Optional[Reply]) -> None:
-        entry = self.sent.popleft()
-        item = entry[0]
-        if reply is None:
-            self.bus._note_silence(item[1], entry[2])
-        if reply is None and entry[1] < item[3]:
-            entry[1] += 1
-            self.retry = entry
-            return
-        self._settle(item, reply)
-
-    def _settle(self, item: ReadItem, reply: Optional[Reply]) -> None:
-        self.bus.transactions += 1
-        if reply is None:
-            self.bus.failed_transactions += 1
-        self.plan.on_read(item[4], reply)
 
 
 class ServoBusLink:
@@ -267,6 +115,7 @@ class ServoBusLink:
                                on_connection=on_connection, on_tx=self._on_tx, logger=logger,
                                backoff_max_s=backoff_max_s, on_open=self._on_port_open)
         self._lock = _PriorityLock()
+        self._closed = False  # after send_last: no transaction any more
         self._idle_at = 0.0
         self._matchers: Dict[Tuple[int, int], Callable[[Reply], bool]] = {}
 
@@ -360,10 +209,6 @@ class ServoBusLink:
             self.slow_margin[servo_id] = 0.0
             self._timely[servo_id] = 0
 
-    def wire_limit_s(self, request_len: int, reply_params: int) -> float:
-        """Return the pure wire time of one transaction (for rate comparisons)."""
-        return wire_time(request_len + reply_params + REPLY_OVERHEAD, self.baud)
-
     # -- transactions ---------------------------------------------------------------------------
 
     def _matcher(self, servo_id: int, nparams: int) -> Callable[[Reply], bool]:
@@ -389,6 +234,9 @@ class ServoBusLink:
     def _take(self, priority: int) -> None:
         if not self._lock.acquire(priority, BUS_LOCK_TIMEOUT_S):
             raise BusBusy(f'the bus on {self.port} stayed busy for {BUS_LOCK_TIMEOUT_S:.0f} s')
+        if self._closed:
+            self._lock.release()
+            raise LinkDown(f'{self.port}: the driver is shutting down')
         idle_at = self._idle_at
         if idle_at:
             delay = idle_at - time.monotonic()
@@ -412,22 +260,45 @@ class ServoBusLink:
                  timeout: Optional[float] = None, flush: bool = True) -> Reply:
         """Send one request and return the reply of ``servo_id`` with ``reply_params`` params.
 
-        `flush` False keeps what arrived before the request (a scan collects late replies).
+        Sent again up to `retries` times when no reply comes; a caller of higher priority that
+        waits (an emergency stop) goes between two attempts. `flush` False keeps what arrived
+        before the request (a scan collects late replies).
         """
         if timeout is None:
             timeout = self.timeout_for(len(frame), reply_params, servo_id)
         if retries is None:
             retries = self.max_retries
         match = self._matcher(servo_id, reply_params)
-        with self._holding(priority):
+        self._take(priority)
+        held = True
+        attempt = 0
+        try:
             self.transactions += 1
             stats = self.link.stats
             mark = (stats.bytes_in, stats.frames_in)
-            try:
-                return self.link.request(frame, match, timeout, retries, flush=flush)
-            except LinkTimeout:
-                self._note_silence(servo_id, mark)
-                raise
+            while True:
+                try:
+                    return self.link.request(frame, match, timeout, 0, flush=flush)
+                except LinkTimeout:
+                    if attempt >= retries:
+                        self._note_silence(servo_id, mark)
+                        raise
+                attempt += 1
+                stats.timeouts -= 1  # one per request, as SerialLink counts them
+                stats.retries += 1
+                if next_on_bus(self._lock.waiting_above(priority), False, True) == YIELD:
+                    # An emergency stop waits: it goes between two attempts (schedule.py).
+                    held = False
+                    self._lock.release()
+                    self._take(priority)
+                    held = True
+        except LinkError as exc:
+            self.failed_transactions += 1
+            exc.sent = exc.sent or attempt > 0
+            raise
+        finally:
+            if held:
+                self._lock.release()
 
     def probe(self, frame: bytes, servo_id: int, reply_params: int,
               priority: int = PRIORITY_SERVICE) -> Tuple[Optional[Reply], bool]:
@@ -553,15 +424,26 @@ class ServoBusLink:
         finally:
             self._lock.release()
 
+    def send_last(self, frames: Sequence[bytes]) -> None:
+        """Send `frames` ahead of every waiter, then close the bus to all others for good.
+
+        The shutdown's frames (torque off): a service or command that wanted the bus meanwhile
+        gets LinkDown, so nothing follows them on the wire. Returns once they left the line.
+        """
+        self._take(PRIORITY_URGENT)
+        try:
+            self._closed = True
+            for frame in frames:
+                self._write_held(frame)
+            self.drain()
+        finally:
+            self._lock.release()
+
     def drain(self) -> None:
         """Block until the last frame without a reply has left the wire."""
         delay = self._idle_at - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-
-    def urgent_pending(self, priority: int = PRIORITY_LOOP) -> bool:
-        """Whether a caller of higher priority than ``priority`` waits for the bus."""
-        return self._lock.waiting_above(priority)
 
     # -- instructions ---------------------------------------------------------------------------
 

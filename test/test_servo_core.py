@@ -686,3 +686,49 @@ def test_a_scan_cut_by_an_unplug_says_so_and_the_bus_reads_again_after(rig):
     assert rig.core.bus.wait_connected(5)
     result = rig.core.scan(1, 80)
     assert result.ok and result.data['ids'] == [1, 2, 3], result.message
+
+
+# -- issue 22: what the model search found, on the threaded driver -----------------------------
+
+def test_round2_22_an_emergency_stop_goes_between_two_attempts_of_a_service_request(tmp_path):
+    # The model (test_servo_model.py) found it: a request that gets no reply held the bus
+    # through all its retries, and an emergency stop waited behind them (3 x 300 ms here).
+    rig = Rig(tmp_path, response_timeout_ms=300.0, max_retries=2)
+    try:
+        read = rig.tap.mark()
+        ask = proto.encode_read(9, 0x38, 2)  # nobody answers at 9
+        results = []
+        caller = threading.Thread(
+            target=lambda: results.append(rig.core.read_register(9, '', 0x38, 2)))
+        caller.start()
+        wait_for(lambda: any(r.raw == ask for r in rig.tap.requests(read)), 5,
+                 what='the first READ of id 9 on the wire')
+        assert rig.core.emergency_stop().ok
+        caller.join(10)
+        wire = [r.raw for r in rig.tap.requests(read)]
+        stop = proto.encode_write(proto.BROADCAST_ID, 0x28, b'\x00')
+        assert stop in wire, wire
+        # Torque off right after the attempt on the wire, not after the other two.
+        assert wire.index(stop) == 1, [w.hex() for w in wire]
+        assert wire.count(ask) == 3 and results and not results[0].ok
+    finally:
+        rig.stop()
+
+
+def test_round2_22_torque_off_is_the_last_frame_even_while_a_service_runs(tmp_path):
+    # A service still running while the driver stops must not put a frame after torque off.
+    rig = Rig(tmp_path)
+    try:
+        mark = rig.tap.mark()
+        results = []
+        caller = threading.Thread(target=lambda: results.append(rig.core.scan(1, 250)))
+        caller.start()
+        wait_for(lambda: len(rig.tap.requests(mark)) > 20, 10, what='the scan under way')
+    finally:
+        rig.core.stop()
+        caller.join(10)
+        rig.dev.stop()
+    stop = proto.encode_write(proto.BROADCAST_ID, 0x28, b'\x00')
+    wire = [r.raw for r in rig.tap.requests(mark)]
+    assert wire[-1] == stop, [w.hex() for w in wire[-3:]]
+    assert results and not results[0].ok

@@ -1,0 +1,336 @@
+"""What goes on the servo bus next, decided without I/O, thread, lock or clock.
+
+Every rule of the bus's scheduling lives here, once, as plain state and functions that take the
+time as an argument. The threaded driver (``core.py`` with ``link.py``) calls these parts on its
+threads; :class:`BusSchedule` composes the same parts into a whole bus as a state machine
+(events with their time in, actions out) that ``test/test_servo_model.py`` drives against the
+device model in virtual time. The parts:
+
+- :func:`plan_cycle` and :class:`ReadSchedule`: the read loop's cycles (one READ per active
+  servo, telemetry spread over its period, offline servos probed once per REPROBE_PERIOD_S),
+  the cycles' pace (a cycle a period late starts afresh) and the retries of a READ;
+- :func:`judge_failure`, :func:`judge_reply`, :func:`judge_link`: the online/offline judgement;
+- :class:`CommandQueue`: coalesced commands (the newest target of each servo wins) and their
+  bus budget (commands take at most 1 / (1 + COMMAND_SPACING) of the bus over any stretch);
+- :func:`next_on_bus`: between two READs of the chain, what goes first (a caller of higher
+  priority, i.e. an emergency stop or a service, then a pending command, then the READ to be
+  retried, then the next READ);
+- :func:`set_id_refusal` and :func:`renamed`: ``~/set_id`` never gives two joints one id;
+- :func:`shutdown_frames`: the shutdown sequence, whose last frame is torque off.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Dict, List, Optional, Sequence, Tuple
+
+from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.state import READ_POSITION, READ_STATE, READ_WIDE, ServoRecord, TORQUE
+from desheng_servo_ros.units import Joint
+from uav_serial_common.pty_port import wire_time
+
+# A servo is offline after this many READs in a row failed (each with its retries), and then
+# probed this often (one READ, no retries), so a missing servo costs little bus time.
+OFFLINE_AFTER_FAILURES = 3
+REPROBE_PERIOD_S = 1.0
+# Commands coming faster than the bus should take them are coalesced. Each batch of command
+# frames owes the read loop COMMAND_SPACING times its wire time, so over any stretch commands
+# take at most 1 / (1 + COMMAND_SPACING) of the bus; a batch that finds that budget unspent goes
+# at once, up to COMMAND_BURST batches ahead of it (a token bucket kept as a time, GCRA), so a
+# command at a normal rate waits only for the READ on the wire. Budget and spacing count from
+# the line: a loaded host that writes a batch late moves them with it. Batches are also at
+# least COMMAND_CYCLE_SHARE of a read cycle apart (at most two per cycle).
+COMMAND_SPACING = 2.0
+COMMAND_BURST = 2.0
+COMMAND_CYCLE_SHARE = 0.5
+# After a frame without a reply, the bus stays quiet this much beyond its wire time, so a servo
+# still parsing it never sees the next header glued to it.
+IDLE_GUARD_S = 0.0001
+# Reply frame = FF F5 ID LEN STATUS params CHK.
+REPLY_OVERHEAD = 6
+
+# What goes on the bus between two READs of the chain (next_on_bus).
+YIELD, POSTED, RETRY, READ = range(4)
+
+
+def next_on_bus(higher_waiting: bool, posted: bool, retry: bool) -> int:
+    """Return what goes at a READ boundary: POSTED, YIELD, RETRY or READ.
+
+    A pending command goes first (an emergency stop drops them before it waits), so a service
+    never holds the newest targets back; then a caller of higher priority (an emergency stop, a
+    service) takes the bus: the chain yields (a READ to be retried then counts as failed); else
+    the READ to be retried, else the next READ. A retry follows a command.
+    """
+    if posted:
+        return POSTED
+    if higher_waiting:
+        return YIELD
+    return RETRY if retry else READ
+
+
+# -- the read loop's cycles ----------------------------------------------------------------------
+
+def plan_cycle(now: float, servos: Sequence[ServoRecord]) -> List[Tuple[ServoRecord, int]]:
+    """Return (servo, READ_*) for each READ of a cycle starting `now`.
+
+    Every servo that is not offline, and the offline ones due for their probe (one every
+    REPROBE_PERIOD_S, whose time is set here, a plain position READ); where its telemetry period
+    has come, the state READ and the wide READ after it.
+    """
+    plan = []
+    for s in servos:
+        if s.failures >= OFFLINE_AFTER_FAILURES:
+            if now < s.next_probe:
+                continue
+            s.next_probe = now + REPROBE_PERIOD_S
+            plan.append((s, READ_POSITION))
+        elif now >= s.next_telemetry:
+            # The state READ first: a cycle ends with a position, so it is published as soon
+            # as its newest position is in.
+            plan.append((s, READ_STATE))
+            plan.append((s, READ_WIDE))
+        else:
+            plan.append((s, READ_POSITION))
+    return plan
+
+
+NOT_DUE, EMPTY, STARTED = 0, 1, 2
+
+
+class ReadSchedule:
+    """The read loop's cycles: which READ is next, and when a cycle is due. Times are passed in.
+
+    ``period_s`` (1 / publish_rate_hz) and ``retries`` (per READ) are attributes the owner sets;
+    the next cycle is due a period after the last started, and a cycle that starts a whole
+    period late (the bus or a stall held the last one up) starts the pace afresh (``late``
+    counts those, for the judgement that the bus cannot keep up).
+    """
+
+    __slots__ = ('period_s', 'retries', 'plan', 'pos', 'started', 'fresh', 'next_cycle', 'late')
+
+    def __init__(self, period_s: float, retries: int, now: float) -> None:
+        self.period_s = period_s
+        self.retries = retries
+        self.plan: List[Tuple[ServoRecord, int]] = []
+        self.pos = 0
+        self.started = 0.0
+        self.fresh = True
+        self.next_cycle = now
+        self.late = 0
+
+    @property
+    def in_cycle(self) -> bool:
+        """Whether a cycle has READs left to send."""
+        return self.pos < len(self.plan)
+
+    def reset(self, now: float) -> None:
+        """Drop the cycle in progress (the servo list or the port changed); the next is due."""
+        self.plan = []
+        self.pos = 0
+        self.next_cycle = now
+        self.fresh = True  # the next cycle starts afresh: no backlog to catch up with
+
+    def due(self, now: float) -> bool:
+        """Whether the next cycle may start at `now`."""
+        return now >= self.next_cycle
+
+    def begin_cycle(self, now: float) -> bool:
+        """Start the next cycle's pace if it is due at `now`; False if it is not."""
+        if now < self.next_cycle:
+            return False
+        period = self.period_s
+        if self.fresh or now - self.next_cycle > period:
+            self.late += not self.fresh
+            self.next_cycle = now
+        self.next_cycle += period
+        self.started = now
+        self.fresh = False
+        return True
+
+    def plan_cycle(self, servos: Sequence[ServoRecord]) -> int:
+        """Plan the READs of the cycle just begun: EMPTY (none) or STARTED."""
+        self.plan = plan_cycle(self.started, servos)
+        self.pos = 0
+        return STARTED if self.plan else EMPTY
+
+    def start_cycle(self, now: float, servos: Sequence[ServoRecord]) -> int:
+        """Start the next cycle if due: NOT_DUE, EMPTY (no READ in it) or STARTED."""
+        if not self.begin_cycle(now):
+            return NOT_DUE
+        return self.plan_cycle(servos)
+
+    def take(self) -> Tuple[bytes, int, int, int, Tuple[ServoRecord, int, float, bool]]:
+        """Return the next READ of the cycle as the link's ReadItem.
+
+        (frame, servo id, reply params, retries, (servo, READ_*, cycle start, last of cycle)).
+        """
+        s, kind = self.plan[self.pos]
+        self.pos += 1
+        frame, nparams = s.frames[kind]
+        # A servo that failed as often as it takes to be offline is probed without retries.
+        return (frame, s.id, nparams, self.retries if s.failures < OFFLINE_AFTER_FAILURES else 0,
+                (s, kind, self.started, self.pos == len(self.plan)))
+
+
+# -- online / offline ----------------------------------------------------------------------------
+
+def judge_failure(s: ServoRecord, now: float) -> bool:
+    """Count a READ that failed after its retries; return True when `s` just went offline."""
+    s.error_count += 1
+    s.failures += 1
+    if s.failures == OFFLINE_AFTER_FAILURES:
+        s.next_probe = now + REPROBE_PERIOD_S
+        if s.online:
+            s.online = False
+            return True
+    return False
+
+
+def judge_reply(s: ServoRecord) -> bool:
+    """Count a READ answered with a position; return True when `s` came back online."""
+    back = not s.online and s.seen
+    s.online = True
+    s.seen = True
+    s.failures = 0
+    return back
+
+
+def plan_telemetry(s: ServoRecord, started: float, period: float, count: int) -> None:
+    """Set when `s` is next due for telemetry after its wide READ of the cycle at `started`.
+
+    The first time, the servos' telemetry READs are spread evenly over the period.
+    """
+    if s.telemetry_started or period <= 0:
+        s.next_telemetry = started + period
+    else:
+        s.telemetry_started = True
+        s.next_telemetry = started + period * (s.index + 1) / max(1, count)
+
+
+def judge_link(servos: Sequence[ServoRecord], up: bool) -> None:
+    """Judge the port opening (re-probe every servo at once) or closing (all offline)."""
+    for s in servos:
+        if up:
+            # The servos were most likely fine all along.
+            s.failures = min(s.failures, OFFLINE_AFTER_FAILURES - 1)
+            s.next_probe = -math.inf
+        else:
+            s.online = False
+
+
+# -- commands ------------------------------------------------------------------------------------
+
+Target = Tuple[int, int, int]
+"""(servo id, ticks, run time ms)."""
+
+
+class CommandQueue:
+    """Pending ``~/command`` targets, newest per servo, and the commands' share of the bus.
+
+    ``add`` replaces a servo's older target (it goes to the end: the newest order); ``take``
+    empties the queue into one batch; ``charge`` books a batch that left the line, and
+    ``free_at`` says when the next batch may go (see COMMAND_SPACING).
+    """
+
+    __slots__ = ('pending', 'next_at', 'budget_at', 'tolerance', 'received', 'superseded',
+                 'frames_sent')
+
+    def __init__(self) -> None:
+        self.pending: Dict[int, Tuple[int, int]] = {}
+        self.next_at = 0.0
+        self.budget_at = 0.0  # when the commands' bus budget is paid (GCRA's TAT)
+        self.tolerance = 0.0
+        self.received = 0
+        self.superseded = 0
+        self.frames_sent = 0
+
+    def add(self, targets: Sequence[Target]) -> None:
+        """Queue a command's targets; each replaces the servo's pending one."""
+        self.received += 1
+        pending = self.pending
+        for servo_id, ticks, ms in targets:
+            if servo_id in pending:
+                self.superseded += 1
+                del pending[servo_id]  # re-inserted last: the newest order
+            pending[servo_id] = (ticks, ms)
+
+    def drop(self, ids: Optional[Sequence[int]] = None) -> None:
+        """Forget pending targets (of `ids`, or all): a newer move or a stop overrides them."""
+        if ids is None:
+            self.pending = {}
+        else:
+            for servo_id in ids:
+                self.pending.pop(servo_id, None)
+
+    def free_at(self) -> float:
+        """Return when the bus budget lets the next command batch go."""
+        return max(self.next_at, self.budget_at - self.tolerance)
+
+    def due(self, now: float) -> bool:
+        """Whether targets are pending and the budget lets them go at `now`."""
+        return bool(self.pending) and now >= self.free_at()
+
+    def take(self) -> List[Target]:
+        """Return the pending targets as one batch (oldest servo first) and empty the queue."""
+        batch = [(i, t, ms) for i, (t, ms) in self.pending.items()]
+        self.pending = {}
+        return batch
+
+    def charge(self, ended_at: float, size: int, baud: int, rate_hz: float) -> None:
+        """Book a batch of `size` bytes that left the line at `ended_at`."""
+        wire = wire_time(size, baud)
+        cost = wire * (1.0 + COMMAND_SPACING)
+        self.budget_at = max(self.budget_at, ended_at - wire) + cost
+        self.tolerance = COMMAND_BURST * cost
+        self.next_at = ended_at + COMMAND_CYCLE_SHARE / rate_hz
+
+
+def sync_write_frames(targets: Sequence[Target]) -> List[bytes]:
+    """Return the SYNC WRITE frames of (id, ticks, ms) targets (50 servos per frame, S18)."""
+    step = proto.MAX_SYNC_WRITE_POSITIONS
+    return [proto.encode_sync_write_positions(targets[k:k + step])
+            for k in range(0, len(targets), step)]
+
+
+# -- ids and shutdown ----------------------------------------------------------------------------
+
+def set_id_refusal(servos: Sequence[ServoRecord], old: int, new: int) -> Optional[str]:
+    """Return why ``~/set_id old -> new`` is refused before anything is sent, or None.
+
+    The one rule that keeps joints apart: `new` must not be the id of a configured joint.
+    """
+    if not (proto.is_servo_id(old) and proto.is_servo_id(new)):
+        return f'id and new_id must be 1..250, got {old} -> {new}'
+    if old == new:
+        return f'servo already has id {new}'
+    owner = next((s for s in servos if s.id == new), None)
+    if owner is not None:
+        state = 'online' if owner.online else 'offline'
+        return (f'id {new} belongs to joint {owner.name} (servo_ids; it is {state}): two '
+                'joints would share it. Pick an id not in servo_ids; to move a servo onto a '
+                'configured id, run the driver without that id in servo_ids first')
+    return None
+
+
+def renamed(servos: Sequence[ServoRecord], old: int, new: int) -> Tuple[ServoRecord, ...]:
+    """Return the servo list after the servo at `old` took id `new` (a fresh record)."""
+    out = []
+    for s in servos:
+        if s.id == old:
+            name = f'servo_{new}' if s.name == f'servo_{old}' else s.name
+            s = ServoRecord(Joint(new, name), s.index)
+        out.append(s)
+    return tuple(out)
+
+
+TORQUE_OFF_ALL = proto.encode_write(proto.BROADCAST_ID, TORQUE.address, b'\x00')
+"""Torque off, every servo at once: the emergency stop and the last frame of a shutdown."""
+
+
+def shutdown_frames(torque_off_on_shutdown: bool) -> List[bytes]:
+    """Return the frames of a shutdown, in order; torque off (if configured) is the last.
+
+    Pending commands are dropped, never sent: a target that left after torque off would drive
+    a servo again.
+    """
+    return [TORQUE_OFF_ALL] if torque_off_on_shutdown else []

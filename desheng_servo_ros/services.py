@@ -1,0 +1,382 @@
+"""The servo bus's services (``~/write_positions``, ``~/set_torque``, ``~/set_id``, ...).
+
+A mixin of :class:`~desheng_servo_ros.core.ServoBusCore`: each service is a call on the node's
+executor thread that returns a :class:`Result`, refuses bad input before anything is sent, and
+says UNKNOWN when a frame left and its outcome was not seen. Services that need a quiet bus
+(a scan, an id change, a reset) hold the read loop meanwhile (``_loop_paused``).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+import traceback
+from typing import Any, Callable, Optional, Sequence, Tuple
+
+from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout, PRIORITY_URGENT
+from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
+                                         encode_value, RegisterError)
+from desheng_servo_ros.schedule import renamed, set_id_refusal, TORQUE_OFF_ALL
+from desheng_servo_ros.state import FACTORY_ID, FIRMWARE, ID, POSITION, Result, RUN_PRESETS, TORQUE
+from desheng_servo_ros.units import select
+from uav_serial_common.pty_port import wire_time
+from uav_serial_common.text import clip, few
+
+# READs of the present position that tell one servo at an id from several (set_id, scan).
+PROBE_READS = 5
+# An id change or RESET whose frame left without an acknowledgement (lost, or the link dropped)
+# is settled by asking the bus; a link that went down gets this long to come back for that.
+SETTLE_WAIT_S = 2.0
+
+# Services that change nothing on a servo: a request of theirs that went unanswered leaves no
+# outcome to find out.
+_READS_ONLY = frozenset({'read_register', 'scan'})
+
+
+def _service(method: Callable[..., Result]) -> Callable[..., Result]:
+    """One error path for every service: refusals, link errors and bugs become a Result."""
+    @functools.wraps(method)
+    def call(self: Any, *args: Any, **kwargs: Any) -> Result:
+        try:
+            result = method(self, *args, **kwargs)
+        except (ValueError, RegisterError) as exc:
+            result = Result(False, f'refused: {exc}')
+        except LinkError as exc:
+            if not exc.sent and isinstance(exc, LinkDown):
+                result = Result(False, f'port not open: {exc}; nothing sent')
+            elif exc.sent and method.__name__ not in _READS_ONLY:
+                # The servo may have acted on a frame whose answer never came.
+                result = Result(False, f'bus error: {exc}; the request had left, so whether the '
+                                       'servo acted on it is UNKNOWN (read it back)')
+            else:
+                result = Result(False, f'bus error: {exc}')
+        except Exception as exc:  # noqa: BLE001 - a bug must not cost the node
+            self.log_error(f'{method.__name__} failed:\n{traceback.format_exc()}')
+            result = Result(False, f'internal error: {exc!r}')
+        return Result(result.ok, clip(result.message), result.data)
+    return call
+
+
+def _unknown(what: str, error: LinkError, then: str) -> Result:
+    """Answer an outcome the bus did not tell: never a success or refusal not seen."""
+    return Result(False, f'UNKNOWN whether {what}: its frame left, then {error}; {then}')
+
+
+class ServoServices:
+    """The services of a ServoBusCore (a mixin: it uses the core's bus, servos and loop)."""
+
+    @_service
+    def write_positions(self, names: Sequence[str], ids: Sequence[int],
+                        positions: Sequence[float], move_time_ms: int,
+                        staged: bool) -> Result:
+        """Move servos now: one SYNC WRITE, or REG WRITE each then ACTION (staged)."""
+        targets = self._resolve(names, ids, positions, move_time_ms)
+        # A queued ~/command for these servos is older than this call: it must not follow it.
+        self._drop_pending([t[0] for t in targets])
+        if not staged:
+            self.bus.sync_write_positions(targets)
+            return Result(True, f'SYNC WRITE sent to {len(targets)} servo(s)')
+        for servo_id, ticks, ms in targets:
+            try:
+                self.bus.reg_write(servo_id, proto.TARGET_POSITION_ADDRESS,
+                                   proto.encode_position_payload(ticks, ms))
+            except LinkTimeout:
+                return Result(False, f'servo {servo_id} did not acknowledge its REG WRITE; '
+                                     'ACTION not sent, nothing moved')
+        self.bus.action()
+        return Result(True, f'REG WRITE to {len(targets)} servo(s), then ACTION')
+
+    @_service
+    def set_torque(self, ids: Sequence[int], enable: bool) -> Result:
+        """Switch torque of `ids` (empty = all), each verified by reading it back."""
+        chosen = select(self.servos, ids)
+        by_id = {s.id: s for s in self._servos}
+        value = b'\x01' if enable else b'\x00'
+        failed = []
+        for joint in chosen:
+            who = f'{joint.name} (id {joint.id})'
+            try:
+                self.bus.write(joint.id, TORQUE.address, value)
+                back = self.bus.read(joint.id, TORQUE.address, TORQUE.size).params[0] != 0
+            except LinkTimeout:
+                failed.append(f'{who} did not answer')
+                continue
+            if joint.id in by_id:
+                by_id[joint.id].set_torque(back)
+            if back != enable:
+                failed.append(f'{who} reads back torque {"on" if back else "off"}')
+        state = 'on' if enable else 'off'
+        if failed:
+            return Result(False, f'torque {state}: ' + few(failed, 3))
+        return Result(True, f'torque {state} for {len(chosen)} servo(s), verified by read-back')
+
+    @_service
+    def emergency_stop(self) -> Result:
+        """Torque off, every servo at once (one broadcast); queued commands are dropped."""
+        self._drop_pending()
+        self.bus.discard_posted()
+        self.bus.send(TORQUE_OFF_ALL, PRIORITY_URGENT)
+        for s in self._servos:
+            s.set_torque(False)
+        self.log_warning('emergency stop: torque off broadcast to every servo')
+        return Result(True, 'torque off broadcast to every servo (id 254)')
+
+    @_service
+    def read_register(self, servo_id: int, register_name: str, address: int,
+                      length: int) -> Result:
+        """Read a register by name, or `length` bytes at `address`."""
+        if not proto.is_servo_id(servo_id):
+            raise ValueError(f'id must be 1..250 (READ cannot be broadcast), got {servo_id}')
+        if register_name:
+            reg = by_name(register_name)
+            if not reg.readable:
+                raise ValueError(f'{reg.name} is a command register (write only); '
+                                 'nothing to read')
+            address, length = reg.address, reg.size
+        else:
+            if not 1 <= length <= proto.MAX_READ_LENGTH or address + length > 256:
+                raise ValueError(f'length must be 1..{proto.MAX_READ_LENGTH} and address + '
+                                 f'length <= 256, got address 0x{address:02X} length {length}')
+            try:
+                reg = by_address(address)
+                if reg.size != length or not reg.readable:
+                    reg = None
+            except RegisterError:
+                reg = None
+        reply = self.bus.read(servo_id, address, length)
+        data = bytes(reply.params)
+        if reg is not None:
+            value = decode_value(reg, data)
+            number = int.from_bytes(data, 'big', signed=reg.signed)
+            text = value if isinstance(value, str) else f'{value} {reg.unit}'.strip()
+            label = reg.name
+        else:
+            number = int.from_bytes(data, 'big') if length <= 8 else 0
+            block = decode_block(address, data)
+            text = ', '.join(f'{k}={v}' for k, v in block.items()) or data.hex(' ')
+            label = f'{length} byte(s) at 0x{address:02X}'
+        faults = proto.describe_status(reply.status)
+        message = f'servo {servo_id} {label}: {text}' + (
+            f' (status: {", ".join(faults)})' if faults else '')
+        return Result(True, message, {'value': number, 'text': text, 'data': list(data),
+                                      'status': reply.status})
+
+    @_service
+    def write_register(self, servo_id: int, register_name: str, value: int) -> Result:
+        """Write a register by name (typed, range-checked); a unicast write is read back."""
+        if not (proto.is_servo_id(servo_id) or servo_id == proto.BROADCAST_ID):
+            raise ValueError(f'id must be 1..250 or 254 (broadcast), got {servo_id}')
+        reg = by_name(register_name)
+        if reg.name == ID.name:
+            raise ValueError('change ids with ~/set_id (it checks the new id is free)')
+        data = encode_value(reg, None if reg.address_only else int(value))
+        self.bus.write(servo_id, reg.address, data)
+        if servo_id == proto.BROADCAST_ID:
+            return Result(True, f'{reg.name} written to every servo (broadcast, no reply)')
+        if reg.address_only or not reg.readable:
+            return Result(True, f'servo {servo_id} acknowledged {reg.name}')
+        back = decode_value(reg, bytes(self.bus.read(servo_id, reg.address, reg.size).params))
+        if reg is TORQUE:
+            for s in self._servos:
+                if s.id == servo_id:
+                    s.set_torque(bool(back))
+        ok = back == value
+        return Result(ok, f'servo {servo_id} {reg.name} = {back} {reg.unit}'.strip() + (
+            '' if ok else f' after writing {value} (the servo did not take it)'))
+
+    @_service
+    def scan(self, first_id: int, last_id: int) -> Result:
+        """PING ids `first_id`..`last_id`; report who answers, firmware, and shared ids."""
+        if not (proto.is_servo_id(first_id) and proto.is_servo_id(last_id)
+                and first_id <= last_id):
+            raise ValueError(f'need 1 <= first_id <= last_id <= 250, got {first_id}..{last_id}')
+        with self._loop_paused():
+            found = self.bus.scan(range(first_id, last_id + 1))
+            shared = [i for i in found
+                      if self._how_many_answer(i, values_differ=False)[0] == 'several']
+            versions = []
+            for servo_id in found:
+                try:
+                    data = bytes(self.bus.read(servo_id, FIRMWARE.address, FIRMWARE.size,
+                                               retries=0 if servo_id in shared else None).params)
+                    versions.append(str(decode_value(FIRMWARE, data)))
+                except LinkTimeout:
+                    versions.append('')
+        message = (f'found {len(found)} servo(s) in {first_id}..{last_id}: '
+                   + few((f'{i} ({v or "?"})' for i, v in zip(found, versions)), 20))
+        if shared:
+            message += (f'; more than one servo answers to id(s) {few(shared)}: connect them '
+                        'one at a time and give each its own id')
+        slow = [i for i in found if self.bus.margin_for(i) > self.bus.margin_s]
+        if slow:
+            message += (f'; id(s) {few(slow)} answer late: the driver waits up to '
+                        f'{max(self.bus.margin_for(i) for i in slow) * 1000:.0f} ms for them')
+        return Result(True, message, {'ids': found, 'firmware_versions': versions})
+
+    @_service
+    def go_to_preset(self, ids: Sequence[int], preset: int) -> Result:
+        """Run servos to their stored preset position 1..3 (address-only WRITE)."""
+        if not 1 <= preset <= len(RUN_PRESETS):
+            raise ValueError(f'preset must be 1..3, got {preset}')
+        chosen = select(self.servos, ids)
+        failed = []
+        for joint in chosen:
+            try:
+                self.bus.write(joint.id, RUN_PRESETS[preset - 1].address)
+            except LinkTimeout:
+                failed.append(f'{joint.name} (id {joint.id})')
+        if failed:
+            return Result(False, f'no acknowledgement from {few(failed)}')
+        return Result(True, f'{len(chosen)} servo(s) running to preset {preset}')
+
+    def _answers(self, servo_id: int) -> str:
+        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
+        garbled = False
+        for _ in range(2):
+            reply, mangled = self.bus.probe(proto.encode_ping(servo_id), servo_id, 0)
+            if reply is not None:
+                return 'yes'
+            garbled = garbled or mangled
+        return 'garbled' if garbled else 'no'
+
+    def _how_many_answer(self, servo_id: int, values_differ: bool = True) -> Tuple[str, str]:
+        """Return ('none' | 'one' | 'several', why): READs the present position a few times.
+
+        Two servos at one id either collide (garbled replies, S24) or, on a bus that keeps their
+        replies apart, answer twice; their positions also rarely agree (`values_differ`: count
+        that as a sign too, at the price of a moving servo looking like two).
+        """
+        surplus = self.bus.surplus_replies(servo_id)
+        frame = proto.encode_read(servo_id, POSITION.address, POSITION.size)
+        # A second whole reply follows the first at once; give it time to arrive before the
+        # next request flushes the input.
+        quiet = wire_time(2 * (POSITION.size + 6), self.config.baud) + 0.003
+        values, garbled = [], 0
+        for _ in range(PROBE_READS):
+            reply, mangled = self.bus.probe(frame, servo_id, POSITION.size)
+            if reply is not None:
+                values.append(int.from_bytes(reply.params, 'big'))
+                time.sleep(quiet)
+            elif mangled:
+                garbled += 1
+        extra = self.bus.surplus_replies(servo_id) - surplus
+        if garbled:
+            return 'several', f'{garbled} of {PROBE_READS} replies garbled (colliding replies)'
+        if extra > 0:
+            return 'several', f'{extra} replies more than requests'
+        if values_differ and len(set(values)) > 1:
+            return 'several', (f'its present position read {few(sorted(set(values)))}: two '
+                               'servos, or one that is moving (stop it first)')
+        return ('one', '') if values else ('none', '')
+
+    @_service
+    def set_id(self, old: int, new: int) -> Result:
+        """Give the servo at `old` the id `new`, if exactly one servo answers at `old`."""
+        refusal = set_id_refusal(self._servos, old, new)
+        if refusal is not None:
+            raise ValueError(refusal)
+        with self._loop_paused():
+            taken = self._answers(new)
+            if taken != 'no':
+                how = '' if taken == 'yes' else ' (with a garbled reply: more than one servo?)'
+                raise ValueError(f'id {new} already answers on the bus{how}; pick a free id '
+                                 '(~/scan)')
+            count, why = self._how_many_answer(old)
+            if count == 'none':
+                return Result(False, f'servo {old} does not answer; nothing changed')
+            if count == 'several':
+                return Result(False, (
+                    f'more than one servo answers at id {old} ({why}): a new id would go to '
+                    'all of them. Disconnect or power off all but one, then try again; nothing '
+                    'changed'))
+            what = f'servo {old} now has id {new}'
+            lost = self._send_unacknowledged(
+                lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
+            try:
+                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                    return _unknown(what, lost, f'~/scan tells (id {new} answers if it did)')
+                if self._answers(new) != 'yes':
+                    if lost is None:
+                        return Result(False, f'servo {old} acknowledged but does not answer at '
+                                             f'id {new}; check with ~/scan')
+                    if self._answers(old) == 'yes':
+                        return Result(False, f'servo {old} did not take id {new} ({lost}): it '
+                                             f'still answers at id {old}; nothing changed')
+                    return _unknown(what, lost, f'neither id {old} nor {new} answers now; '
+                                                'check with ~/scan')
+            except LinkError as exc:
+                return _unknown(what, exc, f'~/scan tells (id {new} answers if it did)')
+            self._rename(old, new)
+        message = f'servo {old} now answers at id {new}' + (
+            '' if lost is None else f' (its acknowledgement was lost: {lost})')
+        self.log_info(message)
+        return Result(True, message)
+
+    def _send_unacknowledged(self, send: Callable[[], Any]) -> Optional[LinkError]:
+        """Run `send`; return None if acknowledged, the error if its frame left without one.
+
+        An error before the frame left (the port not open) is raised: nothing was sent.
+        """
+        try:
+            send()
+        except LinkError as exc:
+            if not exc.sent:
+                raise
+            return exc
+        return None
+
+    def _rename(self, old: int, new: int) -> None:
+        self._set_servos(renamed(self._servos, old, new))
+
+    @_service
+    def factory_reset(self, servo_id: int, confirm: str) -> Result:
+        """RESET one servo to its factory registers (`confirm` must be ``RESET``)."""
+        if confirm != 'RESET':
+            raise ValueError('confirm must be exactly "RESET"; nothing sent')
+        if not proto.is_servo_id(servo_id):
+            raise ValueError(f'id must be 1..250 (RESET is never broadcast), got {servo_id}')
+        what = f'servo {servo_id} reset to factory settings'
+        with self._loop_paused():
+            taken = servo_id != FACTORY_ID and self._answers(FACTORY_ID) != 'no'
+            lost = self._send_unacknowledged(lambda: self.bus.reset(servo_id))
+            try:
+                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                    return _unknown(what, lost, f'~/scan tells (a reset servo answers at the '
+                                                f'factory id {FACTORY_ID})')
+                at_own = self._answers(servo_id) == 'yes'
+                at_factory = 'no' if at_own else self._how_many_answer(FACTORY_ID)[0]
+            except LinkError as exc:
+                return _unknown(what, exc, '~/scan tells')
+        if lost is not None:
+            if at_own:
+                # A servo that keeps its id on RESET (S23) or one that never got it: the bus
+                # cannot tell them apart.
+                return _unknown(what, lost, f'it still answers at id {servo_id}; read its '
+                                            'registers with ~/read_register')
+            if at_factory == 'none':
+                return _unknown(what, lost, f'neither id {servo_id} nor the factory id '
+                                            f'{FACTORY_ID} answers now; check with ~/scan')
+            note = f' (its acknowledgement was lost: {lost})'
+        else:
+            note = ''
+        if at_own:
+            return Result(True, f'servo {servo_id} reset to factory settings (torque off)')
+        give_back = (f'give it its id back with ~/set_id {FACTORY_ID} -> {servo_id}'
+                     + (f' (this driver refuses that while servo_ids lists {servo_id}: run it '
+                        f'without {servo_id} for the change)'
+                        if servo_id in self._configured_ids else ''))
+        if taken:
+            owner = next((s.name for s in self._servos if s.id == FACTORY_ID), 'another servo')
+            message = (f'servo {servo_id} reset to factory settings. WARNING: it now has the '
+                       f'factory id {FACTORY_ID}, which {owner} already had: '
+                       + ('more than one servo answers there' if at_factory == 'several' else
+                          'check with ~/scan')
+                       + f', and ~/set_id refuses an id more than one servo answers to. '
+                       f'Disconnect {owner} (or power it off), then {give_back}')
+            self.log_warning(message)
+            return Result(True, message + note)
+        if at_factory != 'none':
+            return Result(True, f'servo {servo_id} reset to factory settings and now answers at '
+                                f'the factory id {FACTORY_ID}; {give_back}{note}')
+        return Result(True, f'servo {servo_id} acknowledged RESET but no longer answers')
