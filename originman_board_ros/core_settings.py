@@ -6,11 +6,12 @@ Threads:
 
 * **worker thread** (from ``poll``): ``_apply_settings`` writes the desired settings when they
   are due (at connect and after every return: a reboot loses them, §4), retrying every
-  ``SETTINGS_RETRY_S``; ``_check_settings`` reads them back every ``settings_check_period_s``.
-  It owns ``_check_at`` (worker only, no lock).
+  ``SETTINGS_RETRY_S``; ``_check_settings`` reads the PWM offsets back every
+  ``settings_check_period_s`` and has them all written again when they differ (O37). It owns
+  ``_check_at`` (worker only, no lock).
 
 Owns, under ``_lock``: ``_settings_due``, ``_settings_ok``, ``_settings_message``; reads
-``_expected_offsets``.
+``_expected_offsets`` (and resets it to the desired offsets when the check finds them lost).
 """
 
 from __future__ import annotations
