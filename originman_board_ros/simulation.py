@@ -27,17 +27,33 @@ What is modelled, with the decisions of ``docs/protocols.md`` (O1..):
   take their servo-bus time) but sends no reply to a read, while its reports keep coming
   (issue 21 item 6). ``queue_log`` records how long each command waited for the receive task,
   behind the servo-bus work of the frames before it (item 7).
+
+The model is assembled here from one module per responsibility (every name is re-exported):
+
+- ``simulation_parts``: the parts of the board (LED and buzzer patterns, PWM servos, the LX bus
+  servos, SBUS, the keys and their firmware driver);
+- ``simulation_handlers``: the firmware's handler of each host command (motors, PWM servos,
+  LEDs, buzzer, OLED, RGB, settings, the servo bus with its timing), a mixin;
+- this module: the board's state, the wire (parser and inbox), the scenario, the views, power,
+  the clock's events (reports, key scan, battery alarm) and the output.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 import math
 import struct
 from typing import Callable, Deque, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from originman_board_ros import protocol as p
+from originman_board_ros.simulation_handlers import (  # noqa: F401 (tests read them here)
+    _servo_bus_time, FirmwareHandlers, SERVO_ANSWER_S, SERVO_BUS_BAUD, SERVO_TIMEOUT_S,
+    servo_limits)
+from originman_board_ros.simulation_parts import (  # noqa: F401 (the model's names)
+    _Button, Beep, KEY_COMBO_MS, KEY_LONG_PRESS_MS, KEY_REPEAT_MS, KEY_SCAN_S, Pattern,
+    PWM_POWER_UP_PULSE, PWM_STEP_S, PwmServo, SBUS_PERIOD_S, SbusState,
+    SERVO_DEFAULT_TEMPERATURE_C, SERVO_DEFAULT_TEMPERATURE_LIMIT_C, SERVO_MAX_SPEED,
+    SimBusServo)
 from uav_serial_common.device_model import ClockedModel
 
 IMU_RATE_HZ = 50.0
@@ -51,271 +67,23 @@ LOW_BATTERY_FLOOR_MV = 4900
 LOW_BATTERY_DELAY_S = 10.0
 LOW_BATTERY_BEEP = (2100, 800, 200, 5)
 CLICK_BEEP = (2000, 50, 50, 1)
-KEY_SCAN_S = 0.030
-KEY_COMBO_MS = 300
-KEY_LONG_PRESS_MS = 1500
-KEY_REPEAT_MS = 400
 KEY_CLICK_HOLD_S = 0.10
 KEY_CLICK_GAP_S = 0.10
 KEY_LONG_HOLD_S = 2.5
-PWM_STEP_S = 0.020
-PWM_POWER_UP_PULSE = 1500
-SBUS_PERIOD_S = 0.014
 SBUS_CENTRE = 992
 OLED_POWER_UP_TEXT = b'---.---.---.---'
-SERVO_BUS_BAUD = 115200
-SERVO_ANSWER_S = 0.001
-"""The servo's answer to a read, its frame included (§6)."""
-SERVO_TIMEOUT_S = 0.005
-"""The firmware's read timeout (``proc_timeout = 5`` ticks)."""
-SERVO_MAX_SPEED = 1250.0
-"""LX servos: 60 degrees (250 units) in 0.2 s at most."""
-SERVO_DEFAULT_TEMPERATURE_C = 30
-SERVO_DEFAULT_TEMPERATURE_LIMIT_C = 85
 COMMAND_LOG_SIZE = 2000
+
 
 ImuSource = Callable[[float], Tuple[Sequence[float], Sequence[float]]]
 """A function of the model's time giving ``(accel_g, gyro_dps)`` for the next IMU report."""
-
-
-def _servo_bus_time(nbytes: int) -> float:
-    return nbytes * 10 / SERVO_BUS_BAUD
-
-
-# ---------------------------------------------------------------------------------------------
-# Parts of the board
-# ---------------------------------------------------------------------------------------------
-
-@dataclass
-class Pattern:
-    """An LED or buzzer pattern as the firmware runs it (O31: repeat 0 = forever)."""
-
-    on_ms: int = 0
-    off_ms: int = 0
-    repeat: int = 0
-    start: float = 0.0
-    frequency_hz: int = 0
-
-    def active_at(self, t: float) -> bool:
-        """Whether the LED is lit (the buzzer sounds) at ``t``."""
-        if self.on_ms == 0:
-            return False
-        if self.off_ms == 0:
-            return True
-        cycle = (self.on_ms + self.off_ms) / 1000.0
-        elapsed = t - self.start
-        if elapsed < 0:
-            return False
-        k = int(elapsed // cycle)
-        if self.repeat and k >= self.repeat:
-            return False
-        return elapsed - k * cycle < self.on_ms / 1000.0
-
-
-@dataclass
-class Beep:
-    """One buzzer pattern started on the board, and who started it."""
-
-    time: float
-    frequency_hz: int
-    on_ms: int
-    off_ms: int
-    repeat: int
-    source: str  # 'host', 'click' or 'low_battery'
-
-
-class PwmServo:
-    """One PWM output: linear motion in 20 ms steps, offset added to the output (§4.5)."""
-
-    def __init__(self) -> None:
-        self.offset_us = 0
-        self._start = PWM_POWER_UP_PULSE
-        self._target = PWM_POWER_UP_PULSE
-        self._t0 = 0.0
-        self._steps = 0
-
-    def pulse_at(self, t: float) -> int:
-        """Return the current pulse in us, without the offset (what a 0x05 read returns)."""
-        if self._steps <= 0:
-            return self._target
-        done = int((t - self._t0) / PWM_STEP_S + 1e-9)
-        remaining = self._steps - done
-        if remaining <= 0:
-            return self._target
-        return self._target + int((self._start - self._target) / self._steps * remaining)
-
-    def output_at(self, t: float) -> int:
-        """Return the pulse on the pin, offset included."""
-        return self.pulse_at(t) + self.offset_us
-
-    @property
-    def target_us(self) -> int:
-        """Where the servo is going."""
-        return self._target
-
-    def move(self, pulse_us: int, duration_ms: int, t: float) -> None:
-        """Start a move as the firmware does: pulse and duration clamped first."""
-        pulse_us = min(p.PWM_PULSE_MAX_US, max(p.PWM_PULSE_MIN_US, pulse_us))
-        duration_ms = min(p.PWM_DURATION_MAX_MS, max(p.PWM_DURATION_MIN_MS, duration_ms))
-        self._start = self.pulse_at(t)
-        self._target = pulse_us
-        self._t0 = t
-        self._steps = duration_ms // 20
-
-    def set_offset(self, offset_us: int) -> None:
-        """Set the deviation, clamped to -100..100 us."""
-        self.offset_us = min(p.PWM_OFFSET_MAX_US, max(-p.PWM_OFFSET_MAX_US, offset_us))
-
-
-class SimBusServo:
-    """One LX serial-bus servo behind the board."""
-
-    def __init__(self, servo_id: int, position: int = 500, now: float = 0.0) -> None:
-        self.servo_id = servo_id
-        self.present = True
-        self.loaded = False
-        self.temperature_c = SERVO_DEFAULT_TEMPERATURE_C
-        self.voltage_mv: Optional[int] = None  # None: the board's battery voltage
-        self.offset = 0
-        self.saved_offset = 0
-        self.angle_limits = (0, p.BUS_POSITION_MAX)
-        self.voltage_limits = (p.BUS_VOLTAGE_MIN_MV, p.BUS_VOLTAGE_MAX_MV)
-        self.temperature_limit_c = SERVO_DEFAULT_TEMPERATURE_LIMIT_C
-        self._from = float(position)
-        self._to = float(position)
-        self._t0 = now
-        self._t1 = now
-
-    def position_at(self, t: float) -> float:
-        """Where the horn is at ``t`` (logical units, 0..1000 unless moved by hand)."""
-        if t >= self._t1 or self._t1 <= self._t0:
-            return self._to
-        if t <= self._t0:
-            return self._from
-        return self._from + (self._to - self._from) * (t - self._t0) / (self._t1 - self._t0)
-
-    def read_position(self, t: float) -> int:
-        """Return the int16 a 0x05 read returns."""
-        return max(-32768, min(32767, int(round(self.position_at(t)))))
-
-    def moving_at(self, t: float) -> bool:
-        """Whether a move is under way."""
-        return self._t0 <= t < self._t1 and self._from != self._to
-
-    @property
-    def target(self) -> float:
-        """The end of the current (or last) move."""
-        return self._to
-
-    def move(self, position: int, duration_ms: int, t: float) -> None:
-        """Move in ``duration_ms`` (or as fast as it can); a move loads the servo (O32)."""
-        low, high = self.angle_limits
-        target = float(min(high, max(low, position)))
-        start = self.position_at(t)
-        duration = max(duration_ms / 1000.0, abs(target - start) / SERVO_MAX_SPEED)
-        self.loaded = True
-        self._from, self._to, self._t0, self._t1 = start, target, t, t + duration
-
-    def hold(self, t: float) -> None:
-        """Stop where the horn is now."""
-        here = self.position_at(t)
-        self._from = self._to = here
-        self._t0 = self._t1 = t
-
-    def set_by_hand(self, position: float, t: float) -> None:
-        """Turn the horn from outside (any int16, e.g. below 0 with an offset)."""
-        self._from = self._to = float(position)
-        self._t0 = self._t1 = t
-
-
-@dataclass
-class SbusState:
-    """What the SBUS receiver currently reports."""
-
-    channels: Tuple[int, ...]
-    ch17: bool = False
-    ch18: bool = False
-    signal_loss: bool = False
-    failsafe: bool = False
-    period_s: float = SBUS_PERIOD_S
-
-
-class _Button:
-    """One key: the firmware's 30 ms scan, 2-scan debounce and event state machine (O17)."""
-
-    NORMAL, PRESS, LONG_PRESS = range(3)
-
-    def __init__(self, key_id: int) -> None:
-        self.key_id = key_id
-        self.script: Deque[Tuple[float, bool]] = deque()  # (time, pin level) to come
-        self.pin = False
-        self.last_raw = False
-        self.last_filtered = False
-        self.stage = self.NORMAL
-        self.combo = 0
-        self.ticks_ms = 0
-
-    def busy(self) -> bool:
-        """Whether scans can still change anything."""
-        return bool(self.script) or self.stage != self.NORMAL or self.combo != 0 or \
-            self.pin != self.last_raw or self.last_raw != self.last_filtered
-
-    def scan(self, t: float) -> List[int]:
-        """One scan at ``t``; returns the events it raises, in order."""
-        while self.script and self.script[0][0] <= t:
-            self.pin = self.script.popleft()[1]
-        self.ticks_ms += int(KEY_SCAN_S * 1000)
-        pin = self.pin
-        if pin != self.last_raw:
-            self.last_raw = pin
-            return []
-        if self.last_filtered == self.last_raw and self.stage == self.NORMAL:
-            # Stable and idle: only the multi-click window can expire (O36).
-            if self.ticks_ms > KEY_COMBO_MS and self.combo:
-                self.combo = 0
-                self.ticks_ms = 0
-            return []
-        self.last_filtered = self.last_raw
-        events: List[int] = []
-        if self.stage == self.NORMAL:
-            if self.last_filtered:
-                events.append(p.KeyEvent.PRESSED)
-                if self.ticks_ms < KEY_COMBO_MS and self.combo > 0:
-                    self.combo += 1
-                    if self.combo == 2:
-                        events.append(p.KeyEvent.DOUBLE_CLICK)
-                    if self.combo == 3:
-                        events.append(p.KeyEvent.TRIPLE_CLICK)
-                self.ticks_ms = 0
-                self.stage = self.PRESS
-        elif self.stage == self.PRESS:
-            if self.last_filtered:
-                if self.ticks_ms > KEY_LONG_PRESS_MS:
-                    events.append(p.KeyEvent.LONG_PRESS)
-                    self.ticks_ms = 0
-                    self.stage = self.LONG_PRESS
-            else:
-                events += [p.KeyEvent.RELEASE_FROM_SHORT_PRESS, p.KeyEvent.CLICK]
-                self.combo = self.combo or 1
-                self.stage = self.NORMAL
-        else:
-            if self.last_filtered:
-                if self.ticks_ms > KEY_REPEAT_MS:
-                    events.append(p.KeyEvent.LONG_PRESS_REPEAT)
-                    self.ticks_ms = 0
-            else:
-                events.append(p.KeyEvent.RELEASE_FROM_LONG_PRESS)
-                self.combo = 0
-                self.ticks_ms = KEY_COMBO_MS + 1
-                self.stage = self.NORMAL
-        return events
 
 
 # ---------------------------------------------------------------------------------------------
 # The board
 # ---------------------------------------------------------------------------------------------
 
-class VirtualOriginManBoardModel(ClockedModel):
+class VirtualOriginManBoardModel(FirmwareHandlers, ClockedModel):
     """Deterministic model of the board firmware, clocked by its caller.
 
     Public state (read it in tests; the scenario methods change it): ``powered``,
@@ -626,174 +394,6 @@ class VirtualOriginManBoardModel(ClockedModel):
               source: str) -> None:
         self.buzzer = Pattern(on_ms if frequency_hz else 0, off_ms, repeat, t, frequency_hz)
         self.buzzer_log.append(Beep(t, frequency_hz, on_ms, off_ms, repeat, source))
-
-    # -- handlers -------------------------------------------------------------------------------
-
-    def _handle(self, frame: p.HostFrame, t: float) -> float:
-        """Run one command at ``t``; return how long the receive task is busy with it."""
-        cmd = p.decode_host_command(frame)
-        self.frames_handled += 1
-        self.command_log.append((t, cmd))
-        if isinstance(cmd, p.IgnoredCommand):
-            self.commands_ignored += 1
-            return 0.0
-        if isinstance(cmd, p.SetBatteryLimit):
-            self.battery_limit_mv = cmd.limit_mv
-            self._check_battery()
-        elif isinstance(cmd, p.SetLed):
-            if cmd.led_id in self.leds:  # O25
-                self.leds[cmd.led_id] = Pattern(cmd.on_ms, cmd.off_ms, cmd.repeat, t)
-            else:
-                self.commands_ignored += 1
-        elif isinstance(cmd, p.SetBuzzer):
-            self._beep(t, cmd.frequency_hz, cmd.on_ms, cmd.off_ms, cmd.repeat, 'host')
-        elif isinstance(cmd, (p.SetMotorSpeeds, p.StopMotors, p.SetMotorType)):
-            self._motor(cmd)
-        elif isinstance(cmd, (p.PwmMove, p.PwmRead, p.PwmSetOffset)):
-            self._pwm(cmd, t)
-        elif isinstance(cmd, p.SetOledText):
-            if cmd.line in self.oled_lines:
-                # O19: the real board overflows its 24-byte buffer; the model keeps 23 bytes.
-                self.oled_lines[cmd.line] = cmd.text[:p.OLED_TEXT_MAX_BYTES]
-            else:
-                self.commands_ignored += 1
-        elif isinstance(cmd, p.SetRgb):
-            for index, r, g, b in cmd.pixels:
-                if index < p.RGB_PIXEL_COUNT:  # O18
-                    self.rgb[index] = (r, g, b)
-                else:
-                    self.commands_ignored += 1
-        else:
-            return self._bus(cmd, t)
-        return 0.0
-
-    def _motor(self, cmd: p.HostCommand) -> None:
-        self.motors_initialized = True
-        if isinstance(cmd, p.SetMotorSpeeds):
-            for wire_id, speed in cmd.items:
-                if wire_id < p.MOTOR_COUNT:
-                    self.motor_set_points[wire_id] = speed
-                else:
-                    # O3: an out-of-bounds write in the firmware; the model ignores it.
-                    self.bad_motor_ids += 1
-        elif isinstance(cmd, p.StopMotors):
-            for wire_id in cmd.wire_ids:
-                if wire_id < p.MOTOR_COUNT:
-                    self.motor_set_points[wire_id] = 0.0
-                else:
-                    self.bad_motor_ids += 1
-        else:
-            # O5: anything but 0..3 selects JGB520.
-            self.motor_type = cmd.type_code if cmd.type_code < len(p.MotorType) else 0
-
-    def _pwm(self, cmd: p.HostCommand, t: float) -> None:
-        if isinstance(cmd, p.PwmMove):
-            for servo_id, pulse in cmd.items:
-                servo = self._pwm_servo(servo_id)
-                if servo is not None:
-                    servo.move(pulse, cmd.duration_ms, t)
-            return
-        servo = self._pwm_servo(cmd.servo_id)
-        if servo is None:
-            return  # no reply for id 0 or > 4
-        if isinstance(cmd, p.PwmSetOffset):
-            servo.set_offset(cmd.offset_us)
-        elif cmd.sub == p.PwmSub.READ_PULSE:
-            self._reply(t, p.encode_pwm_pulse_reply(cmd.servo_id, servo.pulse_at(t)))
-        else:
-            self._reply(t, p.encode_pwm_offset_reply(cmd.servo_id, servo.offset_us))
-
-    def _pwm_servo(self, servo_id: int) -> Optional[PwmServo]:
-        servo = self.pwm_servos.get(servo_id)
-        if servo is None:
-            # O30: id 0 indexes out of bounds in the firmware, > 4 is skipped; both ignored.
-            self.bad_pwm_ids += 1
-        return servo
-
-    def _targets(self, servo_id: int) -> List[SimBusServo]:
-        if servo_id == p.BUS_BROADCAST_ID:
-            return list(self.bus_servos)
-        return [s for s in self.bus_servos if s.servo_id == servo_id]
-
-    def _bus(self, cmd: p.HostCommand, t: float) -> float:
-        if isinstance(cmd, p.BusMove):
-            position_items = [(sid, min(pos, p.BUS_POSITION_MAX)) for sid, pos in cmd.items]
-            for servo_id, position in position_items:  # O23: > 1000 clamped to 1000
-                for servo in self._targets(servo_id):
-                    servo.move(position, cmd.duration_ms, t)
-            return len(cmd.items) * _servo_bus_time(10)
-        if isinstance(cmd, p.BusStop):
-            for servo_id in cmd.ids:
-                for servo in self._targets(servo_id):
-                    servo.hold(t)
-            return len(cmd.ids) * _servo_bus_time(6)
-        if isinstance(cmd, p.BusRead):
-            return self._bus_read(cmd, t)
-        servos = self._targets(cmd.servo_id)
-        for servo in servos:
-            if isinstance(cmd, p.BusTorque):
-                servo.loaded = cmd.enable
-                servo.hold(t)
-            elif isinstance(cmd, p.BusWriteId):
-                servo.servo_id = cmd.new_id
-            elif isinstance(cmd, p.BusSetOffset):
-                if -p.BUS_OFFSET_MAX <= cmd.offset <= p.BUS_OFFSET_MAX:  # O35
-                    servo.offset = cmd.offset
-            elif isinstance(cmd, p.BusSaveOffset):
-                servo.saved_offset = servo.offset
-            elif isinstance(cmd, p.BusSetLimits):
-                servo_limits(servo, cmd.sub, cmd.low, cmd.high)
-            elif isinstance(cmd, p.BusSetTemperatureLimit):
-                servo.temperature_limit_c = min(cmd.max_c, p.BUS_TEMPERATURE_LIMIT_MAX_C)
-        params = 4 if isinstance(cmd, p.BusSetLimits) else 1
-        return _servo_bus_time(6 + params)
-
-    def _bus_read(self, cmd: p.BusRead, t: float) -> float:
-        self.bus_reads += 1
-        servos = self._targets(cmd.servo_id)
-        # Two answers at once collide on the half-duplex bus: the board sees a bad frame.
-        servo = servos[0] if len(servos) == 1 else None
-        duration = _servo_bus_time(6) + (SERVO_ANSWER_S if servo else SERVO_TIMEOUT_S)
-        done = t + duration
-        if servo is None:
-            self.bus_read_failures += 1
-            # O14: the model sends zeros with a failure (the firmware sometimes garbage).
-            reply = p.encode_bus_reply(cmd.servo_id, cmd.sub, None, p.BUS_FAILURE)
-        else:
-            reply = p.encode_bus_reply(cmd.servo_id, cmd.sub, self._bus_value(servo, cmd.sub,
-                                                                              done))
-        self._reply(done, reply)
-        return duration
-
-    def _bus_value(self, servo: SimBusServo, sub: int, t: float) -> p.BusValue:
-        if sub == p.BusSub.READ_POSITION:
-            return servo.read_position(t)
-        if sub == p.BusSub.READ_VOLTAGE:
-            mv = servo.voltage_mv if servo.voltage_mv is not None else self.battery_mv
-            return max(0, min(p.U16_MAX, mv))
-        if sub == p.BusSub.READ_TEMPERATURE:
-            return max(0, min(255, int(servo.temperature_c)))
-        if sub == p.BusSub.READ_LOAD:
-            return int(servo.loaded)
-        if sub == p.BusSub.READ_ID:
-            return servo.servo_id
-        if sub == p.BusSub.READ_OFFSET:
-            return servo.offset
-        if sub == p.BusSub.READ_ANGLE_LIMITS:
-            return servo.angle_limits
-        if sub == p.BusSub.READ_VOLTAGE_LIMITS:
-            return servo.voltage_limits
-        return servo.temperature_limit_c
-
-
-def servo_limits(servo: SimBusServo, sub: int, low: int, high: int) -> None:
-    """Apply a limit command with the firmware's clamps, then its swap (O24)."""
-    if sub == p.BusSub.SET_ANGLE_LIMITS:
-        low, high = min(low, p.BUS_POSITION_MAX), min(high, p.BUS_POSITION_MAX)
-        servo.angle_limits = (min(low, high), max(low, high))
-    else:
-        low, high = max(low, p.BUS_VOLTAGE_MIN_MV), min(high, p.BUS_VOLTAGE_MAX_MV)
-        servo.voltage_limits = (min(low, high), max(low, high))
 
 
 def _triple(values: Sequence[float], name: str) -> Tuple[float, float, float]:
