@@ -30,7 +30,6 @@ cycles and a shutdown; after every step:
 
 from __future__ import annotations
 
-import os
 import random
 
 from desheng_servo_ros import protocol as proto
@@ -39,14 +38,12 @@ from desheng_servo_ros.schedule import (COMMAND_BURST, COMMAND_SPACING, sync_wri
                                         TORQUE_OFF_ALL)
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
-from hypothesis import HealthCheck, Phase, settings, strategies as st
+from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import (initialize, invariant, precondition, rule,
                                  RuleBasedStateMachine, run_state_machine_as_test)
+from model_runs import EXAMPLES, PHASES
 from uav_serial_common.pty_port import wire_time
 
-EXAMPLES = int(os.environ.get('UAV_MODEL_EXAMPLES', '200'))
-# UAV_MODEL_SHRINK=0 reports a violation as found, without the (slow) search for a shorter one.
-PHASES = [p for p in Phase if os.environ.get('UAV_MODEL_SHRINK', '1') != '0' or p != Phase.shrink]
 STEPS = 40
 START = 100.0
 BAUD = 115200
