@@ -417,6 +417,9 @@ def run_autopilot(m: Mission, procs: Processes) -> str:
                   'the autopilot heard and the parachute state known')
     m.say(f'  parachute 1/161 heartbeats with system_status {link.system_status}; autopilot '
           f'{link.autopilot_system_id}/{link.autopilot_component_id} heard')
+    # The drop above may still be falling: arming in a free fall would fire at once, and the
+    # driver refuses that (so would the autopilot's ENABLE be).
+    m.wait(lambda: m.status is not None and m.status.accel_g >= 0.9, 10, 'the free fall over')
     m.step(procs, 'the autopilot arms the parachute: MAV_CMD_DO_PARACHUTE ENABLE')
     reply = m.call(Trigger, '/virtual_autopilot/parachute_enable', Trigger.Request(), 15.0)
     if not reply.success:
