@@ -9,6 +9,7 @@ before the executor's shutdown; the deterministic case is in test_executor.py).
 import signal
 
 import pytest
+from uav_serial_common.process import wait_for
 
 EXITS = 6
 """Exits per driver. The old code failed 4 of 8 on the servo bus, 3 of 12 on the handset; the
@@ -41,6 +42,11 @@ def test_round2_9_clean_sigint_and_sigterm_exits_print_no_exception(
         code = proc.stop(sig, timeout=15.0)
         output = proc.output()
         assert code == 0, f'exit {k} ({sig.name}) ended with {code}:\n{output}'
+        # Gone from the graph before the next start, whose wait for this service would
+        # otherwise see the old one and signal a process still starting (before its handlers).
+        wait_for(lambda: all(name != driver_up
+                             for name, _ in ros.node.get_service_names_and_types()),
+                 15, interval=0.05, what=f'{driver_up} gone after exit {k}')
         if any(word in output for word in NOISE):
             noisy.append(f'--- exit {k} ({sig.name}) ---\n{output}')
     assert not noisy, f'{len(noisy)} of {EXITS} clean exits were noisy:\n' + '\n'.join(noisy)
