@@ -451,7 +451,8 @@ class StreamDecoder(BaseStreamDecoder):
     ``flush(now)`` while the line is quiet, or ``flush()`` when the caller has measured the
     silence itself. A partial candidate is also given up as soon as a complete sound frame lies
     inside it (no accepted frame can hold one, H12), so a false start in noise never delays the
-    frames behind it.
+    frames behind it; so is a complete one whose payload is malformed, so a false start whose
+    checksum matches by chance never swallows the frames inside it.
 
     Counters: ``frames_accepted``, ``frames_malformed``, ``frames_out_of_range``,
     ``frames_unknown_type``, and the base's ``frames_decoded`` (sound frames, whatever their
@@ -534,6 +535,12 @@ class StreamDecoder(BaseStreamDecoder):
             return DROP if raw[-1] != END else BAD_CHECKSUM
         result = _interpret(raw, n - end)
         kind = type(result)
+        if kind is Malformed and self._sound_frame_within(pos + 1, end):
+            # H12 for a complete candidate: a sound-framed candidate whose payload is malformed
+            # and that holds a complete sound frame is a false start (its checksum a 1-in-256
+            # coincidence over noise and truncated frames), not a frame that swallows one.
+            out.append(self._reject(pos, n, total, 'a complete frame starts inside it'))
+            return DROP
         if kind is Command:
             self.frames_accepted += 1
         elif kind is OutOfRange:

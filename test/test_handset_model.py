@@ -196,3 +196,21 @@ class HandsetLinkModel(RuleBasedStateMachine):
 
 def test_round2_8_handset_failsafe_invariants_hold_over_random_sequences():
     search(HandsetLinkModel, 'handset', steps=30)
+
+
+def test_model_example_a_false_start_with_a_chance_checksum_does_not_swallow_a_stick_frame():
+    """The 20,000-sequence search's finding, kept as an example of the machine's own steps.
+
+    A truncated altitude frame, noise, a truncated yaw frame and a valid yaw frame add up to
+    exactly the 21 bytes the first LEN claims, end byte in place and checksum matching by
+    chance: the decoder took the whole as one malformed frame and lost the yaw frame (H12).
+    """
+    machine = HandsetLinkModel()
+    machine.start(timeout=1.0, battery_timeout=10.0, low=0.2)
+    machine.refused('altitude_m', 'truncated')
+    machine.noise(bytes.fromhex('3b44ae'))
+    machine.noise(bytes.fromhex('257795e7eb'))
+    machine.refused('yaw_deg', 'truncated')
+    machine.sticks(['yaw_deg'], 'int16')
+    machine.link_lost_exactly_when_a_stick_is_link_timeout_s_old()
+    machine.teardown()

@@ -161,6 +161,18 @@ def test_h12_a_false_start_in_noise_does_not_delay_the_frames_behind_it():
     assert kinds(results) == ['Malformed', 'Command'] and decoder.pending == 0
 
 
+def test_h12_a_complete_false_start_whose_checksum_matches_by_chance_keeps_the_frame_inside():
+    # The model search's finding: 21 bytes of truncated frames and noise whose end byte and XOR
+    # checksum happen to be right; its payload is malformed, and the yaw frame inside is taken.
+    for chunks in ([h('AA 12 04 3B 44 AE 25 77 95 E7 EB AA 0D 01 AA 04 01 2D 00 82 55')],
+                   [h('AA 12 04'), h('3B 44 AE'), h('25 77 95 E7 EB'), h('AA 0D 01'),
+                    h('AA 04 01 2D 00 82 55')]):
+        decoder = p.StreamDecoder()
+        results = [r for chunk in chunks for r in decoder.feed(chunk)]
+        assert commands(results) == [(T.SET_YAW, 45.0, 'int16')]
+        assert decoder.pending == 0 and decoder.frames_accepted == 1
+
+
 def test_h3_resync_after_bad_checksum():
     bad = bytearray(YAW_90_JSON)
     bad[-2] ^= 0x01
