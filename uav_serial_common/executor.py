@@ -48,6 +48,7 @@ class DriverExecutor(Executor):
         self._pool_tasks: List[Tuple[Task, Future]] = []
         self._pool_lock = threading.Lock()
         self._closing = False
+        self._stop_spinning = False
         self._start_pool(num_threads)
 
     def _start_pool(self, threads: int) -> None:
@@ -62,6 +63,15 @@ class DriverExecutor(Executor):
             self._workers.submit(_pass, gate)
         _pass(gate)
 
+    def stop_spinning(self) -> None:
+        """Make a `spin_once` waiting now (and every later one) return at once.
+
+        `wake()` alone does not end a wait: rclpy rebuilds its wait set and waits on, so a node
+        with no timer (a virtual device) held its shutdown for the whole join timeout.
+        """
+        self._stop_spinning = True
+        self.wake()
+
     def spin_once(self, timeout_sec: Optional[float] = None) -> None:
         """Wait for one ready callback and run it (inline) or hand it to the pool."""
         self._run_one(timeout_sec)
@@ -75,7 +85,8 @@ class DriverExecutor(Executor):
     def _run_one(self, timeout_sec: Optional[float],
                  condition: Callable[[], bool] = lambda: False) -> None:
         try:
-            handler, entity, _ = self.wait_for_ready_callbacks(timeout_sec, None, condition)
+            handler, entity, _ = self.wait_for_ready_callbacks(
+                timeout_sec, None, lambda: self._stop_spinning or condition())
         except (ExternalShutdownException, ShutdownException, TimeoutException,
                 ConditionReachedException):
             return

@@ -79,7 +79,7 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
         signals.stop.set()
         if executor is not None:
             try:
-                executor.wake()  # out of its wait now: it waits without a timeout
+                executor.stop_spinning()  # out of its wait now: it waits without a timeout
             except Exception as exc:  # noqa: BLE001 - shutting down regardless
                 print(f'waking the executor failed: {exc!r}', file=sys.stderr)
         if spinner is not None:

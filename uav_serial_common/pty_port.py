@@ -71,12 +71,15 @@ class VirtualSerialPort:
         self._slave_name: Optional[str] = None
         self.plugged = False
         self.dropped_bytes = 0
+        self.halted = False
+        """Set by `halt()`: writes stop at once (the device is being stopped)."""
 
     # -- lifecycle ------------------------------------------------------------------------------
 
     def open(self) -> 'VirtualSerialPort':
         """Create the pty pair and publish its path; returns self."""
         with self._lock:
+            self.halted = False
             self._open_locked()
         return self
 
@@ -120,6 +123,15 @@ class VirtualSerialPort:
                 except OSError:
                     pass
         self._master = self._slave = None
+
+    def halt(self) -> None:
+        """Make every write in progress or to come give up (raise `PortUnplugged`).
+
+        For stopping the device: a write to a driver that no longer reads stalls up to
+        `WRITE_STALL_DROP_S` per frame, which held a stop for seconds. The descriptors stay open
+        until `close()`, so a thread still using them never writes to a reused one.
+        """
+        self.halted = True
 
     def unplug(self) -> None:
         """Simulate pulling the cable: the path vanishes and the driver's open port fails."""
@@ -236,7 +248,7 @@ class VirtualSerialPort:
         stalled_since: Optional[float] = None
         while view:
             master = self._master
-            if master is None:
+            if master is None or self.halted:
                 raise PortUnplugged('port is unplugged')
             try:
                 written = os.write(master, view)

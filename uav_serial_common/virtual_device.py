@@ -106,6 +106,7 @@ class VirtualDeviceRunner:
     def stop(self) -> None:
         """Stop the thread and remove the pty."""
         self._running.clear()
+        self.port.halt()
         if self._thread is not None:
             self._thread.join(2.0)
             self._thread = None
