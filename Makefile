@@ -2,6 +2,9 @@
 SHELL := /bin/bash
 ENV := source tools/env.sh
 PYTEST_ARGS ?=
+# Test files run side by side in pytest-xdist workers, each with its own ROS domain: most of a
+# test's time is waiting on a device's timing, not CPU, so four workers fit two cores.
+TEST_WORKERS ?= 4
 
 .PHONY: all build test demo bench lint clean distclean
 
@@ -11,7 +14,8 @@ build:
 	@flock .build.lock bash tools/bootstrap.sh
 
 test: build
-	@$(ENV) && python -m pytest test -p no:cacheprovider $(PYTEST_ARGS)
+	@$(ENV) && python -m pytest test -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile \
+		$(PYTEST_ARGS)
 
 lint: build
 	@$(ENV) && python -m pytest test/test_lint.py -p no:cacheprovider $(PYTEST_ARGS)

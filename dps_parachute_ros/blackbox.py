@@ -296,7 +296,8 @@ class BlackBox:
             with self._lock:
                 self._open_failed = True
             where = self._fixed_path or self.directory
-            self._failed(f'cannot create a file in {where!r}: {exc.strerror or exc}', 0)
+            # The reason first: a report or diagnostic that clips a long path keeps it.
+            self._failed(f'cannot create a file ({exc.strerror or exc}) in {where!r}', 0)
             return False
         with self._lock:
             self._open_failed = False

@@ -23,8 +23,9 @@ from uav_serial_common.process import claim_domain_id  # noqa: E402
 
 def pytest_configure(config: pytest.Config) -> None:
     """Isolate this session's ROS traffic before anything imports rclpy."""
-    if not hasattr(config, 'workerinput'):
-        os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
+    # Each process claims its own: the session, and each of its pytest-xdist workers (which
+    # inherit the session's environment), so tests running side by side never share a graph.
+    os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')

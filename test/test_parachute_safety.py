@@ -225,10 +225,12 @@ def test_round2_1_a_driver_respawn_never_writes_a_setting_that_would_deploy(make
         asked = rig.sim.requests_sent
     start = len(rig.diagnostics)
     rig.respawn()
+    # Until the respawned driver has read the module's state it may say only that the
+    # settings differ; then it must say why it holds the write back.
     status = settings_diagnostic(rig, lambda s: s.level == DiagnosticStatus.WARN and
-                                 'attitude_threshold_deg' in s.message, start=start)
-    assert 'would deploy now: tilt 30° ≥ attitude threshold 20°' in status.message, \
-        status.message
+                                 'would deploy now' in s.message, start=start)
+    assert 'attitude_threshold_deg' in status.message and \
+        'would deploy now: tilt 30° ≥ attitude threshold 20°' in status.message, status.message
     assert 'Traceback' not in rig.proc.output()
     with rig.model():
         assert rig.sim.attitude_threshold_deg == 70 and rig.sim.armed
