@@ -68,19 +68,19 @@ from originman_board_ros.core_commands import (BUS_DURATION_MAX_S, Commands,  # 
 from originman_board_ros.core_services import Services
 from originman_board_ros.core_settings import SETTINGS_RETRY_S, SettingsAtConnect  # noqa: F401
 from originman_board_ros.core_types import (  # noqa: F401 (the names of this module's API)
-    AsrSample, battery_volts, BatterySample, bus_position_to_rad, BusServoStatesResult,
-    BusServoStatus, ButtonSample, CommandResult, ConfigError, gamepad_axes, gamepad_buttons,
-    GamepadSample, imu_to_si, ImuSample, MOTOR_TYPES, OriginManConfig, OriginManSnapshot,
-    PwmServoStatesResult, Refused, sbus_normalize, SbusSample, STANDARD_GRAVITY)
+    AsrSample, battery_volts, BatterySample, bus_position_to_rad, BusServoStatus, ButtonSample,
+    ConfigError, gamepad_axes, gamepad_buttons, GamepadSample, imu_to_si, ImuSample,
+    MOTOR_TYPES, OriginManConfig, OriginManSnapshot, PwmServoStates, Refused, sbus_normalize,
+    SbusSample, STANDARD_GRAVITY)
 from originman_board_ros.link import LinkDown, LinkError, OriginManLink
 from originman_board_ros.plan import BoardPlan
+from uav_serial_common.result import Outcome, Result  # noqa: F401 (what the core answers)
 
-__all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'BusServoStatesResult',
-           'ButtonSample', 'CommandResult', 'ConfigError', 'GamepadSample', 'ImuSample',
-           'MOTOR_TYPES', 'OriginManConfig', 'OriginManCore', 'OriginManSnapshot',
-           'PwmServoStatesResult', 'Refused', 'SbusSample', 'battery_volts',
-           'bus_position_to_rad', 'gamepad_axes', 'gamepad_buttons', 'imu_to_si',
-           'sbus_normalize']
+__all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'ButtonSample', 'ConfigError',
+           'GamepadSample', 'ImuSample', 'MOTOR_TYPES', 'OriginManConfig', 'OriginManCore',
+           'OriginManSnapshot', 'Outcome', 'PwmServoStates', 'Refused', 'Result', 'SbusSample',
+           'battery_volts', 'bus_position_to_rad', 'gamepad_axes', 'gamepad_buttons',
+           'imu_to_si', 'sbus_normalize']
 
 WORKER_PERIOD_S = 0.01
 """How often the worker looks for the board's first frames while it is offline."""
@@ -102,9 +102,10 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
     each poll cycle (every id of ``bus_servo_ids``, offline ones with ``online`` False);
     ``on_online_change(online: bool, reason: str)`` from the worker on every change.
 
-    Command methods return a :class:`CommandResult` (or a ``*Result`` with data) and never
-    raise for bad input, a refused command or a failed device: a refusal has ``cause`` set and
-    sent nothing. Reads block for at most a few read timeouts per servo.
+    Command methods return a :class:`~uav_serial_common.result.Result` (``value``: what a
+    read returned) and never raise for bad input, a refused command or a failed device: a
+    refusal (outcome REFUSED, with its ``cause``) sent nothing; a command the board never
+    acknowledges is SENT. Reads block for at most a few read timeouts per servo.
     """
 
     def __init__(self, config: OriginManConfig, *, clock: Callable[[], float] = time.monotonic,
