@@ -112,6 +112,9 @@ class SerialLink:
         self.reader_error = ''
         self.reader_errors = 0
         self.last_rx_time: Optional[float] = None
+        """When the reader thread received the last bytes (monotonic clock)."""
+        # Bytes read and not yet handed on (the reader decodes and dispatches them).
+        self._rx_busy = False
         self._decoder = decoder
         self._on_frame = on_frame
         self._on_connection = on_connection
@@ -178,6 +181,22 @@ class SerialLink:
     def wait_connected(self, timeout: float) -> bool:
         """Wait until the port is open; returns whether it is."""
         return self._connected.wait(timeout)
+
+    def unread_input(self) -> bool:
+        """Whether bytes have come in that the reader has not handed on yet.
+
+        Bytes wait in the port, are being decoded and dispatched, or are held by the decoder:
+        frames may still come of them. A caller waiting for the line to go quiet asks this, so
+        that a reader late on a loaded machine is not taken for a quiet line.
+        """
+        with self._rx_lock:
+            if self._rx_busy or getattr(self._decoder, 'pending', 0):
+                return True
+            port = self._serial
+            try:
+                return port is not None and port.in_waiting > 0
+            except PORT_ERRORS:
+                return False
 
     @property
     def reader_alive(self) -> bool:
@@ -358,6 +377,7 @@ class SerialLink:
             data = port.read(1)
             if data and port.in_waiting:
                 data += port.read(port.in_waiting)
+            self._rx_busy = bool(data)
             return data
         # The same as pyserial's read, minus a second select and an ioctl per wake-up: on a
         # half-duplex bus every reply pays for them, so they show in the bus rate.
@@ -381,6 +401,10 @@ class SerialLink:
                     data = os.read(fd, 4096)
             except BlockingIOError:
                 return b''
+            # Stamped in the read's own lock: unread_input() sees the bytes in the port or here.
+            self._rx_busy = bool(data)
+            if data:
+                self.last_rx_time = time.monotonic()
         if not data:
             raise serial.SerialException('device reports readiness to read but returned no data '
                                          '(device disconnected?)')
@@ -426,13 +450,17 @@ class SerialLink:
         self._dispatch(frames)
 
     def _receive(self, data: bytes) -> None:
-        self.last_rx_time = time.monotonic()
-        self.stats.bytes_in += len(data)
-        if self._on_rx is not None:
-            self._on_rx(data)
-        with self._rx_lock:
-            frames = self._decoder.feed(data)
-        self._dispatch(frames)
+        if self._fast_fd is None:
+            self.last_rx_time = time.monotonic()
+        try:
+            self.stats.bytes_in += len(data)
+            if self._on_rx is not None:
+                self._on_rx(data)
+            with self._rx_lock:
+                frames = self._decoder.feed(data)
+            self._dispatch(frames)
+        finally:
+            self._rx_busy = False
 
     def _dispatch(self, frames: Iterable[Any]) -> None:
         for frame in frames:
