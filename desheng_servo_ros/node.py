@@ -164,7 +164,7 @@ class ServoBusNode(Node):
     def _publish(self, snapshot: BusSnapshot) -> None:
         # The core's reporter thread, after every cycle (and while the port is away).
         sec, nanosec = self._stamp(snapshot.read_at)
-        if snapshot.connected:
+        if snapshot.port_open:
             self.joint_pub.publish(self._joints.pack(snapshot, sec, nanosec))
         self.state_pub.publish(self._states.pack(snapshot, sec, nanosec))
 

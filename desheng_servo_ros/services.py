@@ -302,7 +302,7 @@ class ServoServices:
             lost = self._send_unacknowledged(
                 lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
             try:
-                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                if lost is not None and not self.bus.wait_port_open(SETTLE_WAIT_S):
                     return _unknown(what, lost, f'~/scan tells (id {new} answers if it did)')
                 if self._answers(new) != 'yes':
                     if lost is None:
@@ -349,7 +349,7 @@ class ServoServices:
             taken = servo_id != FACTORY_ID and self._answers(FACTORY_ID) != 'no'
             lost = self._send_unacknowledged(lambda: self.bus.reset(servo_id))
             try:
-                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                if lost is not None and not self.bus.wait_port_open(SETTLE_WAIT_S):
                     return _unknown(what, lost, f'~/scan tells (a reset servo answers at the '
                                                 f'factory id {FACTORY_ID})')
                 at_own = self._answers(servo_id) == 'yes'

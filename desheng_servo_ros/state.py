@@ -150,7 +150,7 @@ new_tuple = tuple.__new__
 class BusSnapshot:
     """Every configured servo, and whether the port is open."""
 
-    connected: bool
+    port_open: bool
     servos: Tuple[ServoSnapshot, ...] = field(default_factory=tuple)
     read_at: Optional[float] = None
     """When the oldest position of an online servo arrived off the wire (monotonic) [s]: the

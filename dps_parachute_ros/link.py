@@ -140,9 +140,9 @@ class ParachuteLink:
         self.serial.stop(timeout)
 
     @property
-    def connected(self) -> bool:
+    def port_open(self) -> bool:
         """Whether the port is open."""
-        return self.serial.connected
+        return self.serial.port_open
 
     @property
     def last_frame_time(self) -> Optional[float]:
@@ -224,7 +224,7 @@ class ParachuteLink:
                 self.write(p.encode_trigger_records_query())
                 deadline = time.monotonic() + timeout
                 with self._collector_cond:
-                    while len(records) < max_records and self.connected:
+                    while len(records) < max_records and self.port_open:
                         now = time.monotonic()
                         if records:
                             quiet_at = self._record_rx_at + quiet_s
@@ -241,7 +241,7 @@ class ParachuteLink:
                 with self._collector_cond:
                     self._collector = None
             if not records:
-                if not self.connected:
+                if not self.port_open:
                     raise LinkDown('port closed while waiting for trigger records')
                 self.timeouts += 1
                 raise LinkTimeout(f'no trigger record within {timeout * 1000:.0f} ms')

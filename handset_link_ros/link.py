@@ -83,7 +83,7 @@ class ModemLink:
     @property
     def port_open(self) -> bool:
         """Whether the serial port is open."""
-        return self.serial.connected
+        return self.serial.port_open
 
     # -- bytes in -------------------------------------------------------------------------------
 

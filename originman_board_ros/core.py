@@ -196,7 +196,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         that the last motor frame on the wire is a stop whatever the worker wrote meanwhile
         (desired settings include the motor type).
         """
-        if stop_motors and self.link.connected:
+        if stop_motors and self.link.port_open:
             self.stop_all_motors()
         self._stop.set()
         self._wake.set()
@@ -210,7 +210,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             self._thread = None
         else:
             worker_ran = False
-        if stop_motors and worker_ran and self.link.connected:
+        if stop_motors and worker_ran and self.link.port_open:
             self.stop_all_motors()
         self.link.stop()
 
@@ -299,7 +299,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         with self._lock:
             change, fired = self._plan.tick(now)
             online = self._plan.online
-            if not self.link.connected:
+            if not self.link.port_open:
                 self._status = f'port {self.config.port} not open: ' \
                                f'{self.link.serial.last_error or "connecting"}'
             elif not online and self._plan.judge.last_frame_at is None:
@@ -395,7 +395,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
                 waits = [TIMER_IDLE_S]
                 with self._lock:
                     deadline = self._plan.watchdog.deadline
-                    if deadline is not None and self._plan.judge.connected:
+                    if deadline is not None and self._plan.judge.port_open:
                         waits.append(deadline - now)
                     due = self._plan.scheduler.next_time(pace_now)
                     if due is not None:
@@ -484,12 +484,12 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             battery = self._battery_mv
             warn = self._battery_warn_mv()
             return OriginManSnapshot(
-                connected=link.connected, online=self._plan.online, status=self._status,
+                port_open=link.port_open, online=self._plan.online, status=self._status,
                 port_error=link.serial.last_error,
                 last_frame_age_s=None if last is None else max(0.0, now - last),
                 battery_mv=battery, battery_low=battery is not None and battery < warn,
-                battery_warn_mv=warn, frames=decoder.frames_decoded,
-                crc_errors=decoder.checksum_errors, bytes_discarded=decoder.bytes_discarded,
+                battery_warn_mv=warn, frames_decoded=decoder.frames_decoded,
+                checksum_errors=decoder.checksum_errors, bytes_discarded=decoder.bytes_discarded,
                 unknown_functions=decoder.unknown_functions, unknown_frames=link.unknown_frames,
                 unexpected_replies=link.unexpected_replies, reports=dict(self._reports),
                 reads=link.reads, read_timeouts=link.read_timeouts,

@@ -100,7 +100,7 @@ class Commands:
         return Result.refused(exc.cause, str(exc))
 
     def _require_online(self) -> None:
-        if not self.link.connected:
+        if not self.link.port_open:
             raise Refused('offline', f'port {self.config.port} is not open: '
                                      f'{self.link.serial.last_error or "connecting"}')
         if not self._plan.online:

@@ -241,7 +241,7 @@ class PwmServoStates:
 class OriginManSnapshot:
     """The core's state for diagnostics, taken at once under its lock."""
 
-    connected: bool
+    port_open: bool
     online: bool
     status: str
     port_error: str
@@ -249,8 +249,8 @@ class OriginManSnapshot:
     battery_mv: Optional[int]
     battery_low: bool
     battery_warn_mv: int
-    frames: int
-    crc_errors: int
+    frames_decoded: int
+    checksum_errors: int
     bytes_discarded: int
     unknown_functions: int
     unknown_frames: int

@@ -322,7 +322,7 @@ class OriginManBoardNode(Node):
         short; it is bounded by the link's write and the worker's current read.
         """
         self._closing = True
-        connected = self.core.link.connected
+        connected = self.core.link.port_open
         self.core.stop(stop_motors=True)
         self.get_logger().info('shutdown: every motor stopped' if connected else
                                'shutdown: the port is not open, no motor stop could be sent')

@@ -38,7 +38,7 @@ class Rig:
             on_bus_servo_states=self.events['states'].append,
             on_online_change=lambda online, why: self.events['online'].append((online, why)))
         self.core.start(worker=False)
-        assert self.core.link.wait_connected(5), 'the core did not open the port'
+        assert self.core.link.wait_port_open(5), 'the core did not open the port'
         with self.board.locked():
             self.model.power_on()
 
@@ -138,7 +138,7 @@ def test_o20_offline_while_the_port_is_missing(tmp_path):
                  what='the open error')
         core.poll()
         snap = core.snapshot()
-        assert not snap.online and not snap.connected and 'not open' in snap.status
+        assert not snap.online and not snap.port_open and 'not open' in snap.status
         assert core.link.baud == 1_000_000
     finally:
         core.stop()

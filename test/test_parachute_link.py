@@ -25,7 +25,7 @@ def rig(tmp_path):
     box = BlackBox(str(tmp_path / 'bb'))
     link = ParachuteLink(runner.path, 115200, unsolicited.append, blackbox=box)
     link.start()
-    assert link.serial.wait_connected(5)
+    assert link.serial.wait_port_open(5)
     yield sim, runner, link, unsolicited, wire, box
     link.stop()
     runner.stop()
@@ -156,7 +156,7 @@ def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_r
     link = ParachuteLink(os.ttyname(slave), 115200, on_message)
     link.start()
     try:
-        assert link.serial.wait_connected(5)
+        assert link.serial.wait_port_open(5)
         records = [p.encode_trigger_record(1, k, p.SOURCE_SERIAL, 60, 5, 30, True, False, 20,
                                            180) for k in range(1, 9)]
         answer = b''.join(records[:7]) + p.encode_status_frame(3, 10, True, True) + records[7]

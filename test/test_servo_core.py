@@ -82,7 +82,7 @@ class Rig:
         self.core = ServoBusCore(ServoBusConfig(**settings), clock=self.clock, logger=self.log,
                                  on_cycle=self.cycles.append)
         self.core.start(read_loop=loop)
-        assert self.core.bus.wait_connected(5)
+        assert self.core.bus.wait_port_open(5)
 
     @property
     def sim(self):
@@ -456,7 +456,7 @@ def test_safety_16_set_id_cut_by_an_unplug_for_good_says_the_outcome_is_unknown(
 
 def test_set_id_on_an_unplugged_bus_sends_nothing_and_says_so(rig):
     rig.dev.runner.unplug()
-    wait_for(lambda: not rig.core.bus.connected, 3, what='the port closed')
+    wait_for(lambda: not rig.core.bus.port_open, 3, what='the port closed')
     result = rig.core.set_id(3, 9)
     assert (result.outcome, result.cause) == (Outcome.REFUSED, 'offline'), result
     assert sorted(rig.sim.ids) == [1, 2, 3]
@@ -683,7 +683,7 @@ def test_a_scan_cut_by_an_unplug_says_so_and_the_bus_reads_again_after(rig):
     # A PING changes nothing on a servo; and it did leave.
     assert result.outcome is Outcome.FAILED, result.message
     rig.dev.runner.replug()
-    assert rig.core.bus.wait_connected(5)
+    assert rig.core.bus.wait_port_open(5)
     result = rig.core.scan(1, 80)
     assert result.ok and result.value['ids'] == [1, 2, 3], result.message
 

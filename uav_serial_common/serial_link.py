@@ -140,7 +140,7 @@ class SerialLink:
         self._waiters: Tuple[Any, ...] = ()
         self._waiters_lock = threading.Lock()
         self._stop = threading.Event()
-        self._connected = threading.Event()
+        self._port_open = threading.Event()
         self._thread: Optional[threading.Thread] = None
         # A request chain holding the line after a frame without a reply, and until when: the
         # reader thread ends the hold itself (no hand-off to the chain's caller).
@@ -174,13 +174,13 @@ class SerialLink:
         self._close('stopped')
 
     @property
-    def connected(self) -> bool:
+    def port_open(self) -> bool:
         """Return True while the port is open."""
-        return self._connected.is_set()
+        return self._port_open.is_set()
 
-    def wait_connected(self, timeout: float) -> bool:
+    def wait_port_open(self, timeout: float) -> bool:
         """Wait until the port is open; returns whether it is."""
-        return self._connected.wait(timeout)
+        return self._port_open.wait(timeout)
 
     def unread_input(self) -> bool:
         """Whether bytes have come in that the reader has not handed on yet.
@@ -209,7 +209,7 @@ class SerialLink:
         """Send bytes now; raises LinkDown when the port is not open."""
         with self._write_lock:
             port = self._serial
-            if port is None or not self._connected.is_set():
+            if port is None or not self._port_open.is_set():
                 raise LinkDown(f'{self.url} is not open: {self.last_error or "not connected"}')
             try:
                 self._write_port(port, data)
@@ -249,7 +249,7 @@ class SerialLink:
                 sent = True
                 if waiter.event.wait(timeout) and waiter.frame is not None:
                     return waiter.frame
-                if not self._connected.is_set():
+                if not self._port_open.is_set():
                     raise LinkDown(f'{self.url} closed while waiting for a reply')
             self.stats.timeouts += 1
             raise LinkTimeout(f'no reply within {timeout * 1000:.0f} ms '
@@ -284,7 +284,7 @@ class SerialLink:
                         run.expire()
                         continue
                 run.event.wait(remaining)
-                if not self._connected.is_set():
+                if not self._port_open.is_set():
                     with run.lock:
                         run.finish()
                     raise LinkDown(f'{self.url} closed while waiting for a reply')
@@ -529,7 +529,7 @@ class SerialLink:
         if self.stats.open_failures or self.stats.reconnects:
             self.stats.reconnects += 1
         self.last_error = ''
-        self._connected.set()
+        self._port_open.set()
         self._log.info(f'opened {self.url} at {self.baud} baud')
         self._notify(True, 'port open')
         return True
@@ -538,7 +538,7 @@ class SerialLink:
         """Close the port after a failure of `port` (default: the open one) and reconnect."""
         if port is not None and port is not self._serial:
             return  # that port is closed already; the first failure's reason stands
-        if self._connected.is_set():
+        if self._port_open.is_set():
             self._log.error(f'{self.url}: {reason}; reconnecting')
             self.last_error = reason
         elif not self.last_error:
@@ -546,8 +546,8 @@ class SerialLink:
         self._close(reason)
 
     def _close(self, reason: str) -> None:
-        was_connected = self._connected.is_set()
-        self._connected.clear()
+        was_open = self._port_open.is_set()
+        self._port_open.clear()
         port, self._serial = self._serial, None
         self._fast_fd = None
         if port is not None:
@@ -558,7 +558,7 @@ class SerialLink:
         # Wake every waiter: their request fails at once rather than at its timeout.
         for waiter in self._waiters:
             waiter.event.set()
-        if was_connected:
+        if was_open:
             self._notify(False, reason)
 
     def _notify(self, up: bool, reason: str) -> None:
