@@ -28,7 +28,7 @@ then; a shorter timeout only costs CPU (one wake-up each)."""
 class Received:
     """The results settled by one read (or by the line going quiet), and when that was."""
 
-    results: tuple[p.Result, ...]
+    results: tuple[p.Decoded, ...]
     time: float
 
 
