@@ -41,7 +41,8 @@ SAFETY_SYNC_S = 0.5
 DEPLOY_FRAME = p.encode_deploy()
 DEPLOY_OUTCOMES = {'refused': Outcome.REFUSED, 'already deployed': Outcome.DONE,
                    'deployed': Outcome.DONE, 'not deployed': Outcome.FAILED}
-"""The outcome of each way `_deploy_end` ends a deploy (an unknown one: `_deploy_unknown`)."""
+"""The outcome of each way `_deploy_end` ends a deploy (an unknown one: `_deploy_unknown`);
+another word is DONE when it succeeded, else FAILED (never a refusal not decided as one)."""
 
 
 class DeployProcedure:
@@ -356,7 +357,8 @@ class DeployProcedure:
             self._log('info' if success else 'warn', message)
         if success:
             self._emit_status()
-        return Result(DEPLOY_OUTCOMES[outcome], message, latency_ms=latency if success else None)
+        kind = DEPLOY_OUTCOMES.get(outcome, Outcome.DONE if success else Outcome.FAILED)
+        return Result(kind, message, latency_ms=latency if success else None)
 
     def arm(self, want: bool) -> Result:
         """`~/arm`: arm or lock; success only when the reply and a query agree (P7)."""
