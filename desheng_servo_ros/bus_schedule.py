@@ -91,7 +91,7 @@ class BusSchedule:
         self.max_retries = max_retries
         self.reads = ReadSchedule(1.0 / publish_rate_hz, max_retries, now)
         self.commands = CommandQueue()
-        self.connected = True
+        self.port_open = True
         self.closed = False
         self.urgent: Deque[Tuple[bytes, int]] = deque()
         self.services: Deque['_Service'] = deque()
@@ -148,7 +148,7 @@ class BusSchedule:
 
     def link(self, now: float, up: bool) -> List[Any]:
         """Take the port opening or closing; a transaction in flight is lost with it."""
-        self.connected = up
+        self.port_open = up
         judge_link(self.servos, up)
         self.reads.reset(now)
         for tx in (self._tx, self._retry):
@@ -175,7 +175,7 @@ class BusSchedule:
         self._tx = self._retry = None
         self._tx_deadline = math.inf
         for frame in shutdown_frames(self.torque_off_on_shutdown):
-            if self.connected:
+            if self.port_open:
                 actions.append(self._send_noreply(at, frame, 'shutdown'))
                 at = self._free_at
         return actions
@@ -184,7 +184,7 @@ class BusSchedule:
 
     def wake_at(self) -> float:
         """Return when :meth:`poll` has something to do (a deadline, a cycle, a batch)."""
-        if self.closed or not self.connected:
+        if self.closed or not self.port_open:
             return math.inf
         if self._tx is not None:
             return self._tx_deadline
@@ -210,7 +210,7 @@ class BusSchedule:
                 self._retry = tx  # decided at the boundary, like the next READ (next_on_bus)
             else:
                 tx.owner.retry = tx  # after an emergency stop that waits (_serve)
-        while not self.closed and self.connected and self._tx is None and now >= self._free_at:
+        while not self.closed and self.port_open and self._tx is None and now >= self._free_at:
             if not self._next(now, actions):
                 break
         return actions
@@ -220,7 +220,7 @@ class BusSchedule:
     def read_wanted(self, now: float) -> bool:
         """Whether the read loop has a READ to send at `now` (it wants the bus)."""
         reads = self.reads
-        if not (self._reading() and self.connected) or self.closed:
+        if not (self._reading() and self.port_open) or self.closed:
             return False
         if reads.in_cycle or self._retry is not None:
             return True

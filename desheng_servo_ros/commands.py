@@ -49,17 +49,17 @@ class CommandPath:
         try:
             targets = self._resolve(names, ids, positions, move_time_ms)
         except ValueError as exc:
-            return Result(False, clip(str(exc)))
+            return Result.refused('bad_input', clip(str(exc)))
         except Exception as exc:  # noqa: BLE001 - no input may cost the node
             self.log_error(f'command failed:\n{traceback.format_exc()}')
-            return Result(False, f'internal error: {exc!r}')
+            return Result.failed(f'internal error: {exc!r}', cause='internal')
         with self._cmd_cond:
             self._commands.add(targets)
             # While the read chain runs, a due command is handed to it on this thread and goes
             # out at the next READ boundary; otherwise the command thread sends it.
             if not (self._command_due() and self._post_pending()):
                 self._cmd_cond.notify()
-        return Result(True, f'{len(targets)} target(s) queued')
+        return Result.sent(f'{len(targets)} target(s) queued')
 
     def _command_due(self) -> bool:
         """Whether the next command frame may go now (``_cmd_cond`` held).

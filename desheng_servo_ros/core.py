@@ -173,7 +173,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         try:
             frames = shutdown_frames(self.config.torque_off_on_shutdown)
             if frames:
-                if not self.bus.connected:
+                if not self.bus.port_open:
                     # Said, not silently skipped: the servos may still hold their torque.
                     raise LinkDown(f'{self.config.port} is not open '
                                    f'({self.bus.link.last_error or "not connected"})')
@@ -219,7 +219,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 s.id, s.name, s.online, s.seen, r.ticks, r.rad, r.speed_raw, r.velocity,
                 t.current_ma, t.temperature_c, r.status, t.torque_enabled, s.error_count,
                 now < s.duplicate_until, r.at)))
-        return BusSnapshot(self.bus.connected, tuple(out),
+        return BusSnapshot(self.bus.port_open, tuple(out),
                            oldest if oldest < math.inf else None)
 
     # -- logging --------------------------------------------------------------------------------
@@ -296,15 +296,15 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                     return
                 self._pause_cond.wait(min(0.05, remaining))
 
-    def _wait_connected(self) -> bool:
+    def _wait_port_open(self) -> bool:
         while self._running:
-            if self.bus.wait_connected(0.1):
+            if self.bus.wait_port_open(0.1):
                 return True
         return False
 
     def _startup(self) -> None:
         while self._scan_at_start and self._running:
-            if not self._wait_connected():
+            if not self._wait_port_open():
                 return
             self.log_info('servo_ids is empty: scanning ids 1..250')
             try:
@@ -322,7 +322,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 'power, wiring and the baud parameter; scanning again in '
                 f'{SCAN_RETRY_S:.0f} s')
             self._sleep(SCAN_RETRY_S, until_pause=False)
-        if self.config.torque_on_start and self._wait_connected():
+        if self.config.torque_on_start and self._wait_port_open():
             for s in self._servos:
                 try:
                     self.bus.write(s.id, TORQUE.address, b'\x01', PRIORITY_LOOP)
@@ -338,14 +338,14 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 self._idle_while_paused()
                 cycles.reset()
                 continue
-            if not self.bus.connected:
+            if not self.bus.port_open:
                 # Keep servo_states (all offline) and diagnostics coming while the port is away,
                 # at the publish rate, and look at the port often enough for a prompt shutdown.
                 now = self.clock()
                 if now >= self._offline_report_at:
                     self._report()
                     self._offline_report_at = now + 1.0 / self.config.publish_rate_hz
-                self.bus.wait_connected(min(0.1, 1.0 / self.config.publish_rate_hz))
+                self.bus.wait_port_open(min(0.1, 1.0 / self.config.publish_rate_hz))
                 cycles.reset()
                 continue
             if not cycles.in_cycle:
@@ -499,7 +499,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
 
     def _report_missing(self) -> None:
         missing = [s for s in self._servos if not s.seen]
-        if not missing or not self.bus.connected:
+        if not missing or not self.bus.port_open:
             return
         listed = few(f'{s.name} (id {s.id})' for s in missing)
         if len(missing) == len(self._servos):

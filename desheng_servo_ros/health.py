@@ -26,7 +26,7 @@ class BusHealth:
         bus = self.bus
         values = [
             ('port', self.config.port), ('baud', self.config.baud),
-            ('link', 'open' if bus.connected else (bus.link.last_error or 'not open')),
+            ('link', 'open' if bus.port_open else (bus.link.last_error or 'not open')),
             ('online servos', f'{online}/{len(servos)}'),
             ('cycle rate [Hz]', f'{self.cycle_rate_hz:.1f}'),
             ('publish_rate_hz', f'{self.config.publish_rate_hz:g}'),
@@ -83,7 +83,7 @@ class BusHealth:
         link = self.bus.link
         if link.reader_error and not link.reader_alive and self._running:
             return ERROR, f'serial reader stopped: {link.reader_error}'
-        if not self.bus.connected:
+        if not self.bus.port_open:
             if link.last_error:
                 return ERROR, link.last_error
             if not link.stats.open_failures and not link.stats.reconnects:

@@ -130,13 +130,13 @@ class ServoBusLink:
         self.link.stop()
 
     @property
-    def connected(self) -> bool:
+    def port_open(self) -> bool:
         """Whether the port is open."""
-        return self.link.connected
+        return self.link.port_open
 
-    def wait_connected(self, timeout: float) -> bool:
+    def wait_port_open(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for the port to be open."""
-        return self.link.wait_connected(timeout)
+        return self.link.wait_port_open(timeout)
 
     # -- timing ---------------------------------------------------------------------------------
 

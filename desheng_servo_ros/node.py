@@ -139,7 +139,7 @@ class ServoBusNode(Node):
         try:
             result = self.core.command(msg.names, msg.ids, msg.positions, msg.move_time_ms)
         except Exception as exc:  # noqa: BLE001 - no message may end the process
-            result = Result(False, f'internal error: {exc!r}')
+            result = Result.failed(f'internal error: {exc!r}', cause='internal')
         if not result.ok:
             self.get_logger().warning(f'~/command refused, nothing sent: {clip(result.message)}',
                                       throttle_duration_sec=5.0)
@@ -149,11 +149,11 @@ class ServoBusNode(Node):
         def handler(request: Any, response: Any) -> Any:
             try:
                 result = call(request)
-                for key, value in (result.data or {}).items():
+                for key, value in (result.value or {}).items():
                     setattr(response, key, value)
             except Exception as exc:  # noqa: BLE001 - the core answers; this is a last resort
                 self.get_logger().error(f'{name} failed: {exc!r}')
-                result = Result(False, f'internal error: {exc!r}')
+                result = Result.failed(f'internal error: {exc!r}', cause='internal')
             response.success = result.ok
             response.message = clip(result.message)
             return response
@@ -164,7 +164,7 @@ class ServoBusNode(Node):
     def _publish(self, snapshot: BusSnapshot) -> None:
         # The core's reporter thread, after every cycle (and while the port is away).
         sec, nanosec = self._stamp(snapshot.read_at)
-        if snapshot.connected:
+        if snapshot.port_open:
             self.joint_pub.publish(self._joints.pack(snapshot, sec, nanosec))
         self.state_pub.publish(self._states.pack(snapshot, sec, nanosec))
 

@@ -41,26 +41,28 @@ def _service(method: Callable[..., Result]) -> Callable[..., Result]:
         try:
             result = method(self, *args, **kwargs)
         except (ValueError, RegisterError) as exc:
-            result = Result(False, f'refused: {exc}')
+            result = Result.refused('bad_input', f'refused: {exc}')
         except LinkError as exc:
             if not exc.sent and isinstance(exc, LinkDown):
-                result = Result(False, f'port not open: {exc}; nothing sent')
+                result = Result.refused('offline', f'port not open: {exc}; nothing sent')
             elif exc.sent and method.__name__ not in _READS_ONLY:
                 # The servo may have acted on a frame whose answer never came.
-                result = Result(False, f'bus error: {exc}; the request had left, so whether the '
-                                       'servo acted on it is UNKNOWN (read it back)')
+                result = Result.unknown(f'bus error: {exc}; the request had left, so whether '
+                                        'the servo acted on it is UNKNOWN (read it back)',
+                                        cause='no_reply')
             else:
-                result = Result(False, f'bus error: {exc}')
+                result = Result.failed(f'bus error: {exc}', cause='bus_error')
         except Exception as exc:  # noqa: BLE001 - a bug must not cost the node
             self.log_error(f'{method.__name__} failed:\n{traceback.format_exc()}')
-            result = Result(False, f'internal error: {exc!r}')
-        return Result(result.ok, clip(result.message), result.data)
+            result = Result.failed(f'internal error: {exc!r}', cause='internal')
+        return result.with_message(clip(result.message))
     return call
 
 
 def _unknown(what: str, error: LinkError, then: str) -> Result:
     """Answer an outcome the bus did not tell: never a success or refusal not seen."""
-    return Result(False, f'UNKNOWN whether {what}: its frame left, then {error}; {then}')
+    return Result.unknown(f'UNKNOWN whether {what}: its frame left, then {error}; {then}',
+                          cause='no_reply')
 
 
 class ServoServices:
@@ -76,16 +78,16 @@ class ServoServices:
         self._drop_pending([t[0] for t in targets])
         if not staged:
             self.bus.sync_write_positions(targets)
-            return Result(True, f'SYNC WRITE sent to {len(targets)} servo(s)')
+            return Result.sent(f'SYNC WRITE sent to {len(targets)} servo(s)')
         for servo_id, ticks, ms in targets:
             try:
                 self.bus.reg_write(servo_id, proto.TARGET_POSITION_ADDRESS,
                                    proto.encode_position_payload(ticks, ms))
             except LinkTimeout:
-                return Result(False, f'servo {servo_id} did not acknowledge its REG WRITE; '
-                                     'ACTION not sent, nothing moved')
-        self.bus.action()
-        return Result(True, f'REG WRITE to {len(targets)} servo(s), then ACTION')
+                return Result.failed(f'servo {servo_id} did not acknowledge its REG WRITE; '
+                                     'ACTION not sent, nothing moved', cause='no_reply')
+        self.bus.action()  # a broadcast: no servo answers it
+        return Result.sent(f'REG WRITE to {len(targets)} servo(s), then ACTION')
 
     @_service
     def set_torque(self, ids: Sequence[int], enable: bool) -> Result:
@@ -93,7 +95,7 @@ class ServoServices:
         chosen = select(self.servos, ids)
         by_id = {s.id: s for s in self._servos}
         value = b'\x01' if enable else b'\x00'
-        failed = []
+        failed, read_other = [], False
         for joint in chosen:
             who = f'{joint.name} (id {joint.id})'
             try:
@@ -105,11 +107,15 @@ class ServoServices:
             if joint.id in by_id:
                 by_id[joint.id].set_torque(back)
             if back != enable:
+                read_other = True
                 failed.append(f'{who} reads back torque {"on" if back else "off"}')
         state = 'on' if enable else 'off'
         if failed:
-            return Result(False, f'torque {state}: ' + few(failed, 3))
-        return Result(True, f'torque {state} for {len(chosen)} servo(s), verified by read-back')
+            # A servo that reads back the other state did not do it; one that did not answer
+            # may have.
+            message = f'torque {state}: ' + few(failed, 3)
+            return Result.failed(message) if read_other else Result.unknown(message, 'no_reply')
+        return Result.done(f'torque {state} for {len(chosen)} servo(s), verified by read-back')
 
     @_service
     def emergency_stop(self) -> Result:
@@ -120,7 +126,7 @@ class ServoServices:
         for s in self._servos:
             s.set_torque(False)
         self.log_warning('emergency stop: torque off broadcast to every servo')
-        return Result(True, 'torque off broadcast to every servo (id 254)')
+        return Result.sent('torque off broadcast to every servo (id 254)')
 
     @_service
     def read_register(self, servo_id: int, register_name: str, address: int,
@@ -159,8 +165,8 @@ class ServoServices:
         faults = proto.describe_status(reply.status)
         message = f'servo {servo_id} {label}: {text}' + (
             f' (status: {", ".join(faults)})' if faults else '')
-        return Result(True, message, {'value': number, 'text': text, 'data': list(data),
-                                      'status': reply.status})
+        return Result.done(message, {'value': number, 'text': text, 'data': list(data),
+                                     'status': reply.status})
 
     @_service
     def write_register(self, servo_id: int, register_name: str, value: int) -> Result:
@@ -173,16 +179,16 @@ class ServoServices:
         data = encode_value(reg, None if reg.address_only else int(value))
         self.bus.write(servo_id, reg.address, data)
         if servo_id == proto.BROADCAST_ID:
-            return Result(True, f'{reg.name} written to every servo (broadcast, no reply)')
+            return Result.sent(f'{reg.name} written to every servo (broadcast, no reply)')
         if reg.address_only or not reg.readable:
-            return Result(True, f'servo {servo_id} acknowledged {reg.name}')
+            return Result.done(f'servo {servo_id} acknowledged {reg.name}')
         back = decode_value(reg, bytes(self.bus.read(servo_id, reg.address, reg.size).params))
         if reg is TORQUE:
             for s in self._servos:
                 if s.id == servo_id:
                     s.set_torque(bool(back))
         ok = back == value
-        return Result(ok, f'servo {servo_id} {reg.name} = {back} {reg.unit}'.strip() + (
+        return Result.checked(ok, f'servo {servo_id} {reg.name} = {back} {reg.unit}'.strip() + (
             '' if ok else f' after writing {value} (the servo did not take it)'))
 
     @_service
@@ -212,7 +218,7 @@ class ServoServices:
         if slow:
             message += (f'; id(s) {few(slow)} answer late: the driver waits up to '
                         f'{max(self.bus.margin_for(i) for i in slow) * 1000:.0f} ms for them')
-        return Result(True, message, {'ids': found, 'firmware_versions': versions})
+        return Result.done(message, {'ids': found, 'firmware_versions': versions})
 
     @_service
     def go_to_preset(self, ids: Sequence[int], preset: int) -> Result:
@@ -227,8 +233,9 @@ class ServoServices:
             except LinkTimeout:
                 failed.append(f'{joint.name} (id {joint.id})')
         if failed:
-            return Result(False, f'no acknowledgement from {few(failed)}')
-        return Result(True, f'{len(chosen)} servo(s) running to preset {preset}')
+            # Sent, and not acknowledged: whether they run is not known.
+            return Result.unknown(f'no acknowledgement from {few(failed)}', 'no_reply')
+        return Result.done(f'{len(chosen)} servo(s) running to preset {preset}')
 
     def _answers(self, servo_id: int) -> str:
         """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
@@ -284,9 +291,10 @@ class ServoServices:
                                  '(~/scan)')
             count, why = self._how_many_answer(old)
             if count == 'none':
-                return Result(False, f'servo {old} does not answer; nothing changed')
+                return Result.refused('no_servo', f'servo {old} does not answer; nothing '
+                                      'changed')
             if count == 'several':
-                return Result(False, (
+                return Result.refused('shared_id', (
                     f'more than one servo answers at id {old} ({why}): a new id would go to '
                     'all of them. Disconnect or power off all but one, then try again; nothing '
                     'changed'))
@@ -294,14 +302,14 @@ class ServoServices:
             lost = self._send_unacknowledged(
                 lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
             try:
-                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                if lost is not None and not self.bus.wait_port_open(SETTLE_WAIT_S):
                     return _unknown(what, lost, f'~/scan tells (id {new} answers if it did)')
                 if self._answers(new) != 'yes':
                     if lost is None:
-                        return Result(False, f'servo {old} acknowledged but does not answer at '
-                                             f'id {new}; check with ~/scan')
+                        return Result.failed(f'servo {old} acknowledged but does not answer '
+                                             f'at id {new}; check with ~/scan')
                     if self._answers(old) == 'yes':
-                        return Result(False, f'servo {old} did not take id {new} ({lost}): it '
+                        return Result.failed(f'servo {old} did not take id {new} ({lost}): it '
                                              f'still answers at id {old}; nothing changed')
                     return _unknown(what, lost, f'neither id {old} nor {new} answers now; '
                                                 'check with ~/scan')
@@ -311,7 +319,7 @@ class ServoServices:
         message = f'servo {old} now answers at id {new}' + (
             '' if lost is None else f' (its acknowledgement was lost: {lost})')
         self.log_info(message)
-        return Result(True, message)
+        return Result.done(message)
 
     def _send_unacknowledged(self, send: Callable[[], Any]) -> Optional[LinkError]:
         """Run `send`; return None if acknowledged, the error if its frame left without one.
@@ -341,7 +349,7 @@ class ServoServices:
             taken = servo_id != FACTORY_ID and self._answers(FACTORY_ID) != 'no'
             lost = self._send_unacknowledged(lambda: self.bus.reset(servo_id))
             try:
-                if lost is not None and not self.bus.wait_connected(SETTLE_WAIT_S):
+                if lost is not None and not self.bus.wait_port_open(SETTLE_WAIT_S):
                     return _unknown(what, lost, f'~/scan tells (a reset servo answers at the '
                                                 f'factory id {FACTORY_ID})')
                 at_own = self._answers(servo_id) == 'yes'
@@ -361,7 +369,7 @@ class ServoServices:
         else:
             note = ''
         if at_own:
-            return Result(True, f'servo {servo_id} reset to factory settings (torque off)')
+            return Result.done(f'servo {servo_id} reset to factory settings (torque off)')
         give_back = (f'give it its id back with ~/set_id {FACTORY_ID} -> {servo_id}'
                      + (f' (this driver refuses that while servo_ids lists {servo_id}: run it '
                         f'without {servo_id} for the change)'
@@ -375,8 +383,8 @@ class ServoServices:
                        + f', and ~/set_id refuses an id more than one servo answers to. '
                        f'Disconnect {owner} (or power it off), then {give_back}')
             self.log_warning(message)
-            return Result(True, message + note)
+            return Result.done(message + note)
         if at_factory != 'none':
-            return Result(True, f'servo {servo_id} reset to factory settings and now answers at '
-                                f'the factory id {FACTORY_ID}; {give_back}{note}')
-        return Result(True, f'servo {servo_id} acknowledged RESET but no longer answers')
+            return Result.done(f'servo {servo_id} reset to factory settings and now answers at '
+                               f'the factory id {FACTORY_ID}; {give_back}{note}')
+        return Result.done(f'servo {servo_id} acknowledged RESET but no longer answers')

@@ -1,8 +1,8 @@
-"""What the servo driver knows and is told: config, results, readings, the servo record.
+"""What the servo driver knows and is told: config, readings, the servo record.
 
 No I/O, no threads. The registers the driver reads (the read loop's three READs), the node's
-configuration, a service's :class:`Result`, a diagnostic :class:`Health`, what a reply tells
-(:class:`Reading`, :class:`Telemetry`), the snapshots the node publishes, and
+configuration, a diagnostic :class:`Health`, what a reply tells (:class:`Reading`,
+:class:`Telemetry`), the snapshots the node publishes, and
 :class:`ServoRecord`, what the driver knows of one servo (written by the read loop's thread
 and the schedule's judgement, see ``core.py`` for who writes what when).
 """
@@ -16,6 +16,8 @@ from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.registers import by_name
 from desheng_servo_ros.units import Joint
+# The drivers' one result type; a service's `value` is a dict of its response fields.
+from uav_serial_common.result import Outcome, Result  # noqa: F401
 
 # Registers, by name from the table (registers.py).
 TORQUE = by_name('torque_enable')
@@ -76,14 +78,6 @@ class ServoBusConfig:
         """Build a config from a dict with (at least) the field names; others are ignored."""
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in values.items() if k in names})
-
-
-class Result(NamedTuple):
-    """A service's answer: whether it did what was asked, what happened, response fields."""
-
-    ok: bool
-    message: str
-    data: Optional[Dict[str, Any]] = None
 
 
 class Health(NamedTuple):
@@ -156,7 +150,7 @@ new_tuple = tuple.__new__
 class BusSnapshot:
     """Every configured servo, and whether the port is open."""
 
-    connected: bool
+    port_open: bool
     servos: Tuple[ServoSnapshot, ...] = field(default_factory=tuple)
     read_at: Optional[float] = None
     """When the oldest position of an online servo arrived off the wire (monotonic) [s]: the

@@ -25,6 +25,8 @@ REQUEST_TIMEOUT_S = 1.0
 """P12: no reply within 1 s of a request means the module is offline."""
 RECORDS_QUIET_S = 0.2
 """The trigger-record reply is complete when no further record came for this long."""
+UNREAD_POLL_S = 0.01
+"""How often the record query looks again while the reader has bytes still to hand on."""
 READ_TIMEOUT_S = 0.5
 """The reader's longest sleep on a quiet line (SerialLink wakes it 5 ms after the last byte when
 the decoder holds a frame that could still grow, P3); every wake-up costs CPU."""
@@ -119,6 +121,8 @@ class ParachuteLink:
         self._locks_guard = threading.Lock()
         self._collector: Optional[list] = None
         self._collector_cond = threading.Condition()
+        # When the reader received the bytes of the last record collected (monotonic).
+        self._record_rx_at = 0.0
         self.timeouts = 0
         self.serial = SerialLink(
             url, baud, self._decoder, on_frame=self._on_frame, on_connection=on_connection,
@@ -136,9 +140,9 @@ class ParachuteLink:
         self.serial.stop(timeout)
 
     @property
-    def connected(self) -> bool:
+    def port_open(self) -> bool:
         """Whether the port is open."""
-        return self.serial.connected
+        return self.serial.port_open
 
     @property
     def last_frame_time(self) -> Optional[float]:
@@ -200,6 +204,11 @@ class ParachuteLink:
 
         The number of records in an answer is not documented: collect until ``max_records``
         or until none came for ``quiet_s``. Raises LinkTimeout when none came at all.
+
+        The gap is the line's, not this thread's: measured from the time the reader received
+        the last record, and only once the reader has handed on every byte that came in. A
+        caller or a reader late on a loaded machine does not end the list early; a reader
+        that stays behind for ``timeout`` more does.
         """
         lock = self._lock_for((p.TriggerRecord,))
         if not lock.acquire(timeout=timeout + 1.0):
@@ -215,19 +224,24 @@ class ParachuteLink:
                 self.write(p.encode_trigger_records_query())
                 deadline = time.monotonic() + timeout
                 with self._collector_cond:
-                    while len(records) < max_records and self.connected:
-                        count = len(records)
-                        wait = quiet_s if records else deadline - time.monotonic()
-                        if wait <= 0:
-                            break
+                    while len(records) < max_records and self.port_open:
+                        now = time.monotonic()
+                        if records:
+                            quiet_at = self._record_rx_at + quiet_s
+                            if now >= quiet_at and (not self.serial.unread_input()
+                                                    or now >= quiet_at + timeout):
+                                break
+                            wait = max(quiet_at - now, UNREAD_POLL_S)
+                        else:
+                            wait = deadline - now
+                            if wait <= 0:
+                                break
                         self._collector_cond.wait(wait)
-                        if len(records) == count and (records or time.monotonic() >= deadline):
-                            break
             finally:
                 with self._collector_cond:
                     self._collector = None
             if not records:
-                if not self.connected:
+                if not self.port_open:
                     raise LinkDown('port closed while waiting for trigger records')
                 self.timeouts += 1
                 raise LinkTimeout(f'no trigger record within {timeout * 1000:.0f} ms')
@@ -249,6 +263,7 @@ class ParachuteLink:
         if isinstance(msg, p.TriggerRecord):
             with self._collector_cond:
                 if self._collector is not None:
+                    self._record_rx_at = self.serial.last_rx_time or time.monotonic()
                     self._collector.append(msg)
                     self._collector_cond.notify_all()
                     return

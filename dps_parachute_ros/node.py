@@ -232,7 +232,7 @@ class ParachuteNode(Node, Listener):
 
     def _get_records(self, request: Any, response: GetTriggerRecords.Response) -> Any:
         result = self.session.get_trigger_records()
-        response.records = [m.record_msg(r) for r in result.records]
+        response.records = [m.record_msg(r) for r in result.value or ()]
         return self._reply(response, result)
 
     # -- session callbacks (the session's threads) ----------------------------------------------

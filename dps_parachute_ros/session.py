@@ -370,69 +370,70 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         """`~/get_config`: read every setting afresh."""
         snap = self.snapshot
         if not snap.online:
-            return Result(False, f'{self._offline_text(snap)}; showing the last read-back')
+            return Result.refused('offline', f'{self._offline_text(snap)}; showing the last '
+                                  'read-back')
         try:
             self._read_config()
         except LinkError as exc:
-            return Result(False, f'could not read the settings: {exc}')
-        return Result(True, 'read afresh from the module')
+            return Result.failed(f'could not read the settings: {exc}', cause='no_reply')
+        return Result.done('read afresh from the module')
 
-    def get_trigger_records(self) -> Result:
-        """`~/get_trigger_records`: the module's non-empty trigger records."""
+    def get_trigger_records(self) -> Result[Tuple[p.TriggerRecord, ...]]:
+        """`~/get_trigger_records`: the module's non-empty trigger records (the value)."""
         snap = self.snapshot
         if not snap.online:
-            return Result(False, self._offline_text(snap))
+            return Result.refused('offline', self._offline_text(snap))
         try:
             records = self._fetch_records()
         except LinkError as exc:
-            return Result(False, f'no trigger records: {exc}')
-        return Result(True, f'{len(records)} record(s)', records=tuple(records))
+            return Result.failed(f'no trigger records: {exc}', cause='no_reply')
+        return Result.done(f'{len(records)} record(s)', value=tuple(records))
 
     def set_streaming(self, enabled: bool) -> Result:
         """`~/set_streaming`: turn the status stream on or off (kept across reconnects)."""
         snap = self.snapshot
         if not snap.online:
-            return Result(False, f'{self._offline_text(snap)}; nothing sent')
+            return Result.refused('offline', f'{self._offline_text(snap)}; nothing sent')
         try:
             ok = self._set_streaming(enabled, silence_ok=True)
         except LinkError as exc:
-            return Result(False, f'streaming not confirmed: {exc}')
+            return Result.unknown(f'streaming not confirmed: {exc}', cause='no_reply')
         with self._lock:
             self._config = replace(self._config, stream_status=enabled)
         self._emit_status()
-        return Result(ok, f'status stream {"on" if self.snapshot.streaming else "off"}')
+        return Result.checked(ok, f'status stream {"on" if self.snapshot.streaming else "off"}')
 
     def zero_sensor(self) -> Result:
         """`~/zero_sensor`: take the present attitude as level (P26)."""
         snap = self.snapshot
         if not snap.online:
-            return Result(False, f'{self._offline_text(snap)}; nothing sent')
+            return Result.refused('offline', f'{self._offline_text(snap)}; nothing sent')
         try:
             ack = self._req(p.encode_sensor_zero(), retries=1)
         except LinkError as exc:
-            return Result(False, f'zeroing not confirmed: {exc}')
+            return Result.unknown(f'zeroing not confirmed: {exc}', cause='no_reply')
         self.blackbox.record('state', event='sensor zeroed', success=ack.success)
-        return Result(ack.success, 'attitude sensor zeroed at the present mounting'
-                      if ack.success else f'module answered {ack.raw.hex(" ")}')
+        return Result.checked(ack.success, 'attitude sensor zeroed at the present mounting'
+                              if ack.success else f'module answered {ack.raw.hex(" ")}')
 
     def shutdown_module(self, confirm: str) -> Result:
         """`~/shutdown_module`: switch the module off (token SHUTDOWN)."""
         if confirm != SHUTDOWN_TOKEN:
-            return Result(False, f"refused: confirm must be exactly '{SHUTDOWN_TOKEN}' "
-                                 f'(got {confirm!r}); nothing sent')
+            return Result.refused('bad_token', f"refused: confirm must be exactly "
+                                  f"'{SHUTDOWN_TOKEN}' (got {confirm!r}); nothing sent")
         snap = self.snapshot
         if not snap.online:
-            return Result(False, f'{self._offline_text(snap)}; nothing sent')
+            return Result.refused('offline', f'{self._offline_text(snap)}; nothing sent')
         self._update(shutdown_expected=True)
         try:
             self._req(p.encode_shutdown(), retries=1)
         except LinkError as exc:
             self._update(shutdown_expected=False)
-            return Result(False, f'shutdown not acknowledged: {exc}')
+            return Result.unknown(f'shutdown not acknowledged: {exc}', cause='no_reply')
         self.blackbox.record('state', event='module shut down by request')
         self._safety_sync()
-        return Result(True, 'module acknowledged and is switching off; switch it on with its '
-                            'button (2 s) or external power')
+        return Result.done('module acknowledged and is switching off; switch it on with its '
+                           'button (2 s) or external power')
 
     # -- diagnostics helpers -----------------------------------------------------------------
 

@@ -23,11 +23,11 @@ from __future__ import annotations
 
 from dataclasses import replace
 import time
-from typing import Any, Optional, Tuple
+from typing import Any, Optional
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
-from dps_parachute_ros.state import Result, Snapshot
+from dps_parachute_ros.state import Outcome, Result, Snapshot
 
 DEPLOY_TOKEN = 'DEPLOY'
 MAX_FAILED_DEPLOYS = 2
@@ -39,6 +39,10 @@ ACTUATION_WAIT_S = 10.0
 SAFETY_SYNC_S = 0.5
 """Longest wait for the black box's fsync on a safety event; none while it is failing."""
 DEPLOY_FRAME = p.encode_deploy()
+DEPLOY_OUTCOMES = {'refused': Outcome.REFUSED, 'already deployed': Outcome.DONE,
+                   'deployed': Outcome.DONE, 'not deployed': Outcome.FAILED}
+"""The outcome of each way `_deploy_end` ends a deploy (an unknown one: `_deploy_unknown`);
+another word is DONE when it succeeded, else FAILED (never a refusal not decided as one)."""
 
 
 class DeployProcedure:
@@ -214,9 +218,10 @@ class DeployProcedure:
                 return self._deploy_end(
                     'refused', 'deploy refused: the module is locked (a locked module cannot '
                     'deploy); arm it with ~/arm or set arm_if_locked; nothing sent')
-            ok, message = self._arm(True, judge=False)  # deploying is what was asked
-            if not ok:
-                return self._deploy_end('refused', f'deploy refused: arming failed: {message}')
+            armed = self._arm(True, judge=False)  # deploying is what was asked
+            if not armed.ok:
+                return self._deploy_end('refused', f'deploy refused: arming failed: '
+                                        f'{armed.message}')
         attempts = 0
         while True:
             snap = self.snapshot
@@ -335,7 +340,7 @@ class DeployProcedure:
         self._safety_sync()
         self._log('error', message)
         self.listener.on_diagnostics()
-        return Result(False, message, latency_ms=None)
+        return Result.unknown(message, cause='no_reply')
 
     def _deploy_end(self, outcome: str, message: str, success: bool = False,
                     t0: Optional[float] = None, log: bool = True, **extra: Any) -> Result:
@@ -352,21 +357,22 @@ class DeployProcedure:
             self._log('info' if success else 'warn', message)
         if success:
             self._emit_status()
-        return Result(success, message, latency_ms=latency if success else None)
+        kind = DEPLOY_OUTCOMES.get(outcome, Outcome.DONE if success else Outcome.FAILED)
+        return Result(kind, message, latency_ms=latency if success else None)
 
     def arm(self, want: bool) -> Result:
         """`~/arm`: arm or lock; success only when the reply and a query agree (P7)."""
         self.blackbox.record('request', what='arm' if want else 'lock')
         if not self._actuation.acquire(timeout=ACTUATION_WAIT_S):
-            return Result(False, 'another deploy or arm is still running; nothing sent')
+            return Result.refused('busy', 'another deploy or arm is still running; nothing sent')
         try:
-            ok, message = self._arm(want)
+            result = self._arm(want)
         finally:
             self._actuation.release()
-        self._log('info' if ok else 'warn', message)
-        return Result(ok, message)
+        self._log('info' if result.ok else 'warn', result.message)
+        return result
 
-    def _arm(self, want: bool, judge: bool = True) -> Tuple[bool, str]:
+    def _arm(self, want: bool, judge: bool = True) -> Result:
         """Arm or lock, verified; an arm that would fire at once is refused (D16, P21).
 
         `judge` False: arming for a deploy (``arm_if_locked``), where firing is the point.
@@ -378,22 +384,25 @@ class DeployProcedure:
         if not snap.online or (want and not snap.fresh):
             snap = self._reread(snap)
         if not snap.online:
-            return False, f'cannot {word}: {self._offline_text(snap)}; nothing sent'
+            return Result.refused('offline', f'cannot {word}: {self._offline_text(snap)}; '
+                                  'nothing sent')
         if want and not snap.fresh:
-            return False, ('cannot arm: the module may have rebooted and has not been re-read, '
-                           'so whether it has deployed is not known; nothing sent')
+            return Result.refused('not_reread', (
+                'cannot arm: the module may have rebooted and has not been re-read, so whether '
+                'it has deployed is not known; nothing sent'))
         if want and snap.triggered:
-            return False, ('cannot arm: the module has deployed (triggered); a triggered module '
-                           'is never re-armed. Re-pack it and switch it off and on; nothing sent')
+            return Result.refused('triggered', (
+                'cannot arm: the module has deployed (triggered); a triggered module is never '
+                're-armed. Re-pack it and switch it off and on; nothing sent'))
         epoch = self._current_epoch()
         try:
             danger = self._gate([('armed', True)], '~/arm') if want and judge else ''
             if danger:
-                return False, f'cannot arm, nothing sent: {danger}'
+                return Result.refused('would_deploy', f'cannot arm, nothing sent: {danger}')
             reply = self._req(p.encode_arm(want), retries=1)
             if reply.armed != want:
-                return False, (f'module answered {reply.raw.hex(" ")} to {word}: '
-                               f'it stays {"armed" if reply.armed else "locked"}')
+                return Result.failed(f'module answered {reply.raw.hex(" ")} to {word}: '
+                                     f'it stays {"armed" if reply.armed else "locked"}')
             try:
                 state = self._req(p.encode_armed_query(), retries=1)
             except LinkTimeout:
@@ -401,13 +410,13 @@ class DeployProcedure:
                 # is still verified (and can be armed for a deploy).
                 state = self._req(p.encode_status_query(), retries=1)
         except LinkError as exc:
-            return False, f'{word} not confirmed: {exc}'
+            return Result.unknown(f'{word} not confirmed: {exc}', cause='no_reply')
         self._update_if(epoch, armed=state.armed)
         self.blackbox.record('state', armed=state.armed, via=word)
         self._safety_sync()
         self._emit_status()
         self.listener.on_diagnostics()
         if state.armed != want:
-            return False, (f'module acknowledged {word} but the query says '
-                           f'{"armed" if state.armed else "locked"}')
-        return True, 'armed (verified by query)' if want else 'locked (verified by query)'
+            return Result.failed(f'module acknowledged {word} but the query says '
+                                 f'{"armed" if state.armed else "locked"}')
+        return Result.done('armed (verified by query)' if want else 'locked (verified by query)')

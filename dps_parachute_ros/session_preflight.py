@@ -73,7 +73,7 @@ class Preflight:
         lines = [f'{"OK  " if passed else "FAIL"} {name}: {detail}'
                  for passed, name, detail in sorted(checks, key=lambda c: c[0])]
         self.blackbox.record('decision', what='preflight', ok=ok, checks=lines)
-        return Result(ok, '\n'.join(lines))
+        return Result.checked(ok, '\n'.join(lines))
 
     def _pf_online(self) -> List[Check]:
         self._note_boot_count(self._req(p.encode_boot_count_query(), retries=1).count)

@@ -44,6 +44,13 @@ class Withheld(Exception):
         self.reason = reason
 
 
+def _written(ok: bool, unseen: bool, message: str) -> Result:
+    """Answer a settings write: verified, not taken, or a reply that did not come."""
+    if ok:
+        return Result.done(message)
+    return Result.unknown(message, 'no_reply') if unseen else Result.failed(message)
+
+
 class SettingsTransaction:
     """The settings of `ParachuteSession` (a mixin: it uses the session's state)."""
 
@@ -287,13 +294,13 @@ class SettingsTransaction:
             try:
                 SETTINGS[name].to_raw(value)
             except p.ProtocolError as exc:
-                return Result(False, f'refused, nothing sent: {exc}')
+                return Result.refused('out_of_range', f'refused, nothing sent: {exc}')
         self.blackbox.record('request', what='set_thresholds', values=values)
         snap = self.snapshot
         if not snap.online:
-            return Result(False, f'{self._offline_text(snap)}; nothing sent')
+            return Result.refused('offline', f'{self._offline_text(snap)}; nothing sent')
         results = []
-        ok_all = True
+        ok_all, unseen = True, False
         steps = order(values.items())
         try:
             danger = self._gate(steps, '~/set_thresholds')
@@ -307,15 +314,15 @@ class SettingsTransaction:
                 ok_all &= ok
                 results.append(message)
         except LinkError as exc:
-            ok_all = False
+            ok_all, unseen = False, True
             results.append(f'no reply: {exc}')
         self._update_mismatch()
-        return Result(ok_all, '; '.join(results) or 'nothing to change')
+        return _written(ok_all, unseen, '; '.join(results) or 'nothing to change')
 
     def _refused_setting(self, danger: str) -> Result:
         self.blackbox.record('decision', what='settings refused', reason=danger)
         self._log('warn', f'settings change refused: {danger}')
-        return Result(False, f'refused, nothing written: {danger}')
+        return Result.refused('would_deploy', f'refused, nothing written: {danger}')
 
     def set_auto_triggers(self, attitude: bool, freefall: bool) -> Result:
         """`~/set_auto_triggers`: enable/disable both auto triggers, verified (D5)."""
@@ -323,7 +330,8 @@ class SettingsTransaction:
                              freefall=freefall)
         snap = self.snapshot
         if not snap.online:
-            return Result(False, f'{self._offline_text(snap)}; nothing sent')
+            return Result.refused('offline', f'{self._offline_text(snap)}; nothing sent')
+        unseen = False
         try:
             danger = self._gate(order([('attitude', attitude), ('freefall', freefall)]),
                                 '~/set_auto_triggers')
@@ -333,9 +341,9 @@ class SettingsTransaction:
         except Withheld as exc:
             ok, message = False, str(exc)
         except LinkError as exc:
-            ok, message = False, f'no reply: {exc}'
+            ok, message, unseen = False, f'no reply: {exc}', True
         self._update_mismatch()
-        return Result(ok, message)
+        return _written(ok, unseen, message)
 
     def commit_desired(self, changes: Dict[str, Any]) -> Tuple[bool, str]:
         """Write desired settings of a parameter set to the module: all or nothing (D4).

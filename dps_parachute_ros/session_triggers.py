@@ -107,24 +107,24 @@ class TriggerRequests:
         """Answer a deferred request; say what is true about what the module does (D8)."""
         if not confirm:
             self._decide('denied', policy, f'{why}: no confirmation sent', pending.t_rx, None)
-            return Result(True, 'denied: nothing sent')
+            return Result.done('denied: nothing sent')
         age = self.clock() - pending.t_rx
         snap = self.snapshot
-        problem = ''
+        problem = cause = ''
         if age >= MODULE_WINDOW_S:
-            problem = (f"{age:.2f} s after the request: the module's 1 s window has passed "
-                       '(P10); no confirmation sent')
+            problem, cause = (f"{age:.2f} s after the request: the module's 1 s window has "
+                              'passed (P10); no confirmation sent'), 'window_passed'
         elif not snap.online:
-            problem = f'{self._offline_text(snap)}: no confirmation sent'
+            problem, cause = f'{self._offline_text(snap)}: no confirmation sent', 'offline'
         elif snap.triggered:
-            problem = 'the module has already deployed: no confirmation sent'
+            problem, cause = 'the module has already deployed: no confirmation sent', 'triggered'
         elif snap.armed is False and snap.fresh:
-            problem = ('the module is locked, and a locked module cannot deploy (P12, P20): '
-                       'no confirmation sent')
+            problem, cause = ('the module is locked, and a locked module cannot deploy (P12, '
+                              'P20): no confirmation sent'), 'locked'
         if problem:
             decision = 'timed_out' if age >= MODULE_WINDOW_S else 'denied'
             self._decide(decision, policy, f'{why}, but {problem}', pending.t_rx, None)
-            return Result(False, f'not confirmed: {problem}')
+            return Result.refused(cause, f'not confirmed: {problem}')
         if self.release_gate is not None:
             self.release_gate.before_release('trigger request', pending.t_rx)
         try:
@@ -132,7 +132,7 @@ class TriggerRequests:
         except LinkDown as exc:
             self._decide('denied', policy, f'{why}, but the link is down: {exc}', pending.t_rx,
                          None)
-            return Result(False, f'confirmation not sent: {exc}')
+            return Result.failed(f'confirmation not sent: {exc}', cause='link_down')
         t_tx = self.clock()
         # Armed only as read since the module last could have changed unseen (D15).
         if snap.armed and snap.fresh:
@@ -141,8 +141,9 @@ class TriggerRequests:
             outcome = ("the module's armed state is not known: ~/triggered shows whether it "
                        'deploys')
         self._decide('confirmed', policy, f'{why}; {outcome}', pending.t_rx, t_tx)
-        return Result(True, f'confirmation sent {(t_tx - pending.t_rx) * 1000:.0f} ms after the '
-                            f'request; {outcome}')
+        # The module does not acknowledge a confirmation: ~/trigger_event tells what it did.
+        return Result.sent(f'confirmation sent {(t_tx - pending.t_rx) * 1000:.0f} ms after the '
+                           f'request; {outcome}')
 
     def _void_pending(self, why: str) -> None:
         """Settle a waiting request the module no longer makes (it rebooted): nothing sent."""
@@ -161,7 +162,7 @@ class TriggerRequests:
             pending, self._pending = self._pending, None
             policy = self._config.trigger_request_policy
         if pending is None:
-            return Result(False, 'no trigger request is pending')
+            return Result.refused('not_pending', 'no trigger request is pending')
         return self._answer_pending(pending, confirm, policy,
                                     f'answered {str(confirm).lower()} via '
                                     '~/answer_trigger_request')

@@ -2,7 +2,8 @@
 
 - `SessionConfig`: what the driver is told (the node's parameters, same names), and its checks;
 - `Snapshot`: everything known about the module at one moment, immutable;
-- `Deployment`, `RequestDecision`, `Result`: what the core reports and answers;
+- `Deployment`, `RequestDecision`: what the core reports; `Result` (from
+  `uav_serial_common.result`): what it answers;
 - `Listener`: the callbacks the core reports through;
 - `SETTINGS`: the module's numeric settings as data (parameter name, codecs, SI conversion).
 """
@@ -14,6 +15,8 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from dps_parachute_ros import protocol as p
 from uav_serial_common.records import evolve
+# The drivers' one result type; the session's modules import it from here.
+from uav_serial_common.result import Outcome, Result  # noqa: F401
 
 MODULE_WINDOW_S = 1.0
 """The module deploys on a confirmation only within 1 s of its request (P10)."""
@@ -210,16 +213,6 @@ class RequestDecision:
     policy: str
     reason: str
     latency_ms: Optional[float] = None
-
-
-@dataclass(frozen=True)
-class Result:
-    """What a service call answers."""
-
-    ok: bool
-    message: str
-    latency_ms: Optional[float] = None
-    records: Tuple[p.TriggerRecord, ...] = ()
 
 
 class Listener:

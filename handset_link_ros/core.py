@@ -346,7 +346,7 @@ class HandsetCore:
                 emits = [(self._on_link, self._link_state(self._clock()))]
             self._emit(emits)
 
-    def _apply(self, result: p.Result, now: float, emits: list) -> None:
+    def _apply(self, result: p.Decoded, now: float, emits: list) -> None:
         if isinstance(result, p.Command):
             self._accept(result, now, emits)
             return

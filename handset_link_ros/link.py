@@ -28,7 +28,7 @@ then; a shorter timeout only costs CPU (one wake-up each)."""
 class Received:
     """The results settled by one read (or by the line going quiet), and when that was."""
 
-    results: tuple[p.Result, ...]
+    results: tuple[p.Decoded, ...]
     time: float
 
 
@@ -83,7 +83,7 @@ class ModemLink:
     @property
     def port_open(self) -> bool:
         """Whether the serial port is open."""
-        return self.serial.connected
+        return self.serial.port_open
 
     # -- bytes in -------------------------------------------------------------------------------
 

@@ -150,7 +150,7 @@ class UnknownType:
     bytes_after: int = 0
 
 
-Result = Union[Command, Malformed, OutOfRange, UnknownType]
+Decoded = Union[Command, Malformed, OutOfRange, UnknownType]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -369,7 +369,7 @@ def _decode_json(spec: CommandSpec, payload: bytes) -> Union[int, float]:
     return value
 
 
-def decode_payload(type_: int, payload: Union[bytes, bytearray]) -> Result:
+def decode_payload(type_: int, payload: Union[bytes, bytearray]) -> Decoded:
     """Type and check one payload (0..253 bytes) of a frame of ``type_`` (H4-H6).
 
     JSON when it starts with ``{`` and ends with ``}``, else binary by length (H5). No binary
@@ -381,7 +381,7 @@ def decode_payload(type_: int, payload: Union[bytes, bytearray]) -> Result:
     return _interpret(raw, 0)
 
 
-def _interpret(raw: bytes, bytes_after: int) -> Result:
+def _interpret(raw: bytes, bytes_after: int) -> Decoded:
     """Type a frame whose start, LEN, checksum and end byte are already known to be sound."""
     type_ = raw[2]
     spec = SPECS.get(type_)
@@ -409,7 +409,7 @@ def _interpret(raw: bytes, bytes_after: int) -> Result:
     return Command(spec.type, spec.key, normalize(spec.type, value), encoding, raw, bytes_after)
 
 
-def decode_frame(raw: Union[bytes, bytearray]) -> Result:
+def decode_frame(raw: Union[bytes, bytearray]) -> Decoded:
     """Check and type exactly one complete frame (H1-H6); never raises, never guesses."""
     raw = bytes(raw)
     if len(raw) < OVERHEAD or raw[0] != START:
@@ -442,7 +442,7 @@ def _frame_problem(buf: Union[bytes, bytearray], pos: int, end: int) -> Optional
 class StreamDecoder(BaseStreamDecoder):
     """Incremental decoder for the handset's byte stream (H3); never raises on input.
 
-    ``feed(data, now)`` returns a ``Result`` for every frame settled by ``data``, in wire order:
+    ``feed(data, now)`` returns a ``Decoded`` for every frame settled by ``data``, in wire order:
     ``Command``, ``OutOfRange``, ``UnknownType`` for sound frames, ``Malformed`` for everything
     rejected. A candidate whose end byte or checksum is wrong, or whose LEN is below 2, is
     malformed and the search resumes at the byte after its start byte, so a frame hidden behind a
@@ -477,9 +477,9 @@ class StreamDecoder(BaseStreamDecoder):
         self.bytes_discarded += len(self._buf)
         super().reset()
 
-    def feed(self, data: Union[bytes, bytearray], now: Optional[float] = None) -> list[Result]:
+    def feed(self, data: Union[bytes, bytearray], now: Optional[float] = None) -> list[Decoded]:
         """Add received bytes (read at ``now``, seconds) and return every result now settled."""
-        settled: list[Result] = []
+        settled: list[Decoded] = []
         if now is not None:
             if self._buf and self._last_rx is not None and \
                     now - self._last_rx >= self.idle_timeout_s - _TIME_EPS:
@@ -488,7 +488,7 @@ class StreamDecoder(BaseStreamDecoder):
         out = super().feed(data)
         return settled + out if settled else out
 
-    def flush(self, now: Optional[float] = None) -> list[Result]:
+    def flush(self, now: Optional[float] = None) -> list[Decoded]:
         """Settle a held partial frame as malformed because the line went quiet (H3).
 
         With ``now``, only if nothing was fed for ``idle_timeout_s`` before it; without, at once.

@@ -68,19 +68,19 @@ from originman_board_ros.core_commands import (BUS_DURATION_MAX_S, Commands,  # 
 from originman_board_ros.core_services import Services
 from originman_board_ros.core_settings import SETTINGS_RETRY_S, SettingsAtConnect  # noqa: F401
 from originman_board_ros.core_types import (  # noqa: F401 (the names of this module's API)
-    AsrSample, battery_volts, BatterySample, bus_position_to_rad, BusServoStatesResult,
-    BusServoStatus, ButtonSample, CommandResult, ConfigError, gamepad_axes, gamepad_buttons,
-    GamepadSample, imu_to_si, ImuSample, MOTOR_TYPES, OriginManConfig, OriginManSnapshot,
-    PwmServoStatesResult, Refused, sbus_normalize, SbusSample, STANDARD_GRAVITY)
+    AsrSample, battery_volts, BatterySample, bus_position_to_rad, BusServoStatus, ButtonSample,
+    ConfigError, gamepad_axes, gamepad_buttons, GamepadSample, imu_to_si, ImuSample,
+    MOTOR_TYPES, OriginManConfig, OriginManSnapshot, PwmServoStates, Refused, sbus_normalize,
+    SbusSample, STANDARD_GRAVITY)
 from originman_board_ros.link import LinkDown, LinkError, OriginManLink
 from originman_board_ros.plan import BoardPlan
+from uav_serial_common.result import Outcome, Result  # noqa: F401 (what the core answers)
 
-__all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'BusServoStatesResult',
-           'ButtonSample', 'CommandResult', 'ConfigError', 'GamepadSample', 'ImuSample',
-           'MOTOR_TYPES', 'OriginManConfig', 'OriginManCore', 'OriginManSnapshot',
-           'PwmServoStatesResult', 'Refused', 'SbusSample', 'battery_volts',
-           'bus_position_to_rad', 'gamepad_axes', 'gamepad_buttons', 'imu_to_si',
-           'sbus_normalize']
+__all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'ButtonSample', 'ConfigError',
+           'GamepadSample', 'ImuSample', 'MOTOR_TYPES', 'OriginManConfig', 'OriginManCore',
+           'OriginManSnapshot', 'Outcome', 'PwmServoStates', 'Refused', 'Result', 'SbusSample',
+           'battery_volts', 'bus_position_to_rad', 'gamepad_axes', 'gamepad_buttons',
+           'imu_to_si', 'sbus_normalize']
 
 WORKER_PERIOD_S = 0.01
 """How often the worker looks for the board's first frames while it is offline."""
@@ -102,9 +102,10 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
     each poll cycle (every id of ``bus_servo_ids``, offline ones with ``online`` False);
     ``on_online_change(online: bool, reason: str)`` from the worker on every change.
 
-    Command methods return a :class:`CommandResult` (or a ``*Result`` with data) and never
-    raise for bad input, a refused command or a failed device: a refusal has ``cause`` set and
-    sent nothing. Reads block for at most a few read timeouts per servo.
+    Command methods return a :class:`~uav_serial_common.result.Result` (``value``: what a
+    read returned) and never raise for bad input, a refused command or a failed device: a
+    refusal (outcome REFUSED, with its ``cause``) sent nothing; a command the board never
+    acknowledges is SENT. Reads block for at most a few read timeouts per servo.
     """
 
     def __init__(self, config: OriginManConfig, *, clock: Callable[[], float] = time.monotonic,
@@ -195,7 +196,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         that the last motor frame on the wire is a stop whatever the worker wrote meanwhile
         (desired settings include the motor type).
         """
-        if stop_motors and self.link.connected:
+        if stop_motors and self.link.port_open:
             self.stop_all_motors()
         self._stop.set()
         self._wake.set()
@@ -209,7 +210,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             self._thread = None
         else:
             worker_ran = False
-        if stop_motors and worker_ran and self.link.connected:
+        if stop_motors and worker_ran and self.link.port_open:
             self.stop_all_motors()
         self.link.stop()
 
@@ -298,7 +299,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         with self._lock:
             change, fired = self._plan.tick(now)
             online = self._plan.online
-            if not self.link.connected:
+            if not self.link.port_open:
                 self._status = f'port {self.config.port} not open: ' \
                                f'{self.link.serial.last_error or "connecting"}'
             elif not online and self._plan.judge.last_frame_at is None:
@@ -394,7 +395,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
                 waits = [TIMER_IDLE_S]
                 with self._lock:
                     deadline = self._plan.watchdog.deadline
-                    if deadline is not None and self._plan.judge.connected:
+                    if deadline is not None and self._plan.judge.port_open:
                         waits.append(deadline - now)
                     due = self._plan.scheduler.next_time(pace_now)
                     if due is not None:
@@ -483,12 +484,12 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             battery = self._battery_mv
             warn = self._battery_warn_mv()
             return OriginManSnapshot(
-                connected=link.connected, online=self._plan.online, status=self._status,
+                port_open=link.port_open, online=self._plan.online, status=self._status,
                 port_error=link.serial.last_error,
                 last_frame_age_s=None if last is None else max(0.0, now - last),
                 battery_mv=battery, battery_low=battery is not None and battery < warn,
-                battery_warn_mv=warn, frames=decoder.frames_decoded,
-                crc_errors=decoder.checksum_errors, bytes_discarded=decoder.bytes_discarded,
+                battery_warn_mv=warn, frames_decoded=decoder.frames_decoded,
+                checksum_errors=decoder.checksum_errors, bytes_discarded=decoder.bytes_discarded,
                 unknown_functions=decoder.unknown_functions, unknown_frames=link.unknown_frames,
                 unexpected_replies=link.unexpected_replies, reports=dict(self._reports),
                 reads=link.reads, read_timeouts=link.read_timeouts,

@@ -17,8 +17,9 @@ import math
 from typing import Any, Callable, Iterable, List, Sequence, Tuple
 
 from originman_board_ros import protocol as p
-from originman_board_ros.core_types import _is_int, CommandResult, Refused
+from originman_board_ros.core_types import _is_int, Refused
 from originman_board_ros.link import LinkError
+from uav_serial_common.result import Result
 
 STOP_ALL_MASK = (1 << p.MOTOR_COUNT) - 1
 LED_TIME_MAX_S = 65.535
@@ -93,29 +94,29 @@ class Commands:
 
     # -- command plumbing -----------------------------------------------------------------------
 
-    def _refuse(self, exc: Refused) -> CommandResult:
+    def _refuse(self, exc: Refused) -> Result:
         with self._lock:
             self._refusals[exc.cause] = self._refusals.get(exc.cause, 0) + 1
-        return CommandResult(False, str(exc), exc.cause)
+        return Result.refused(exc.cause, str(exc))
 
     def _require_online(self) -> None:
-        if not self.link.connected:
+        if not self.link.port_open:
             raise Refused('offline', f'port {self.config.port} is not open: '
                                      f'{self.link.serial.last_error or "connecting"}')
         if not self._plan.online:
             raise Refused('offline', f'the board is offline ({self._status})')
 
     def _send_all(self, frames: Sequence[bytes], what: str,
-                  cancels: Sequence[int] = ()) -> CommandResult:
+                  cancels: Sequence[int] = ()) -> Result:
         try:
             for frame in frames:
                 self._write(frame, cancels)
         except LinkError as exc:
-            return CommandResult(False, f'{what}: not sent: {exc}')
+            return Result.failed(f'{what}: not sent: {exc}', cause='link_down')
         # The board never acknowledges these: "sent" is all anyone can know.
-        return CommandResult(True, f'{what}: sent')
+        return Result.sent(f'{what}: sent')
 
-    def _command(self, build: Callable[[], Tuple[List[bytes], str]]) -> CommandResult:
+    def _command(self, build: Callable[[], Tuple[List[bytes], str]]) -> Result:
         try:
             frames, what = build()
             self._require_online()
@@ -125,7 +126,7 @@ class Commands:
 
     # -- topics ---------------------------------------------------------------------------------
 
-    def set_led(self, led_id: int, on_s: float, off_s: float, repeat: int) -> CommandResult:
+    def set_led(self, led_id: int, on_s: float, off_s: float, repeat: int) -> Result:
         """Blink LED 1 or 2 (on 0 = off, off 0 = steady, repeat 0 = forever, O31)."""
         def build() -> Tuple[List[bytes], str]:
             led = _int('led_id', led_id, p.LED_IDS[0], p.LED_IDS[-1])
@@ -135,7 +136,7 @@ class Commands:
         return self._command(build)
 
     def set_buzzer(self, frequency_hz: int, on_s: float, off_s: float,
-                   repeat: int) -> CommandResult:
+                   repeat: int) -> Result:
         """Beep (frequency 0 or on 0 = silent, off 0 = continuous, repeat 0 = forever)."""
         def build() -> Tuple[List[bytes], str]:
             freq = _int('frequency_hz', frequency_hz, 0, p.U16_MAX)
@@ -145,7 +146,7 @@ class Commands:
         return self._command(build)
 
     def set_rgb(self, indices: Sequence[int], red: Sequence[int], green: Sequence[int],
-                blue: Sequence[int]) -> CommandResult:
+                blue: Sequence[int]) -> Result:
         """Colour RGB pixels 1..2 (1-based here, 0-based on the wire, O18)."""
         def build() -> Tuple[List[bytes], str]:
             idx = _ints('indices', list(indices), 1, p.RGB_PIXEL_COUNT)
@@ -160,7 +161,7 @@ class Commands:
                 f'{i}: ({r[k]}, {g[k]}, {b[k]})' for k, i in enumerate(idx))
         return self._command(build)
 
-    def set_oled(self, line: int, text: str) -> CommandResult:
+    def set_oled(self, line: int, text: str) -> Result:
         """Show ``text`` (at most 23 bytes of UTF-8, O19) on OLED line 1 or 2."""
         def build() -> Tuple[List[bytes], str]:
             n = _int('line', line, p.OLED_LINES[0], p.OLED_LINES[-1])
@@ -173,7 +174,7 @@ class Commands:
             return [p.encode_oled(n, text)], f'OLED line {n}: {text!r}'
         return self._command(build)
 
-    def set_motor_speeds(self, motor_ids: Sequence[int], rps: Sequence[float]) -> CommandResult:
+    def set_motor_speeds(self, motor_ids: Sequence[int], rps: Sequence[float]) -> Result:
         """Set motor speeds (ids 1..4, O3; finite, |rps| <= 6). Any call restarts the timeout.
 
         An empty call sends nothing and only restarts the motor timeout (a keep-alive).
@@ -211,14 +212,14 @@ class Commands:
             return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
         self._timer_wake.set()  # a new motor deadline: the timer may be sleeping past it
         if not frames:
-            return CommandResult(True, f'{what}: sent')
+            return Result.sent(f'{what}: sent')
         self._drain()
         error = self._outcome(ticket)
         if error is not None:
-            return CommandResult(False, f'{what}: not sent: {error}')
-        return CommandResult(True, f'{what}: sent')
+            return Result.failed(f'{what}: not sent: {error}', cause='link_down')
+        return Result.sent(f'{what}: sent')
 
-    def stop_all_motors(self) -> CommandResult:
+    def stop_all_motors(self) -> Result:
         """Set every motor's speed to 0 (MOTOR 0x03, mask 0x0F), offline or not; for shutdown.
 
         The stop goes out ahead of every queued frame; the answer comes once it has left.
@@ -229,11 +230,11 @@ class Commands:
         self._drain()
         error = self._outcome(ticket)
         if error is not None:
-            return CommandResult(False, f'stop all motors: not sent: {error}')
-        return CommandResult(True, 'stop all motors: sent')
+            return Result.failed(f'stop all motors: not sent: {error}', cause='link_down')
+        return Result.sent('stop all motors: sent')
 
     def set_pwm_servos(self, ids: Sequence[int], pulses_us: Sequence[int],
-                       duration_s: float) -> CommandResult:
+                       duration_s: float) -> Result:
         """Move PWM servos 1..4 to 500..2500 us in 0.02..30 s, one frame (O10)."""
         def build() -> Tuple[List[bytes], str]:
             servo_ids = _ints('ids', list(ids), 1, p.PWM_SERVO_COUNT)
@@ -251,7 +252,7 @@ class Commands:
         return self._command(build)
 
     def set_bus_servos(self, ids: Sequence[int], positions: Sequence[int],
-                       duration_s: float) -> CommandResult:
+                       duration_s: float) -> Result:
         """Move bus servos (ids 0..253) to positions 0..1000 in 0..65.535 s (O23)."""
         def build() -> Tuple[List[bytes], str]:
             servo_ids = _ints('ids', list(ids), 0, p.BUS_ID_MAX)
@@ -279,6 +280,6 @@ class Commands:
             waiting = [i for i, _ in items if i in self._plan.scheduler.targets]
         if waiting:
             self._timer_wake.set()
-            return CommandResult(True, f'{what}: queued (the servo bus is busy; a newer target '
-                                       f'of the same servo replaces it)')
-        return CommandResult(True, f'{what}: sent')
+            return Result.sent(f'{what}: queued (the servo bus is busy; a newer target of the '
+                               'same servo replaces it)')
+        return Result.sent(f'{what}: sent')

@@ -20,9 +20,19 @@ from typing import Any, Callable, Dict, List, Sequence, Tuple
 from originman_board_ros import protocol as p
 from originman_board_ros.core_bus_poll import _with_values
 from originman_board_ros.core_commands import _distinct, _int, _ints
-from originman_board_ros.core_types import (BusServoStatesResult, BusServoStatus, CommandResult,
-                                            PwmServoStatesResult, Refused)
+from originman_board_ros.core_types import BusServoStatus, PwmServoStates, Refused
 from originman_board_ros.link import BusServoFailure, LinkError
+from uav_serial_common.result import Result
+
+
+def _not_seen(message: str, exc: LinkError) -> Result:
+    """Answer a write whose read-back failed: FAILED on the servo's failure answer (O14).
+
+    Any other error leaves whether the write took unseen: UNKNOWN.
+    """
+    if isinstance(exc, BusServoFailure):
+        return Result.failed(message, cause='servo_failure')
+    return Result.unknown(message, cause='no_reply')
 
 
 class Services:
@@ -43,17 +53,17 @@ class Services:
         _distinct('ids', servo_ids)
         return servo_ids
 
-    def get_bus_servo_state(self, ids: Sequence[int]) -> BusServoStatesResult:
+    def get_bus_servo_state(self, ids: Sequence[int]) -> Result[Tuple[BusServoStatus, ...]]:
         """Read every field of each servo afresh (empty ``ids``: every polled servo).
 
-        A servo with a failed read has ``online`` False; the message names it (O14).
+        The value holds each servo; one with a failed read has ``online`` False, and the
+        message names it (O14).
         """
         try:
             servo_ids = self._service(lambda: self._bus_ids(ids, allow_empty=True)) \
                 or self.bus_servo_ids
         except Refused as exc:
-            r = self._refuse(exc)
-            return BusServoStatesResult(False, r.message, (), r.cause)
+            return self._refuse(exc)
         states, problems = [], []
         for servo_id in servo_ids:
             values: Dict[int, p.BusValue] = {}
@@ -78,22 +88,23 @@ class Services:
                         status, failed_reads=old.failed_reads + 1 if error else 0,
                         online=old.online if error else True)
         if problems:
-            return BusServoStatesResult(False, '; '.join(problems), tuple(states))
-        return BusServoStatesResult(True, f'read {len(states)} servo(s)', tuple(states))
+            return Result.failed('; '.join(problems), value=tuple(states))
+        return Result.done(f'read {len(states)} servo(s)', value=tuple(states))
 
-    def set_bus_servo_torque(self, ids: Sequence[int], enable: bool) -> CommandResult:
+    def set_bus_servo_torque(self, ids: Sequence[int], enable: bool) -> Result:
         """Torque on (0x0C) or off (0x0B) for each servo (O6), checked by reading 0x0D."""
         try:
             servo_ids = self._service(lambda: self._bus_ids(ids))
         except Refused as exc:
             return self._refuse(exc)
-        done, problems = [], []
+        done, problems, unseen = [], [], False
         for servo_id in servo_ids:
             try:
                 self._write(p.encode_bus_torque(servo_id, bool(enable)),
                             cancels=() if enable else (servo_id,))
                 loaded = self.link.bus_read(p.BusSub.READ_LOAD, servo_id)
             except LinkError as exc:
+                unseen = unseen or not isinstance(exc, BusServoFailure)
                 problems.append(f'servo {servo_id}: {exc}')
                 continue
             if loaded != bool(enable):
@@ -102,11 +113,11 @@ class Services:
                 done.append(servo_id)
         state = 'on' if enable else 'off'
         if problems:
-            return CommandResult(False, f'torque {state} for {done or "none"}; failed: '
-                                 + '; '.join(problems))
-        return CommandResult(True, f'torque {state} for {done} (read back)')
+            message = f'torque {state} for {done or "none"}; failed: ' + '; '.join(problems)
+            return Result.unknown(message, 'no_reply') if unseen else Result.failed(message)
+        return Result.done(f'torque {state} for {done} (read back)')
 
-    def stop_bus_servos(self, ids: Sequence[int]) -> CommandResult:
+    def stop_bus_servos(self, ids: Sequence[int]) -> Result:
         """Stop servos where they are (0x03)."""
         try:
             servo_ids = self._service(lambda: self._bus_ids(ids))
@@ -116,7 +127,7 @@ class Services:
         return self._send_all([p.encode_bus_stop(servo_ids)], f'stop bus servos {servo_ids}',
                               cancels=servo_ids)
 
-    def set_bus_servo_id(self, servo_id: int, new_id: int) -> CommandResult:
+    def set_bus_servo_id(self, servo_id: int, new_id: int) -> Result:
         """Give a servo a new id; refused if ``new_id`` answers. Renamed in the poll list too."""
         def validate() -> Tuple[int, int]:
             old = _int('id', servo_id, 0, p.BUS_ID_MAX)
@@ -131,21 +142,23 @@ class Services:
         except Refused as exc:
             return self._refuse(exc)
         except LinkError as exc:
-            return CommandResult(False, f'could not check whether id {new} is free: {exc}')
+            return Result.failed(f'could not check whether id {new} is free: {exc}',
+                                 cause='no_reply')
         try:
             if not self._answers(old):
-                return CommandResult(False, f'servo {old} does not answer; nothing written')
+                return Result.refused('no_servo', f'servo {old} does not answer; nothing '
+                                      'written')
             self._write(p.encode_bus_write_id(old, new), cancels=(old,))
             if not self._answers(new):
-                return CommandResult(False, f'id {new} written to servo {old}, but nothing '
-                                            f'answers at {new}')
+                return Result.failed(f'id {new} written to servo {old}, but nothing answers at '
+                                     f'{new}')
         except LinkError as exc:
-            return CommandResult(False, f'set id {old} -> {new}: {exc}')
+            return _not_seen(f'set id {old} -> {new}: {exc}', exc)
         with self._lock:
             if old in self._poll_ids:
                 self._poll_ids[self._poll_ids.index(old)] = new
                 self._servos[new] = replace(self._servos.pop(old, BusServoStatus(new)), id=new)
-        return CommandResult(True, f'servo {old} now answers at id {new}')
+        return Result.done(f'servo {old} now answers at id {new}')
 
     def _answers(self, servo_id: int) -> bool:
         """Whether a servo answers at ``servo_id`` (raises LinkError when the board is silent)."""
@@ -155,7 +168,7 @@ class Services:
             return False
         return True
 
-    def set_bus_servo_offset(self, servo_id: int, offset: int, save: bool) -> CommandResult:
+    def set_bus_servo_offset(self, servo_id: int, offset: int, save: bool) -> Result:
         """Set a servo's deviation (-125..125), optionally saved to its flash; read back."""
         def validate() -> Tuple[int, int]:
             return (_int('id', servo_id, 0, p.BUS_ID_MAX),
@@ -170,15 +183,15 @@ class Services:
                 self._write(p.encode_bus_save_offset(sid))
             got = self.link.bus_read(p.BusSub.READ_OFFSET, sid)
         except LinkError as exc:
-            return CommandResult(False, f'servo {sid} offset {value}: {exc}')
+            return _not_seen(f'servo {sid} offset {value}: {exc}', exc)
         if got != value:
-            return CommandResult(False, f'servo {sid} offset reads {got}, not {value}')
-        return CommandResult(True, f'servo {sid} offset {value}' + (' saved' if save else '')
-                             + ' (read back)')
+            return Result.failed(f'servo {sid} offset reads {got}, not {value}')
+        return Result.done(f'servo {sid} offset {value}' + (' saved' if save else '')
+                           + ' (read back)')
 
     def set_bus_servo_limits(self, servo_id: int, min_position: int, max_position: int,
                              min_voltage_mv: int, max_voltage_mv: int,
-                             max_temperature_c: int) -> CommandResult:
+                             max_temperature_c: int) -> Result:
         """Set a servo's limits; a pair of zeros (or temperature 0) is left as it is (O24)."""
         def validate() -> Tuple[int, list]:
             sid = _int('id', servo_id, 0, p.BUS_ID_MAX)
@@ -213,21 +226,21 @@ class Services:
         except Refused as exc:
             return self._refuse(exc)
         if not jobs:
-            return CommandResult(True, f'servo {sid}: nothing to change (every limit is 0)')
+            return Result.done(f'servo {sid}: nothing to change (every limit is 0)')
         done = []
         for frame, sub, wanted, what in jobs:
             try:
                 self._write(frame)
                 got = self.link.bus_read(sub, sid)
             except LinkError as exc:
-                return CommandResult(False, f'servo {sid} {what}: {exc}'
-                                     + (f' (set before: {", ".join(done)})' if done else ''))
+                return _not_seen(f'servo {sid} {what}: {exc}'
+                                 + (f' (set before: {", ".join(done)})' if done else ''), exc)
             if got != wanted:
-                return CommandResult(False, f'servo {sid} {what} read {got}, not {wanted}')
+                return Result.failed(f'servo {sid} {what} read {got}, not {wanted}')
             done.append(what)
-        return CommandResult(True, f'servo {sid}: {", ".join(done)} set (read back)')
+        return Result.done(f'servo {sid}: {", ".join(done)} set (read back)')
 
-    def get_pwm_servo_state(self, ids: Sequence[int]) -> PwmServoStatesResult:
+    def get_pwm_servo_state(self, ids: Sequence[int]) -> Result[PwmServoStates]:
         """Read pulse and offset of PWM servos 1..4 (empty ``ids``: all four)."""
         def validate() -> List[int]:
             servo_ids = _ints('ids', list(ids), 1, p.PWM_SERVO_COUNT)
@@ -236,8 +249,7 @@ class Services:
         try:
             servo_ids = self._service(validate)
         except Refused as exc:
-            r = self._refuse(exc)
-            return PwmServoStatesResult(False, r.message, cause=r.cause)
+            return self._refuse(exc)
         pulses, offsets, problems = [], [], []
         for servo_id in servo_ids:
             try:
@@ -247,13 +259,12 @@ class Services:
                 pulses += [0] * (len(offsets) + 1 - len(pulses))
                 offsets.append(0)
                 problems.append(f'PWM servo {servo_id}: {exc}')
+        states = PwmServoStates(tuple(pulses), tuple(offsets))
         if problems:
-            return PwmServoStatesResult(False, '; '.join(problems), tuple(pulses),
-                                        tuple(offsets))
-        return PwmServoStatesResult(True, f'read PWM servos {servo_ids}', tuple(pulses),
-                                    tuple(offsets))
+            return Result.failed('; '.join(problems), value=states)
+        return Result.done(f'read PWM servos {servo_ids}', value=states)
 
-    def set_pwm_servo_offset(self, servo_id: int, offset_us: int) -> CommandResult:
+    def set_pwm_servo_offset(self, servo_id: int, offset_us: int) -> Result:
         """Set a PWM servo's offset (-100..100 us), read back; until the next (re)connect."""
         def validate() -> Tuple[int, int]:
             return (_int('id', servo_id, 1, p.PWM_SERVO_COUNT),
@@ -266,10 +277,10 @@ class Services:
             self._write(p.encode_pwm_set_offset(sid, value))
             got = self.link.read_pwm_offset(sid)
         except LinkError as exc:
-            return CommandResult(False, f'PWM servo {sid} offset {value} us: {exc}')
+            return _not_seen(f'PWM servo {sid} offset {value} us: {exc}', exc)
         with self._lock:
             # What the board should now hold; a reset is what makes it differ (O37).
             self._expected_offsets[sid] = value
         if got != value:
-            return CommandResult(False, f'PWM servo {sid} offset reads {got} us, not {value}')
-        return CommandResult(True, f'PWM servo {sid} offset {value} us (read back)')
+            return Result.failed(f'PWM servo {sid} offset reads {got} us, not {value}')
+        return Result.done(f'PWM servo {sid} offset {value} us (read back)')

@@ -1,7 +1,8 @@
 """The OriginMan core's values: unit conversions, its configuration, its samples and results.
 
 No state, no threads: frozen dataclasses and pure functions. :mod:`originman_board_ros.core`
-re-exports every name (import them from there).
+re-exports every name (import them from there). What a command or service answers is the
+drivers' one :class:`~uav_serial_common.result.Result`.
 """
 
 from __future__ import annotations
@@ -229,45 +230,18 @@ class BusServoStatus:
 
 
 @dataclass(frozen=True)
-class CommandResult:
-    """The outcome of a command: ``ok`` and a message saying what was done or what failed.
+class PwmServoStates:
+    """The value of :meth:`OriginManCore.get_pwm_servo_state`'s result (0 where a read failed)."""
 
-    ``cause`` is set when the core refused the command before sending anything
-    (``out_of_range``, ``not_finite``, ``length_mismatch``, ``duplicate``, ``offline``,
-    ``id_taken`` ...).
-    """
-
-    ok: bool
-    message: str
-    cause: str = ''
-
-
-@dataclass(frozen=True)
-class BusServoStatesResult:
-    """The answer of :meth:`OriginManCore.get_bus_servo_state`."""
-
-    ok: bool
-    message: str
-    servos: Tuple[BusServoStatus, ...] = ()
-    cause: str = ''
-
-
-@dataclass(frozen=True)
-class PwmServoStatesResult:
-    """The answer of :meth:`OriginManCore.get_pwm_servo_state` (0 where a read failed)."""
-
-    ok: bool
-    message: str
     pulses_us: Tuple[int, ...] = ()
     offsets_us: Tuple[int, ...] = ()
-    cause: str = ''
 
 
 @dataclass(frozen=True)
 class OriginManSnapshot:
     """The core's state for diagnostics, taken at once under its lock."""
 
-    connected: bool
+    port_open: bool
     online: bool
     status: str
     port_error: str
@@ -275,8 +249,8 @@ class OriginManSnapshot:
     battery_mv: Optional[int]
     battery_low: bool
     battery_warn_mv: int
-    frames: int
-    crc_errors: int
+    frames_decoded: int
+    checksum_errors: int
     bytes_discarded: int
     unknown_functions: int
     unknown_frames: int
@@ -300,7 +274,12 @@ class OriginManSnapshot:
 
 
 class Refused(ValueError):
-    """A command the core will not send; ``cause`` is a short key for counting."""
+    """A command the core will not send; ``cause`` is a short key for counting.
+
+    Raised inside the core only: a caller receives ``Result.refused(cause, message)``
+    (``out_of_range``, ``not_finite``, ``length_mismatch``, ``duplicate``, ``empty``,
+    ``too_long``, ``offline``, ``id_taken``).
+    """
 
     def __init__(self, cause: str, message: str) -> None:
         self.cause = cause

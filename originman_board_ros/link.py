@@ -135,13 +135,13 @@ class OriginManLink:
         self.serial.stop()
 
     @property
-    def connected(self) -> bool:
+    def port_open(self) -> bool:
         """Whether the port is open."""
-        return self.serial.connected
+        return self.serial.port_open
 
-    def wait_connected(self, timeout: float) -> bool:
+    def wait_port_open(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for the port to be open."""
-        return self.serial.wait_connected(timeout)
+        return self.serial.wait_port_open(timeout)
 
     @property
     def last_frame_time(self) -> Optional[float]:

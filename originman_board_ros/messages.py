@@ -197,10 +197,10 @@ def link_status(stat: Status, snap: OriginManSnapshot, rates: Dict[str, float], 
         stat.summary(OK, 'online')
     age = snap.last_frame_age_s
     for key, value in (
-            ('baud', baud), ('port open', snap.connected), ('state', snap.status),
+            ('baud', baud), ('port open', snap.port_open), ('state', snap.status),
             ('port error', snap.port_error),
             ('last frame age [s]', 'never' if age is None else f'{age:.3f}'),
-            ('frames', snap.frames), ('crc errors', snap.crc_errors),
+            ('frames', snap.frames_decoded), ('crc errors', snap.checksum_errors),
             ('bytes discarded', snap.bytes_discarded),
             ('unknown functions', snap.unknown_functions),
             ('unknown frames', snap.unknown_frames),

@@ -35,8 +35,9 @@ from uav_serial_drivers.srv import (BusServoIds, GetBusServoState, GetPwmServoSt
 
 from originman_board_ros import messages as m
 from originman_board_ros.core import (AsrSample, BatterySample, BusServoStatus, ButtonSample,
-                                      CommandResult, ConfigError, GamepadSample, ImuSample,
-                                      MOTOR_TYPES, OriginManConfig, OriginManCore, SbusSample)
+                                      ConfigError, GamepadSample, ImuSample, MOTOR_TYPES,
+                                      OriginManConfig, OriginManCore, Outcome, PwmServoStates,
+                                      Result, SbusSample)
 from uav_serial_common.diagnostics import DiagnosticsUpdater
 from uav_serial_common.logs import Throttle
 from uav_serial_common.node_main import run_node
@@ -252,7 +253,7 @@ class OriginManBoardNode(Node):
 
     # -- topics and services --------------------------------------------------------------------
 
-    def _topic(self, msg_type: Any, name: str, handler: Callable[[Any], CommandResult],
+    def _topic(self, msg_type: Any, name: str, handler: Callable[[Any], Result],
                group: Any) -> None:
         def callback(msg: Any) -> None:
             if self._closing:
@@ -264,7 +265,7 @@ class OriginManBoardNode(Node):
                 return
             if result.ok:
                 return
-            if result.cause:
+            if result.outcome is Outcome.REFUSED:
                 # Refused before anything was sent; the core counted it for diagnostics, which
                 # show it at once (the updater publishes at most every 0.1 s).
                 self._log_once(result.cause, f'{name}: refused ({result.cause}), nothing '
@@ -294,7 +295,7 @@ class OriginManBoardNode(Node):
                 return response
         self.create_service(srv_type, name, call, callback_group=group)
 
-    def _reply(self, response: Any, result: Any) -> Any:
+    def _reply(self, response: Any, result: Result) -> Any:
         response.success, response.message = bool(result.ok), result.message
         if not result.ok:
             self.get_logger().warning(result.message)
@@ -302,13 +303,14 @@ class OriginManBoardNode(Node):
 
     def _get_bus_state(self, request: Any, response: Any) -> Any:
         result = self.core.get_bus_servo_state(list(request.ids))
-        response.servos = [m.bus_servo_state(s) for s in result.servos]
+        response.servos = [m.bus_servo_state(s) for s in result.value or ()]
         return self._reply(response, result)
 
     def _get_pwm_state(self, request: Any, response: Any) -> Any:
         result = self.core.get_pwm_servo_state(list(request.ids))
-        response.pulses_us = [int(v) for v in result.pulses_us]
-        response.offsets_us = [int(v) for v in result.offsets_us]
+        states = result.value or PwmServoStates()
+        response.pulses_us = [int(v) for v in states.pulses_us]
+        response.offsets_us = [int(v) for v in states.offsets_us]
         return self._reply(response, result)
 
     # -- shutdown -------------------------------------------------------------------------------
@@ -320,7 +322,7 @@ class OriginManBoardNode(Node):
         short; it is bounded by the link's write and the worker's current read.
         """
         self._closing = True
-        connected = self.core.link.connected
+        connected = self.core.link.port_open
         self.core.stop(stop_motors=True)
         self.get_logger().info('shutdown: every motor stopped' if connected else
                                'shutdown: the port is not open, no motor stop could be sent')

@@ -76,7 +76,7 @@ class MotorWatchdog:
         self.last_command_at = now
         self.stopped = False
 
-    def connected(self, now: float) -> None:
+    def port_opened(self, now: float) -> None:
         """Arm at a connect: the motors' state is unknown, as if commanded now (O38)."""
         self.command(now)
 
@@ -102,20 +102,20 @@ class OnlineJudge:
 
     def __init__(self, timeout_s: float) -> None:
         self.timeout_s = timeout_s
-        self.connected = False
+        self.port_open = False
         self.last_frame_at: Optional[float] = None
         self.online = False
 
     def connection(self, up: bool, now: float) -> Optional[Change]:
         """Judge a port that opened (``up``) or closed; frames before now no longer count."""
-        self.connected = up
+        self.port_open = up
         self.last_frame_at = None
         return self._set(False, 'port open, no frame from the board yet' if up
                          else 'port closed')
 
     def frame(self, now: float) -> Optional[Change]:
         """Judge a valid frame from the board that arrived at ``now``."""
-        if not self.connected:
+        if not self.port_open:
             return None
         self.last_frame_at = now
         return self._set(True, 'frames arriving')
@@ -258,7 +258,7 @@ class BoardPlan:
     def connection(self, up: bool, now: float) -> Optional[Change]:
         """Take a port that opened or closed at ``now``."""
         if up:
-            self.watchdog.connected(now)
+            self.watchdog.port_opened(now)
         change = self.judge.connection(up, now)
         self._went_offline(change)
         return change
@@ -275,7 +275,7 @@ class BoardPlan:
 
     def tick_watchdog(self, now: float) -> bool:
         """Run the watchdog alone at ``now``; return whether it queued a stop (ahead of all)."""
-        if self.judge.connected and self.watchdog.due(now):
+        if self.judge.port_open and self.watchdog.due(now):
             self.stop_motors()
             self.watchdog.fired += 1
             return True

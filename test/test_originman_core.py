@@ -10,7 +10,8 @@ import math
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core import (ConfigError, IDLE_MAX_S, OriginManConfig, OriginManCore,
-                                      STANDARD_GRAVITY, WORKER_PERIOD_S)
+                                      Outcome, PwmServoStates, STANDARD_GRAVITY,
+                                      WORKER_PERIOD_S)
 from originman_board_ros.protocol import BusSub
 from originman_rig import VirtualBoard
 import pytest
@@ -37,7 +38,7 @@ class Rig:
             on_bus_servo_states=self.events['states'].append,
             on_online_change=lambda online, why: self.events['online'].append((online, why)))
         self.core.start(worker=False)
-        assert self.core.link.wait_connected(5), 'the core did not open the port'
+        assert self.core.link.wait_port_open(5), 'the core did not open the port'
         with self.board.locked():
             self.model.power_on()
 
@@ -137,7 +138,7 @@ def test_o20_offline_while_the_port_is_missing(tmp_path):
                  what='the open error')
         core.poll()
         snap = core.snapshot()
-        assert not snap.online and not snap.connected and 'not open' in snap.status
+        assert not snap.online and not snap.port_open and 'not open' in snap.status
         assert core.link.baud == 1_000_000
     finally:
         core.stop()
@@ -360,7 +361,7 @@ def test_bad_commands_are_refused_with_a_reason_and_nothing_is_sent(rig):
     sent = rig.frames_out
     for method, args, cause in REFUSALS:
         result = getattr(rig.core, method)(*args)
-        assert (result.ok, result.cause) == (False, cause), (method, args, result)
+        assert (result.outcome, result.cause) == (Outcome.REFUSED, cause), (method, args, result)
         assert result.message
     assert rig.frames_out == sent
     refusals = rig.core.snapshot().refusals
@@ -376,10 +377,10 @@ def test_o40_commands_are_refused_while_the_board_is_offline(make_rig):
     r.core.poll()
     sent = r.frames_out
     result = r.core.set_led(1, 0.1, 0.1, 1)
-    assert (result.ok, result.cause) == (False, 'offline') and 'offline' in result.message
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'offline')
     assert r.core.get_bus_servo_state([1]).cause == 'offline'
     assert r.frames_out == sent
-    assert r.core.stop_all_motors().ok and r.frames_out == sent + 1
+    assert r.core.stop_all_motors().outcome is Outcome.SENT and r.frames_out == sent + 1
 
 
 def test_o47_led_and_buzzer_times_round_to_ms_and_never_become_0(rig):
@@ -460,8 +461,9 @@ def test_o14_get_state_reads_everything_and_a_failed_servo_is_never_a_value(rig)
         rig.model.bus_servo(1).temperature_c = 40
         rig.model.bus_servo(1).offset = -3
     result = rig.core.get_bus_servo_state([1, 9])
-    assert not result.ok and 'servo 9' in result.message and 'servo 1' not in result.message
-    one, nine = result.servos
+    assert result.outcome is Outcome.FAILED
+    assert 'servo 9' in result.message and 'servo 1' not in result.message  # names the failed
+    one, nine = result.value
     assert (one.id, one.online, one.position, one.temperature_c, one.offset, one.max_position,
             one.min_voltage_v, one.max_temperature_c) == (1, True, 500, 40.0, -3, 1000, 4.5,
                                                           85.0)
@@ -475,7 +477,8 @@ def test_o6_torque_on_sends_0x0c_and_is_read_back(rig):
     assert rig.core.set_bus_servo_torque([1, 2], True).ok
     assert rig.model.bus_servo(1).loaded and rig.model.bus_servo(2).loaded
     result = rig.core.set_bus_servo_torque([2, 9], False)
-    assert not result.ok and 'servo 9' in result.message and '[2]' in result.message
+    assert result.outcome is Outcome.FAILED  # servo 9 answers its read with a failure (O14)
+    assert 'servo 9' in result.message and '[2]' in result.message  # who did and who did not
     torque = [c for c in rig.wire(mark) if isinstance(c, p.BusTorque)]
     assert torque == [p.BusTorque(1, True), p.BusTorque(2, True), p.BusTorque(2, False),
                       p.BusTorque(9, False)]
@@ -486,9 +489,10 @@ def test_o44_set_id_is_refused_when_the_new_id_answers_and_renames_the_polled_se
     r.online()
     mark = r.mark()
     result = r.core.set_bus_servo_id(1, 2)
-    assert (result.ok, result.cause) == (False, 'id_taken')
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'id_taken')
     assert not any(isinstance(c, p.BusWriteId) for c in r.wire(mark))
-    assert not r.core.set_bus_servo_id(7, 8).ok  # nobody at 7: nothing written
+    # Nobody at 7: nothing written.
+    assert r.core.set_bus_servo_id(7, 8).outcome is Outcome.REFUSED
     assert not any(isinstance(c, p.BusWriteId) for c in r.wire(mark))
     assert r.core.set_bus_servo_id(1, 12).ok
     assert [s.servo_id for s in r.model.bus_servos] == [12, 2, 3]
@@ -507,18 +511,18 @@ def test_o48_offset_and_limits_are_written_and_read_back(rig):
     assert not any(isinstance(c, p.BusSetLimits) and c.sub == BusSub.SET_VOLTAGE_LIMITS
                    for c in rig.wire(mark))
     result = rig.core.set_bus_servo_limits(3, 0, 0, 0, 0, 0)
-    assert result.ok and 'nothing to change' in result.message
-    assert not rig.core.set_bus_servo_limits(9, 0, 0, 5000, 9000, 0).ok
+    assert result.outcome is Outcome.DONE and 'nothing to change' in result.message
+    assert rig.core.set_bus_servo_limits(9, 0, 0, 5000, 9000, 0).outcome is Outcome.FAILED
 
 
 def test_o43_pwm_state_of_every_servo_and_offset(rig):
     assert rig.core.set_pwm_servo_offset(2, 40).ok
     rig.core.set_pwm_servos([2], [2000], 0.02)
-    wait_for(lambda: rig.core.get_pwm_servo_state([2]).pulses_us == (2000,), 5,
+    wait_for(lambda: rig.core.get_pwm_servo_state([2]).value.pulses_us == (2000,), 5,
              what='PWM servo 2 at 2000 us')
     result = rig.core.get_pwm_servo_state([])
-    assert result.ok and result.offsets_us == (0, 40, 0, 0)
-    assert result.pulses_us == (1500, 2000, 1500, 1500)
+    assert result.outcome is Outcome.DONE
+    assert result.value == PwmServoStates((1500, 2000, 1500, 1500), (0, 40, 0, 0))
 
 
 # ----- bus servo polling ------------------------------------------------------------------------
@@ -554,8 +558,8 @@ def test_o43_get_state_without_ids_reads_every_polled_servo(make_rig):
     r = make_rig(bus_servo_ids=(3, 1), bus_servo_poll_hz=0.0)
     r.online()
     result = r.core.get_bus_servo_state([])
-    assert result.ok and [s.id for s in result.servos] == [3, 1]
-    assert all(s.online and s.max_temperature_c == 85.0 for s in result.servos)
+    assert result.ok and [s.id for s in result.value] == [3, 1]
+    assert all(s.online and s.max_temperature_c == 85.0 for s in result.value)
 
 
 def test_o42_a_missing_servo_goes_offline_and_is_reprobed_once_a_second(make_rig):

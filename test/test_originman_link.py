@@ -23,7 +23,7 @@ def rig(tmp_path):
         (threading.current_thread().name, m)), timeout_s=RIG_TIMEOUT_S)
     link.start()
     try:
-        assert link.wait_connected(5)
+        assert link.wait_port_open(5)
         yield board, link, reports
     finally:
         link.stop()

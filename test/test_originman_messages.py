@@ -92,9 +92,9 @@ def test_report_rates_over_a_window():
 
 
 def snapshot(**changes):
-    base = dict(connected=True, online=True, status='frames arriving', port_error='',
+    base = dict(port_open=True, online=True, status='frames arriving', port_error='',
                 last_frame_age_s=0.01, battery_mv=7400, battery_low=False, battery_warn_mv=6300,
-                frames=10, crc_errors=0, bytes_discarded=0, unknown_functions=0,
+                frames_decoded=10, checksum_errors=0, bytes_discarded=0, unknown_functions=0,
                 unknown_frames=0, unexpected_replies=0, reports={'imu': 5, 'battery': 1},
                 reads=3, read_timeouts=0, read_failures=0, reconnects=0,
                 refusals={'out_of_range': 2, 'offline': 1}, watchdog_stops=0, settings_ok=True,

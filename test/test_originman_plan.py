@@ -151,7 +151,7 @@ class BoardPlanMachine(RuleBasedStateMachine):
     def timer_until(self, end):
         """The timer thread: fire every deadline up to ``end``, writing what is due."""
         while True:
-            deadline = self.plan.watchdog.deadline if self.plan.judge.connected else None
+            deadline = self.plan.watchdog.deadline if self.plan.judge.port_open else None
             paced = self.plan.scheduler.next_time(self.now)
             due = min([t for t in (deadline, paced) if t is not None], default=None)
             if due is None or due > end:

@@ -9,7 +9,7 @@ import threading
 import time
 
 from originman_board_ros import protocol as p
-from originman_board_ros.core import OriginManConfig, OriginManCore
+from originman_board_ros.core import OriginManConfig, OriginManCore, Outcome
 from originman_rig import VirtualBoard
 import pytest
 from uav_serial_common.process import wait_for
@@ -185,5 +185,4 @@ def test_round2_11a_a_command_sent_on_the_first_imu_after_a_reconnect_is_accepte
         state['armed'] = True
         r.board.runner.replug()
         wait_for(lambda: len(results) > k, 10, what='the command on the first IMU after it')
-    assert [res.cause for res in results] == ['', '', '']
-    assert all(res.ok for res in results), [res.message for res in results]
+    assert [res.outcome for res in results] == [Outcome.SENT] * 3, [r.message for r in results]

@@ -24,7 +24,7 @@ from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.session import HELD_RETRY_S, ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.settings_rule import conditions, order, Trigger, would_deploy
-from dps_parachute_ros.state import Listener, SessionConfig, SETTINGS
+from dps_parachute_ros.state import Listener, Outcome, SessionConfig, SETTINGS
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
 from model_runs import EXAMPLES, PHASES
@@ -150,20 +150,20 @@ def test_deploy_refusals_send_nothing(rig):
     mark = rig.wire.mark()
     for token in ('deploy', 'DEPLOY ', ''):
         result = rig.session.deploy(token, True)
-        assert not result.ok and "'DEPLOY'" in result.message and 'nothing sent' in result.message
+        assert result.outcome is Outcome.REFUSED and "'DEPLOY'" in result.message  # the reason
     result = rig.session.deploy('DEPLOY', False)
-    assert not result.ok and 'locked' in result.message and 'nothing sent' in result.message
+    assert result.outcome is Outcome.REFUSED and 'locked' in result.message
     rig.runner.unplug()
     wait_for(lambda: not rig.snap.online, 3, what='offline')
     result = rig.session.deploy('DEPLOY', True)
-    assert not result.ok and 'offline' in result.message
+    assert result.outcome is Outcome.REFUSED and 'offline' in result.message
     assert rig.wire.since(mark, p.CMD_DEPLOY) == [] and rig.wire.since(mark, p.CMD_ARM) == []
 
 
 def test_deploy_arms_first_when_asked_and_reports_one_event(rig):
     mark = rig.wire.mark()
     result = rig.session.deploy('DEPLOY', True)
-    assert result.ok and 'acknowledged after 1 attempt' in result.message, result.message
+    assert result.outcome is Outcome.DONE and result.latency_ms is not None, result.message
     sent = [raw[2] for raw in rig.wire.since(mark) if raw[2] in (p.CMD_ARM, p.CMD_DEPLOY)]
     assert sent == [p.CMD_ARM, p.CMD_DEPLOY]
     wait_for(lambda: rig.heard.events, 3, what='trigger event')
@@ -180,10 +180,11 @@ def test_unacknowledged_deploys_stop_before_a_third_frame_until_a_reboot(rig):
         rig.sim.lost_commands = {p.CMD_DEPLOY}
     mark = rig.wire.mark()
     result = rig.session.deploy('DEPLOY')
-    assert not result.ok and 'NOT acknowledged after 2 attempts' in result.message
+    assert result.outcome is Outcome.FAILED, result.message
     assert 'did NOT deploy' in result.message  # the module said so, when asked
     result = rig.session.deploy('DEPLOY')
-    assert not result.ok and '2 deploy frames in a row went unacknowledged' in result.message
+    assert result.outcome is Outcome.REFUSED, result.message
+    assert '2 deploy frames in a row went unacknowledged' in result.message  # why
     assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY] * 2
     with rig.model():
         rig.sim.lost_commands = set()
@@ -377,7 +378,7 @@ def test_safety_3_a_deploy_cut_short_by_the_link_is_unknown_then_resolved(rig):
     rig.arm()
     unplug_when_deploy_arrives(rig)
     result = rig.session.deploy('DEPLOY')
-    assert not result.ok and 'UNKNOWN' in result.message and 'link dropped' in result.message
+    assert result.outcome is Outcome.UNKNOWN and 'link dropped' in result.message
     assert 'did NOT deploy' not in result.message and 'refused' not in result.message
     assert rig.snap.deploy_outcome_unknown and rig.snap.unacked_deploys == 1
     with rig.model():
@@ -445,7 +446,8 @@ def test_safety_5_answer_true_to_a_locked_module_does_not_claim_a_deployment(rig
     mark = held_request(rig)
     assert rig.session.arm(False).ok
     result = rig.session.answer_trigger_request(True)
-    assert not result.ok and 'locked' in result.message and 'deploys' not in result.message
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'locked'), result
+    assert 'deploys' not in result.message  # claims no deployment
     decision = rig.heard.decisions[-1]
     assert decision.decision == 'denied' and 'locked' in decision.reason
     assert_never_confirmed(rig, mark)
@@ -468,7 +470,7 @@ def test_safety_6_concurrent_deploys_send_one_frame_and_never_rearm(rig):
         assert rig.sim.deployments == 1 and not rig.sim.protection
         assert rig.sim.failed_attempts_total == 0
     result = rig.session.arm(True)
-    assert not result.ok and 'never re-armed' in result.message
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'triggered'), result
     assert rig.wire.since(mark, p.CMD_ARM) == [p.encode_arm(True)]
 
 
@@ -481,8 +483,7 @@ def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(
     boot = rig.power_cycle()
     wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
     result = rig.session.deploy('DEPLOY')
-    assert not result.ok and ('locked' in result.message or 're-read' in result.message), \
-        result.message
+    assert result.outcome is Outcome.REFUSED, result.message
     assert rig.wire.since(mark, p.CMD_DEPLOY) == []
     # A module that does not answer the re-read within the wait: refused, with the reason.
     rig.runner.faults.reply_delay_s = 0.0
@@ -491,7 +492,8 @@ def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(
     rig.power_cycle()
     wait_for(lambda: not rig.snap.fresh, 2, what='the reboot heartbeat seen')
     result = rig.session.deploy('DEPLOY', True)
-    assert not result.ok and 'has not been re-read' in result.message, result.message
+    assert result.outcome is Outcome.REFUSED and 'has not been re-read' in result.message, \
+        result.message  # the reason: not re-read
     assert rig.wire.since(mark, p.CMD_DEPLOY) == [] and rig.wire.since(mark, p.CMD_ARM) == []
     with rig.model():
         rig.sim.lost_commands = set()
@@ -508,8 +510,8 @@ def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
     reboot_when_deploy_arrives(rig)
     mark = rig.wire.mark()
     result = rig.session.deploy('DEPLOY')
-    assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \
-        result.message, result.message
+    assert result.outcome is Outcome.FAILED and 'did NOT deploy' in result.message, \
+        result.message
     assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]  # no retry to the rebooted module
     with rig.model():
         assert rig.sim.failed_attempts_total == 0 and not rig.sim.triggered
@@ -529,7 +531,7 @@ def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(timed_rig):
     wait_for(lambda: not rig.snap.online, 3, what='offline')
     rig.runner.replug()
     rig.wait_ready()
-    assert rig.session.get_trigger_records().records[-1].serial_trigger
+    assert rig.session.get_trigger_records().value[-1].serial_trigger
     assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_SERIAL, 'deploy_ack')]
 
 
@@ -662,7 +664,7 @@ def test_safety_21_preflight_check_reads_afresh_and_lists_every_check(rig):
         rig.sim.set_external_power(False)
         rig.sim.cell_voltage_v = 3.3
     result = rig.session.preflight_check()
-    assert not result.ok
+    assert result.outcome is Outcome.FAILED
     lines = result.message.splitlines()
     fails = [line for line in lines if line.startswith('FAIL')]
     assert lines[:len(fails)] == fails  # failures first
@@ -836,8 +838,8 @@ def test_safety_7_11_a_full_disk_and_a_reboot_during_a_deploy(tmp_path):
         reboot_when_deploy_arrives(rig, once=True)
         mark = rig.wire.mark()
         result = rig.session.deploy('DEPLOY')
-        assert not result.ok and 'did NOT deploy' in result.message and 'locked now' in \
-            result.message, result.message
+        assert result.outcome is Outcome.FAILED and 'did NOT deploy' in result.message, \
+            result.message
         with rig.model():
             rig.sim.lost_commands = set()
         rig.wait_ready(boot=2)
@@ -861,7 +863,8 @@ def test_safety_4_5_a_pending_request_across_an_unplug_is_never_confirmed(rig):
     rig.runner.unplug()
     wait_for(lambda: not rig.snap.online, 3, what='offline')
     result = rig.session.answer_trigger_request(True)
-    assert not result.ok and 'deploys' not in result.message, result.message
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'offline'), result
+    assert 'deploys' not in result.message  # claims no deployment
     assert rig.heard.decisions[-1].decision != 'confirmed'
     rig.runner.replug()
     rig.wait_ready()
@@ -880,7 +883,7 @@ def test_safety_5_7_a_pending_request_across_a_reboot_claims_no_deployment(rig):
     assert decision.decision == 'denied' and 'rebooted' in decision.reason, decision
     assert not rig.snap.pending_request
     result = rig.session.answer_trigger_request(True)
-    assert not result.ok and 'no trigger request is pending' in result.message, result.message
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'not_pending'), result
     rig.wait_ready(boot)
     with rig.model():
         assert not rig.sim.triggered and not rig.sim.armed

@@ -9,7 +9,7 @@ import pytest
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.blackbox import BlackBox
-from dps_parachute_ros.link import LinkTimeout, ParachuteLink
+from dps_parachute_ros.link import LinkTimeout, ParachuteLink, RECORDS_QUIET_S
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.virtual_node import create_runner
 from uav_serial_common.process import wait_for
@@ -25,7 +25,7 @@ def rig(tmp_path):
     box = BlackBox(str(tmp_path / 'bb'))
     link = ParachuteLink(runner.path, 115200, unsolicited.append, blackbox=box)
     link.start()
-    assert link.serial.wait_connected(5)
+    assert link.serial.wait_port_open(5)
     yield sim, runner, link, unsolicited, wire, box
     link.stop()
     runner.stop()
@@ -134,3 +134,48 @@ def test_blackbox_one_file_per_run_in_an_expanded_directory(tmp_path, monkeypatc
     assert len(files) == 2
     second.close()
     assert json.loads(open(first.path).readline())['armed'] is True
+
+
+def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_reader(tmp_path):
+    """The records list ends on a quiet line, measured from the reader's own time of the
+    last record's bytes: a reader held between frames (a loaded machine) is no quiet gap.
+
+    The module (this test, on a raw pty) answers the records query with seven records, a
+    status frame and the eighth record at once; the reader is held in the status frame's
+    handler for four quiet gaps while the eighth record waits unread.
+    """
+    master, slave = os.openpty()
+    held = threading.Event()
+    release = threading.Event()
+
+    def on_message(msg):
+        if isinstance(msg, p.Status):
+            held.set()
+            release.wait(4 * RECORDS_QUIET_S)  # the reader is late, the line is not quiet
+
+    link = ParachuteLink(os.ttyname(slave), 115200, on_message)
+    link.start()
+    try:
+        assert link.serial.wait_port_open(5)
+        records = [p.encode_trigger_record(1, k, p.SOURCE_SERIAL, 60, 5, 30, True, False, 20,
+                                           180) for k in range(1, 9)]
+        answer = b''.join(records[:7]) + p.encode_status_frame(3, 10, True, True) + records[7]
+        got = []
+        query = threading.Thread(target=lambda: got.append(link.query_records()))
+        query.start()
+        os.set_blocking(master, True)
+        asked = b''
+        while p.encode_trigger_records_query() not in asked:
+            asked += os.read(master, 64)
+        os.write(master, answer)
+        assert held.wait(5), 'the status frame never reached its handler'
+        query.join(4 * RECORDS_QUIET_S)  # a list ended behind the reader's back ends now
+        release.set()
+        query.join(10)
+        assert not query.is_alive()
+        assert [r.uptime_s for r in got[0]] == list(range(1, 9))
+    finally:
+        release.set()
+        link.stop()
+        os.close(master)
+        os.close(slave)

@@ -84,7 +84,7 @@ def open_link(path, **kwargs):
     """Yield (link, unsolicited frames, connection states) once the port is open; stop after."""
     link, unsolicited, states = make_link(path, **kwargs)
     try:
-        assert link.wait_connected(2)
+        assert link.wait_port_open(2)
         yield link, unsolicited, states
     finally:
         link.stop()
@@ -139,7 +139,7 @@ def test_a_port_the_user_may_not_open_is_reported_with_the_dialout_hint():
             link, _, _ = make_link(port.path)
             try:
                 wait_for(lambda: link.last_error, 5, what='an open error')
-                os.write(write_end, f'{link.connected}|{link.last_error}'.encode())
+                os.write(write_end, f'{link.port_open}|{link.last_error}'.encode())
                 code = 0
             finally:
                 link.stop()
@@ -163,9 +163,9 @@ def test_unplug_is_noticed_and_the_link_reopens_the_same_path_after_replug(devic
     with open_link(device.port.path) as (link, _, states):
         device.port.unplug()
         wait_for(lambda: states[-1] is False, 2, what='the link to notice the unplug')
-        assert not link.connected
+        assert not link.port_open
         device.port.replug()
-        wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        wait_for(lambda: link.port_open, 3, what='the link to reconnect')
         assert link.request(b'ask 2\n', lambda f: f == b're 2', timeout=1.0) == b're 2'
         assert states == [True, False, True]
         assert link.stats.reconnects == 1
@@ -182,12 +182,12 @@ def test_the_on_open_hook_sees_every_open_before_the_port_is_used(device):
                       on_connection=lambda up, why: states.append(up), on_open=on_open)
     link.start()
     try:
-        assert link.wait_connected(2)
+        assert link.wait_port_open(2)
         assert opened == [(True, [], 0)]
         device.port.unplug()
-        wait_for(lambda: not link.connected, 2, what='the unplug noticed')
+        wait_for(lambda: not link.port_open, 2, what='the unplug noticed')
         device.port.replug()
-        wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        wait_for(lambda: link.port_open, 3, what='the link to reconnect')
         assert len(opened) == 2
     finally:
         link.stop()
@@ -222,7 +222,7 @@ def test_a_chain_whose_next_request_cannot_be_written_fails_fast_and_the_link_re
                 device.port.unplug()
             return super().next_request()
     try:
-        assert link.wait_connected(2)
+        assert link.wait_port_open(2)
         outcome = []
 
         def run():
@@ -239,7 +239,7 @@ def test_a_chain_whose_next_request_cannot_be_written_fails_fast_and_the_link_re
         assert 'write failed' in link.last_error or 'cannot open' in link.last_error
         device.port.replug()
         echo = Echo(device.port)
-        wait_for(lambda: link.connected, 3, what='the link to reconnect')
+        wait_for(lambda: link.port_open, 3, what='the link to reconnect')
         assert link.request(b'ask 4\n', lambda f: f == b're 4', timeout=1.0) == b're 4'
         echo.stop()
     finally:
@@ -259,7 +259,7 @@ def test_flushing_while_bytes_arrive_is_not_taken_for_a_disconnect(tmp_path):
             port.write(b'tick\n')
     writer = threading.Thread(target=stream, daemon=True)
     try:
-        assert link.wait_connected(2)
+        assert link.wait_port_open(2)
         writer.start()
         wait_for(lambda: unsolicited, 2, what='the stream')
         deadline = time.monotonic() + 1.0
@@ -268,7 +268,7 @@ def test_flushing_while_bytes_arrive_is_not_taken_for_a_disconnect(tmp_path):
             link.flush_input()
             flushes += 1
         assert flushes > 100
-        assert states == [True] and link.connected and link.stats.reconnects == 0, \
+        assert states == [True] and link.port_open and link.stats.reconnects == 0, \
             link.last_error
     finally:
         streaming.clear()
@@ -288,7 +288,7 @@ def test_a_failing_frame_handler_does_not_stop_the_reader(device):
     link = SerialLink(device.port.path, 115200, LineDecoder(), on_frame=boom)
     link.start()
     try:
-        assert link.wait_connected(2)
+        assert link.wait_port_open(2)
         device.port.write(b'first\n')
         assert link.request(b'ask 4\n', lambda f: f == b're 4', timeout=1.0) == b're 4'
     finally:
@@ -412,7 +412,7 @@ def test_safety_14_a_port_that_fails_any_way_is_a_link_error_and_the_reader_live
     worker = threading.Thread(target=hammer, daemon=True)
     rng = random.Random(14)
     try:
-        assert link.wait_connected(2)
+        assert link.wait_port_open(2)
         worker.start()
         for _ in range(25):
             time.sleep(rng.uniform(0.0, 0.03))
@@ -425,7 +425,7 @@ def test_safety_14_a_port_that_fails_any_way_is_a_link_error_and_the_reader_live
                     pass
             time.sleep(rng.uniform(0.0, 0.03))
             port.replug()
-            wait_for(lambda: link.connected, 3, what='the link to reconnect')
+            wait_for(lambda: link.port_open, 3, what='the link to reconnect')
         hammering.clear()
         worker.join(5)
         assert escaped == []
@@ -451,7 +451,7 @@ def test_safety_19_a_port_that_is_no_serial_device_is_named_for_what_it_is(tmp_p
         expected = {'directory': f'{path} is a directory, not a serial device',
                     'regular file': 'not a serial device',
                     'missing': 'no such device'}[kind]
-        assert expected in link.last_error and not link.connected
+        assert expected in link.last_error and not link.port_open
         assert link.reader_alive
     finally:
         link.stop()

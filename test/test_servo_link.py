@@ -26,7 +26,7 @@ def bus(tmp_path_factory):
     wire = Wire(dev.runner)
     link = ServoBusLink(dev.path, 115200, max_retries=1, response_timeout_ms=RIG_MARGIN_MS)
     link.start()
-    assert link.wait_connected(5)
+    assert link.wait_port_open(5)
     yield dev, wire, link
     link.stop()
     dev.stop()

@@ -271,7 +271,7 @@ class ServoBusModel(RuleBasedStateMachine):
     @rule(ms=st.floats(0.0, 10.0))
     def emergency_stop(self, ms: float) -> None:
         _, actions = self.bus.call(self.wire.now, 'emergency_stop')
-        if not self.bus.closed and self.bus.connected:
+        if not self.bus.closed and self.bus.port_open:
             self.stop_sent_at = len(self.wire.log)
         self.newest.clear()  # queued commands are dropped by the stop
         self.wire.do(actions)
@@ -394,7 +394,7 @@ class ServoBusModel(RuleBasedStateMachine):
         if k is None:
             return
         after = self.wire.log[k:]
-        if self.bus.connected or after:
+        if self.bus.port_open or after:
             assert [s.frame for s in after] == [TORQUE_OFF_ALL], (
                 f'after the shutdown: {[s.kind for s in after]}')
 

@@ -112,6 +112,9 @@ class SerialLink:
         self.reader_error = ''
         self.reader_errors = 0
         self.last_rx_time: Optional[float] = None
+        """When the reader thread received the last bytes (monotonic clock)."""
+        # Bytes read and not yet handed on (the reader decodes and dispatches them).
+        self._rx_busy = False
         self._decoder = decoder
         self._on_frame = on_frame
         self._on_connection = on_connection
@@ -137,7 +140,7 @@ class SerialLink:
         self._waiters: Tuple[Any, ...] = ()
         self._waiters_lock = threading.Lock()
         self._stop = threading.Event()
-        self._connected = threading.Event()
+        self._port_open = threading.Event()
         self._thread: Optional[threading.Thread] = None
         # A request chain holding the line after a frame without a reply, and until when: the
         # reader thread ends the hold itself (no hand-off to the chain's caller).
@@ -171,13 +174,29 @@ class SerialLink:
         self._close('stopped')
 
     @property
-    def connected(self) -> bool:
+    def port_open(self) -> bool:
         """Return True while the port is open."""
-        return self._connected.is_set()
+        return self._port_open.is_set()
 
-    def wait_connected(self, timeout: float) -> bool:
+    def wait_port_open(self, timeout: float) -> bool:
         """Wait until the port is open; returns whether it is."""
-        return self._connected.wait(timeout)
+        return self._port_open.wait(timeout)
+
+    def unread_input(self) -> bool:
+        """Whether bytes have come in that the reader has not handed on yet.
+
+        Bytes wait in the port, are being decoded and dispatched, or are held by the decoder:
+        frames may still come of them. A caller waiting for the line to go quiet asks this, so
+        that a reader late on a loaded machine is not taken for a quiet line.
+        """
+        with self._rx_lock:
+            if self._rx_busy or getattr(self._decoder, 'pending', 0):
+                return True
+            port = self._serial
+            try:
+                return port is not None and port.in_waiting > 0
+            except PORT_ERRORS:
+                return False
 
     @property
     def reader_alive(self) -> bool:
@@ -190,7 +209,7 @@ class SerialLink:
         """Send bytes now; raises LinkDown when the port is not open."""
         with self._write_lock:
             port = self._serial
-            if port is None or not self._connected.is_set():
+            if port is None or not self._port_open.is_set():
                 raise LinkDown(f'{self.url} is not open: {self.last_error or "not connected"}')
             try:
                 self._write_port(port, data)
@@ -230,7 +249,7 @@ class SerialLink:
                 sent = True
                 if waiter.event.wait(timeout) and waiter.frame is not None:
                     return waiter.frame
-                if not self._connected.is_set():
+                if not self._port_open.is_set():
                     raise LinkDown(f'{self.url} closed while waiting for a reply')
             self.stats.timeouts += 1
             raise LinkTimeout(f'no reply within {timeout * 1000:.0f} ms '
@@ -265,7 +284,7 @@ class SerialLink:
                         run.expire()
                         continue
                 run.event.wait(remaining)
-                if not self._connected.is_set():
+                if not self._port_open.is_set():
                     with run.lock:
                         run.finish()
                     raise LinkDown(f'{self.url} closed while waiting for a reply')
@@ -358,6 +377,7 @@ class SerialLink:
             data = port.read(1)
             if data and port.in_waiting:
                 data += port.read(port.in_waiting)
+            self._rx_busy = bool(data)
             return data
         # The same as pyserial's read, minus a second select and an ioctl per wake-up: on a
         # half-duplex bus every reply pays for them, so they show in the bus rate.
@@ -381,6 +401,10 @@ class SerialLink:
                     data = os.read(fd, 4096)
             except BlockingIOError:
                 return b''
+            # Stamped in the read's own lock: unread_input() sees the bytes in the port or here.
+            self._rx_busy = bool(data)
+            if data:
+                self.last_rx_time = time.monotonic()
         if not data:
             raise serial.SerialException('device reports readiness to read but returned no data '
                                          '(device disconnected?)')
@@ -426,13 +450,17 @@ class SerialLink:
         self._dispatch(frames)
 
     def _receive(self, data: bytes) -> None:
-        self.last_rx_time = time.monotonic()
-        self.stats.bytes_in += len(data)
-        if self._on_rx is not None:
-            self._on_rx(data)
-        with self._rx_lock:
-            frames = self._decoder.feed(data)
-        self._dispatch(frames)
+        if self._fast_fd is None:
+            self.last_rx_time = time.monotonic()
+        try:
+            self.stats.bytes_in += len(data)
+            if self._on_rx is not None:
+                self._on_rx(data)
+            with self._rx_lock:
+                frames = self._decoder.feed(data)
+            self._dispatch(frames)
+        finally:
+            self._rx_busy = False
 
     def _dispatch(self, frames: Iterable[Any]) -> None:
         for frame in frames:
@@ -501,7 +529,7 @@ class SerialLink:
         if self.stats.open_failures or self.stats.reconnects:
             self.stats.reconnects += 1
         self.last_error = ''
-        self._connected.set()
+        self._port_open.set()
         self._log.info(f'opened {self.url} at {self.baud} baud')
         self._notify(True, 'port open')
         return True
@@ -510,7 +538,7 @@ class SerialLink:
         """Close the port after a failure of `port` (default: the open one) and reconnect."""
         if port is not None and port is not self._serial:
             return  # that port is closed already; the first failure's reason stands
-        if self._connected.is_set():
+        if self._port_open.is_set():
             self._log.error(f'{self.url}: {reason}; reconnecting')
             self.last_error = reason
         elif not self.last_error:
@@ -518,8 +546,8 @@ class SerialLink:
         self._close(reason)
 
     def _close(self, reason: str) -> None:
-        was_connected = self._connected.is_set()
-        self._connected.clear()
+        was_open = self._port_open.is_set()
+        self._port_open.clear()
         port, self._serial = self._serial, None
         self._fast_fd = None
         if port is not None:
@@ -530,7 +558,7 @@ class SerialLink:
         # Wake every waiter: their request fails at once rather than at its timeout.
         for waiter in self._waiters:
             waiter.event.set()
-        if was_connected:
+        if was_open:
             self._notify(False, reason)
 
     def _notify(self, up: bool, reason: str) -> None:
