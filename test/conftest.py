@@ -26,6 +26,8 @@ def pytest_configure(config: pytest.Config) -> None:
     # Each process claims its own: the session, and each of its pytest-xdist workers (which
     # inherit the session's environment), so tests running side by side never share a graph.
     os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
+    # Waits end when their condition holds; their bounds are stretched for a loaded machine.
+    os.environ.setdefault('UAV_WAIT_SCALE', '3')
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')

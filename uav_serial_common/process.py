@@ -59,9 +59,23 @@ class WaitTimeout(AssertionError, TimeoutError):
     """A `wait_for` that timed out: a failed assertion in a test, a TimeoutError elsewhere."""
 
 
+def wait_scale() -> float:
+    """Return the factor every test wait's timeout is stretched by (``UAV_WAIT_SCALE``).
+
+    A timeout is a bound on a wait that ends as soon as its condition holds: stretching it costs
+    nothing while things work, and keeps a test on a loaded machine (parallel test workers, a
+    busy CI host) from failing on a condition that was merely late. The test harness sets it.
+    """
+    try:
+        return max(1.0, float(os.environ.get('UAV_WAIT_SCALE', '1')))
+    except ValueError:
+        return 1.0
+
+
 def wait_for(predicate: Callable[[], Any], timeout: float, interval: float = 0.01,
              what: str = 'condition') -> Any:
-    """Poll `predicate` until truthy; raise `WaitTimeout` after `timeout` s."""
+    """Poll `predicate` until truthy; raise `WaitTimeout` after `timeout` s (x `wait_scale()`)."""
+    timeout *= wait_scale()
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()

@@ -19,7 +19,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 
 class MessageLog:
@@ -38,6 +38,7 @@ class MessageLog:
     def wait(self, predicate: Callable[[Any], bool] = lambda m: True, timeout: float = 5.0,
              what: str = 'a matching message', start: int = 0) -> Any:
         """Return the first message from index `start` that satisfies `predicate`."""
+        timeout *= wait_scale()
         deadline = time.monotonic() + timeout
         checked = start
         with self._cond:
@@ -115,7 +116,8 @@ class RosHarness:
         return pub
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
-        """Call a service and return its response; fail the test on timeout."""
+        """Call a service and return its response; fail the test on timeout (x `wait_scale()`)."""
+        timeout *= wait_scale()
         client = self.client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout):
             raise AssertionError(f'service {name} not available after {timeout:.0f} s')

@@ -249,6 +249,8 @@ class SerialLink:
                 sent = True
                 if waiter.event.wait(timeout) and waiter.frame is not None:
                     return waiter.frame
+                if self._reader_behind(waiter, timeout):
+                    return waiter.frame
                 if not self._port_open.is_set():
                     raise LinkDown(f'{self.url} closed while waiting for a reply')
             self.stats.timeouts += 1
@@ -259,6 +261,20 @@ class SerialLink:
             raise
         finally:
             self._remove_waiter(waiter)
+
+    def _reader_behind(self, waiter: '_Waiter', timeout: float) -> bool:
+        """At a reply deadline, wait (up to `timeout` more) while the reader is behind.
+
+        Bytes that came in and were not handed on yet may be the reply: on a loaded host the
+        reader thread can be late by more than a short deadline, and calling that a timeout
+        (and sending again on a half-duplex line) would report a silence nobody saw. Returns
+        whether the reply came meanwhile.
+        """
+        end = time.monotonic() + timeout
+        while self.unread_input() and time.monotonic() < end:
+            if waiter.event.wait(0.002) and waiter.frame is not None:
+                return True
+        return waiter.event.is_set() and waiter.frame is not None
 
     def request_chain(self, chain: RequestChain, flush: bool = False) -> int:
         """Run `chain` until its ``next_request()`` returns None; return the requests sent.
