@@ -139,7 +139,9 @@ def test_safety_3_sigint_during_a_deploy_records_an_unknown_outcome_not_a_refusa
         assert rig.sim.triggered  # the parachute came out
     outcomes = records_of(rig, 'deploy')
     assert [r['outcome'] for r in outcomes] == ['unknown'], outcomes
-    assert 'success' not in outcomes[0] and 'shutting down' in outcomes[0]['reason']
+    # Why it is unknown depends on how far the attempts got before the signal (on a loaded
+    # host both may have timed out first): the outcome is the point, and that frames left.
+    assert 'success' not in outcomes[0] and 'deploy frame(s) sent' in outcomes[0]['reason']
 
 
 def test_safety_3_10_a_deploy_cut_by_an_unplug_then_sigint_twice_while_unplugged(make_rig):
