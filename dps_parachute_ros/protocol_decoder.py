@@ -87,10 +87,7 @@ class StreamDecoder(BaseStreamDecoder):
         if ok6 and (final or not _record_plausible(buf, pos, avail)):
             return FRAME_LEN
         if final:
-            # Silence after exactly a voltage reply's length: it was one, corrupted (counted as
-            # the checksum error it is, as a corrupted frame of any other code is); after more,
-            # a truncated record.
-            return BAD_CHECKSUM if avail == FRAME_LEN else DROP
+            return DROP
         return WAIT
 
 

@@ -285,15 +285,6 @@ def test_p3_lone_voltage_reply_waits_for_idle_then_is_delivered():
     assert [f.raw for f in frames] == [VOLTAGE35]
 
 
-def test_p3_a_lone_corrupted_voltage_reply_counts_as_a_checksum_error():
-    # The last reply of a poll, its checksum flipped on the wire, then silence: it was a
-    # voltage reply (a record is longer), so it is a checksum error, as for any other code.
-    bad = VOLTAGE35[:-1] + bytes([VOLTAGE35[-1] ^ 0x5A])
-    decoder = p.StreamDecoder()
-    assert decoder.feed(bad) == [] and decoder.flush() == []
-    assert decoder.checksum_errors == 1 and decoder.pending == 0
-
-
 def test_p3_voltage_reply_followed_by_a_frame_needs_no_flush():
     decoder = p.StreamDecoder()
     frames = decoder.feed(VOLTAGE35 + STATUS)
