@@ -454,7 +454,11 @@ def test_pty_link_lost_with_the_radio_and_regained(pty_rig):
     with runner.locked():
         sim.set_radio_link(True)
     wait_for(lambda: not core.failsafe().link_lost, 3, what='the link regained')
-    assert [f.link_lost for f in seen.failsafes] == [False, True, False]
+    # Published on each change: not lost, lost, regained (a loaded host that stalls the
+    # virtual handset past the timeout adds a loss and a regain of its own).
+    lost = [f.link_lost for f in seen.failsafes]
+    assert lost[0] is False and lost[-1] is False and True in lost, lost
+    assert all(a != b for a, b in zip(lost, lost[1:])), lost
 
 
 def test_pty_a_truncated_frame_and_silence_are_one_malformed_frame(pty_rig):
