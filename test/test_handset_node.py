@@ -184,9 +184,11 @@ def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, tmp_pa
         (s := h.latest('link')) is not None and 'rejected in the last second' in s.message
         and s), 10, interval=0.2, what='rejected frames in the link diagnostics')
     assert diag.level == DiagnosticStatus.WARN
-    # The same path takes a good frame at once.
+    # The same path takes a good frame at once (counted from before it is sent: it may be
+    # published before the send_raw call returns).
+    start = len(h.setpoints)
     h.send_raw(good_yaw)
-    got = h.setpoint(lambda m: m.updated, 'the good frame')
+    got = h.setpoints.wait(lambda m: m.updated, 5, what='the good frame', start=start)
     assert (got.updated, got.yaw_deg) == (['yaw_deg'], 45.0)
     assert h.driver.alive()
 

@@ -253,7 +253,9 @@ def test_round2_23_an_unconfirmed_motor_stop_still_releases(fresh, answer):
     assert motor_stops(rig.hub, mark)
     rig.hub.wait(mark, 'node', 'STATUSTEXT', lambda m: 'NOT confirmed' in m.text, 5)
     record = gate_records(rig)[-1]
-    assert record['success'] is False and record['route'] == 'deploy'
+    # False: the gate said "not confirmed"; None: on a loaded host its answer came after
+    # release_gate_timeout_s. Either way the release did not wait for a confirmation.
+    assert record['success'] is not True and record['route'] == 'deploy', record
 
 
 def test_round2_23_garbage_floods_and_a_second_autopilot_change_nothing(fresh):

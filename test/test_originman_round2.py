@@ -127,7 +127,7 @@ def test_round2_7_a_stop_motors_reaches_the_board_at_once_during_a_servo_flood(l
 
 def test_round2_7_b_other_commands_and_reads_are_not_held_behind_a_servo_flood(live):
     ids = list(range(1, 21))
-    r = live(board_kwargs={'bus_servo_ids': ids}, motor_timeout_s=0.0, read_timeout_s=0.25)
+    r = live(board_kwargs={'bus_servo_ids': ids}, motor_timeout_s=0.0, read_timeout_s=0.5)
     with Flood(r.core, ids) as flood:
         wait_for(lambda: flood.sent >= 250, 30, what='a flood of 2.5 s')
         for call in (lambda: r.core.set_led(1, 0.1, 0.1, 1),
@@ -137,7 +137,7 @@ def test_round2_7_b_other_commands_and_reads_are_not_held_behind_a_servo_flood(l
                      lambda: r.core.set_pwm_servos([1], [1600], 0.1),
                      lambda: r.core.set_motor_speeds([1], [0.5])):
             assert call().ok
-        # A read waits for its reply (2 x 250 ms at most): before, it came seconds late.
+        # A read waits for its reply (2 x 500 ms at most): before, it came seconds late.
         state = r.core.get_pwm_servo_state([1, 2])
         assert state.ok, state.message
         kinds = (p.SetLed, p.SetBuzzer, p.SetRgb, p.SetOledText, p.PwmMove, p.SetMotorSpeeds)
