@@ -6,7 +6,7 @@ PYTEST_ARGS ?=
 # test's time is waiting on a device's timing, not CPU, so four workers fit two cores.
 TEST_WORKERS ?= 4
 
-.PHONY: all build test demo bench lint clean distclean
+.PHONY: all build test test-core demo bench lint clean distclean
 
 all: build
 
@@ -16,6 +16,9 @@ build:
 test: build
 	@$(ENV) && python -m pytest test -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile \
 		$(PYTEST_ARGS)
+
+test-core: build
+	@$(ENV) && python -m pytest test -p no:cacheprovider -m core $(PYTEST_ARGS)
 
 lint: build
 	@$(ENV) && python -m pytest test/test_lint.py -p no:cacheprovider $(PYTEST_ARGS)

@@ -23,6 +23,7 @@ from uav_serial_common.process import claim_domain_id  # noqa: E402
 
 def pytest_configure(config: pytest.Config) -> None:
     """Isolate this session's ROS traffic before anything imports rclpy."""
+    config.addinivalue_line('markers', 'core: the fast tier (no process, pty or ROS graph)')
     # Each process claims its own: the session, and each of its pytest-xdist workers (which
     # inherit the session's environment), so tests running side by side never share a graph.
     os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
@@ -32,6 +33,26 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
     os.environ.setdefault('PYTHONUNBUFFERED', '1')
+
+
+CORE_TIER = frozenset({
+    'test_dps_protocol.py', 'test_dps_simulation.py', 'test_handset_messages.py',
+    'test_handset_model.py', 'test_handset_protocol.py', 'test_handset_simulation.py',
+    'test_mavlink_core.py', 'test_originman_messages.py', 'test_originman_plan.py',
+    'test_originman_protocol.py', 'test_originman_simulation.py', 'test_parachute_messages.py',
+    'test_parachute_model.py', 'test_result.py', 'test_servo_messages.py',
+    'test_servo_model.py', 'test_servo_protocol.py', 'test_servo_registers.py',
+    'test_servo_simulation.py', 'test_stream_decoder.py', 'test_uart.py',
+})
+"""The test tier that runs in seconds: protocols, cores, device models and the model searches,
+with no process, pty or ROS graph (``make test-core``; ``make test`` runs every tier)."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
+    """Mark the core tier's tests ``core`` (select them with ``-m core``)."""
+    for item in items:
+        if item.path.name in CORE_TIER:
+            item.add_marker(pytest.mark.core)
 
 
 def pytest_report_header(config: pytest.Config) -> str:
