@@ -106,6 +106,7 @@ class SerialLink:
         self.url = url
         self.baud = baud
         self.stats = LinkStats()
+        self._opened_before = False
         self.last_error = ''
         # The reader thread's last unexpected failure (a bug or a port error nobody foresaw):
         # it is logged, the port is reopened, and owners show it in their diagnostics.
@@ -542,8 +543,11 @@ class SerialLink:
         plain = _PosixSerial is not None and type(port).read is _PosixSerial.read and \
             type(port).write is _PosixSerial.write and isinstance(getattr(port, 'fd', None), int)
         self._fast_fd = port.fd if plain else None
-        if self.stats.open_failures or self.stats.reconnects:
+        # Any open after the first is a reconnect, whether or not an attempt failed between
+        # (a cable plugged back before the reader's first try is one too).
+        if self._opened_before or self.stats.open_failures:
             self.stats.reconnects += 1
+        self._opened_before = True
         self.last_error = ''
         self._port_open.set()
         self._log.info(f'opened {self.url} at {self.baud} baud')
