@@ -74,6 +74,8 @@ from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS,
 from uav_serial_common.logs import Throttle
 
 SHUTDOWN_TOKEN = 'SHUTDOWN'
+BLACKBOX_CLOSE_S = 4.0
+"""Longest wait at stop for the black box's writer to put the last records on disk."""
 
 
 class _Guarded(Listener):
@@ -227,7 +229,10 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             self._actuation.release()
         self._record_link(final=True)
         self.blackbox.record('stop')
-        self.blackbox.close(timeout=1.0)
+        # The writer normally ends in milliseconds; a starved CPU can hold it for seconds, and
+        # the process ending first would lose every record still queued (a run's first second
+        # is not on disk yet). Bounded below ros2 launch's SIGTERM escalation (5 s).
+        self.blackbox.close(timeout=BLACKBOX_CLOSE_S)
 
     @property
     def config(self) -> SessionConfig:
