@@ -1,0 +1,526 @@
+"""The deploy procedure (D6) as a state machine without I/O: events in, actions out (issue 22).
+
+`DeployCore` holds what a deploy decides on: whether the port is open and the module answers,
+whether its armed and triggered states were read since it last could have changed unseen (D15),
+its boot count, the deploy frames of this power-up without a successful acknowledgement (P11),
+and a deploy whose outcome is not known. It owns no thread, lock, clock, port or file: every
+event carries its time (``now``, monotonic seconds), and `DeployCore.step` returns the actions
+to carry out in order. ``uav_serial_common.core_runner`` carries them out over a link; the model
+test (test/test_parachute_model.py) over the device model, in virtual time.
+
+A deploy call is a procedure that waits for replies: it is written as a generator that yields
+each `Send` (or `PassGate`) and gets back the event that ended the wait. Only one call runs at a
+time (the session serializes deploy and arm); a call while one runs is refused, nothing sent.
+
+The rules, each in one place: a deploy frame only on an armed state read since the last known
+reboot (D15); at most two deploy frames of a power-up without a successful acknowledgement,
+counted from the moment the frame may leave and kept across runs (``SaveAttempts``; a new core
+takes them back, P11); the decision is recorded (synced) before the frame leaves; every call is
+answered once, and never "refused"/"did NOT deploy" when the module deployed nor "deployed" when
+it did not: when that is not known the answer says UNKNOWN.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Generator, List, Optional, Set, Tuple, Type, Union
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_events import (  # noqa: F401 (the core's vocabulary, re-exported)
+    Action, Answer, Busy, DeployCall, Event, GateDone, LinkDown, LinkUp, Log, PassGate, Rebooted,
+    Record, Reply, Report, SaveAttempts, Send, Stored, Timeout)
+
+DEPLOY_TOKEN = 'DEPLOY'
+MAX_FAILED_DEPLOYS = 2
+"""P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
+REQUEST_TIMEOUT_S = 1.0
+"""P12: a request unanswered this long makes the module offline."""
+POWER_UP_HEARTBEATS_S = 0.2
+"""Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
+DEPLOY_FRAME = p.encode_deploy()
+_Wait = Generator[Union[Send, PassGate], Event, None]
+
+
+def _record(kind: str, sync: bool = False, **fields: Any) -> Record:
+    return Record(kind, tuple(fields.items()), sync)
+
+
+class DeployCore:
+    """What a deploy decides on, and the deploy procedure; see the module docstring."""
+
+    def __init__(self, stored: Optional[Any] = None, port_open: bool = False,
+                 request_timeout_s: float = REQUEST_TIMEOUT_S) -> None:
+        """Start knowing nothing; `stored`: an earlier run's attempts (boot, failed, unacked)."""
+        self.timeout_s = request_timeout_s
+        self.port_open = port_open
+        self.online = False
+        self.offline_reason = ('no valid frame from the module since the port opened'
+                               if port_open else 'not connected yet')
+        self.fresh = False
+        self.armed: Optional[bool] = None
+        self.triggered: Optional[bool] = None
+        self.boot_count: Optional[int] = None
+        # P11: an earlier run's frames count until a boot count read says another power-up.
+        self._stored = stored if stored is not None and stored.failed > 0 else None
+        self.failed = self._stored.failed if self._stored else 0
+        self.unacked = self._stored.unacked if self._stored else 0
+        self.outcome_unknown = False
+        self._unknown_boot: Optional[int] = None
+        self.reboots = 0                  # reboots seen (heartbeat or a changed boot count)
+        self._last_heartbeat = -1e9
+        self._triggered_seen: Optional[Tuple[float, str]] = None
+        self._frame_at: Optional[float] = None
+        self._reported: Set[Optional[int]] = set()
+        self._out: List[Action] = []
+        self._call: Optional[_Wait] = None
+        self._waiting: Optional[Union[Send, PassGate]] = None
+        self._now = 0.0
+
+    # -- the one entry point -------------------------------------------------------------------
+
+    @property
+    def busy(self) -> bool:
+        """Whether a call is running (waiting for a reply or the gate)."""
+        return self._call is not None
+
+    @property
+    def waiting_for(self) -> Optional[Union[Send, PassGate]]:
+        """What the running call waits for, or None."""
+        return self._waiting
+
+    def step(self, event: Event) -> List[Action]:
+        """Take one event; return the actions to carry out, in order."""
+        self._now = event.now
+        if isinstance(event, DeployCall):
+            if self._call is not None:
+                self._answer('refused', 'deploy refused: another deploy or arm is still '
+                             'running; nothing sent')
+            else:
+                self._call = self._deploy(event)
+                self._advance(None)
+        elif self._call is not None and self._answers_wait(event):
+            if isinstance(event, Reply):
+                self._take(event.message, solicited=True)
+            else:
+                self._link_event(event)
+            self._advance(event)
+        else:
+            if isinstance(event, Reply):
+                self._take(event.message, solicited=False)
+            else:
+                self._link_event(event)
+        out, self._out = self._out, []
+        return out
+
+    def _answers_wait(self, event: Event) -> bool:
+        wait = self._waiting
+        if isinstance(wait, PassGate):
+            return isinstance(event, GateDone)
+        if wait is None:
+            return False
+        if isinstance(event, Reply):
+            return isinstance(event.message, wait.expect)
+        return isinstance(event, (Timeout, LinkDown, Busy))
+
+    def _advance(self, event: Optional[Event]) -> None:
+        assert self._call is not None
+        try:
+            self._waiting = self._call.send(event)  # type: ignore[arg-type]
+        except StopIteration:
+            self._call = None
+            self._waiting = None
+            return
+        self._out.append(self._waiting)
+
+    def _send(self, frame: bytes, expect: Type, retries: int = 0,
+              silence_ok: bool = False) -> Send:
+        deadline = self._now + self.timeout_s * (retries + 1)
+        return Send(frame, (expect,), deadline, retries, silence_ok)
+
+    # -- what the driver knows ------------------------------------------------------------------
+
+    def _link_event(self, event: Event) -> None:
+        if isinstance(event, LinkUp):
+            self.port_open = True
+            self._offline('no valid frame from the module since the port opened')
+        elif isinstance(event, LinkDown):
+            self.port_open = False
+            self._offline(event.reason)
+        elif isinstance(event, Timeout):
+            wait = self._waiting
+            if not (isinstance(wait, Send) and wait.silence_ok):
+                self._offline(f'no reply within {self.timeout_s:.1f} s of a request')
+        elif isinstance(event, Rebooted):
+            if event.boot_count is None:
+                self._heartbeat()
+            else:
+                self._boot_count(event.boot_count)
+
+    def _offline(self, reason: str) -> None:
+        self.online = False
+        self.offline_reason = reason
+        self.fresh = False
+
+    def _take(self, msg: Any, solicited: bool) -> None:
+        """Take a frame from the module: it answers (online), and what it tells."""
+        if self.port_open and not self.online:
+            # Back: it may have changed while silent, re-read before acting on it (D15).
+            self.online, self.offline_reason, self.fresh = True, '', False
+        if isinstance(msg, p.Heartbeat) and not solicited:
+            self._heartbeat()
+        elif isinstance(msg, p.BootCount):
+            self._boot_count(msg.count)
+        elif isinstance(msg, p.Status):
+            self._set_triggered(msg.triggered, 'status' if not solicited else 'query',
+                                armed=msg.armed)
+        elif isinstance(msg, p.ArmedState):
+            self.armed = msg.armed
+        elif isinstance(msg, p.TriggeredState):
+            self._set_triggered(msg.triggered, 'query')
+        elif isinstance(msg, p.DeployAck) and not solicited:
+            self._deploy_reply(msg, late=True)
+
+    def _heartbeat(self) -> None:
+        first = self._now - self._last_heartbeat > POWER_UP_HEARTBEATS_S
+        self._last_heartbeat = self._now
+        if first:
+            # P5: nobody asked, so it has just (re)booted: its armed state is unknown (D15).
+            self.reboots += 1
+            self.fresh, self.armed, self.triggered = False, None, None
+            self._out.append(Log('warn', 'unsolicited heartbeat: the module has (re)booted'))
+            self._out.append(_record('state', event='module reboot (unsolicited heartbeat)'))
+
+    def _boot_count(self, count: int) -> None:
+        previous, self.boot_count = self.boot_count, count
+        if previous is None and self._stored is not None:
+            stored, self._stored = self._stored, None
+            if stored.boot_count == count:
+                self._out.append(Log('warn', f'{stored.failed} deploy frame(s) without a '
+                                     f'successful acknowledgement in this power-up (boot '
+                                     f'{count}), sent by an earlier run of the driver: they '
+                                     'count (P11)'))
+                self._out.append(_record('state', event='deploy attempts of an earlier run',
+                                         boot_count=count, failed_deploys=stored.failed,
+                                         unacked_deploys=stored.unacked))
+            else:
+                # Another power-up: the module forgot them (P19); ours of this run stay.
+                self.failed = max(0, self.failed - stored.failed)
+                self.unacked = max(0, self.unacked - stored.unacked)
+        if previous is not None and previous != count:
+            self.reboots += 1
+            self.failed = self.unacked = 0
+            self.fresh, self.armed, self.triggered = False, None, None
+            self._out.append(Log('warn', f'module boot count {previous} -> {count}: it '
+                                 'rebooted'))
+
+    def _set_triggered(self, triggered: bool, via: str, armed: Optional[bool] = None) -> None:
+        if armed is not None:
+            self.armed = armed
+            self.fresh = True
+        if triggered and not self.triggered:
+            self._triggered_seen = (self._now, via)
+        changed = triggered != self.triggered
+        self.triggered = triggered
+        if changed:
+            self._out.append(_record('state', triggered=triggered, via=via))
+            if triggered:
+                self._out.append(Log('error', f'the module reports TRIGGERED (via {via})'))
+                self._report(via)
+        if self.outcome_unknown and self._unknown_boot == self.boot_count:
+            self._resolve_unknown(triggered, 'read after the deploy')
+
+    def _report(self, via: str) -> None:
+        if self.boot_count not in self._reported:
+            self._reported.add(self.boot_count)
+            self._out.append(Report(via, self.boot_count))
+
+    def _resolve_unknown(self, triggered: bool, how: str) -> None:
+        self.outcome_unknown = False
+        outcome = 'deployed' if triggered else 'not deployed'
+        self._out.append(_record('decision', True, what='deploy', outcome=outcome,
+                                 resolved=how))
+        self._out.append(Log('error' if triggered else 'warn', 'the earlier deploy whose '
+                             f'outcome was unknown: {outcome} ({how})'))
+
+    def _save(self) -> None:
+        self._out.append(SaveAttempts(self.boot_count, self.failed, self.unacked))
+
+    def _deploy_reply(self, ack: p.DeployAck, late: bool) -> None:
+        self.unacked = 0
+        if ack.success:
+            self.failed = 0
+        self._save()
+        if not ack.success:
+            return
+        if late:
+            self._out.append(Log('warn', 'late deploy acknowledgement: the module deployed'))
+        self.armed = False
+        self._set_triggered(True, 'deploy ack')
+        if self.outcome_unknown:
+            self._resolve_unknown(True, 'late acknowledgement')
+
+    def _seen_triggered(self) -> str:
+        if not self.triggered or self._triggered_seen is None:
+            return ''
+        at, via = self._triggered_seen
+        text = f'the module reported TRIGGERED (via {via}'
+        if self._frame_at is not None and at >= self._frame_at:
+            text += f', {(at - self._frame_at) * 1000:.0f} ms after the deploy frame left'
+        return text + ')'
+
+    # -- the procedure -------------------------------------------------------------------------
+
+    def _answer(self, outcome: str, message: str, ok: bool = False,
+                t0: Optional[float] = None, log: bool = True, **extra: Any) -> None:
+        if outcome == 'refused' and self.outcome_unknown:
+            # True of this call, and not the whole truth: a caller must never read "refused"
+            # as "the parachute did not deploy" while an earlier frame's fate is not known.
+            message += ('; an earlier deploy frame left without an acknowledgement: its outcome '
+                        'is UNKNOWN (the parachute may have deployed) until the module answers')
+        self._out.append(_record('decision', True, what='deploy', outcome=outcome, success=ok,
+                                 reason=message, **extra))
+        if log:
+            self._out.append(Log('info' if ok else 'warn', message))
+        latency = None if t0 is None or not ok else (self._now - t0) * 1000.0
+        self._out.append(Answer(outcome, ok, message, latency))
+
+    def _unknown(self, what: str, t0: float) -> None:
+        seen = self._seen_triggered()
+        if seen:
+            # Seen triggered after the frame left: a deployment, whatever became of the reply.
+            self.failed = self.unacked = 0
+            self._save()
+            self._answer('deployed', f'deployed: {seen}; its acknowledgement did not come '
+                         f'({what})', ok=True, t0=t0, ack='lost')
+            return
+        self.outcome_unknown = True
+        self._unknown_boot = self.boot_count
+        message = (f'deploy outcome UNKNOWN: {what}. The driver reads the triggered state as '
+                   'soon as the module answers again and reports a deployment on '
+                   '~/trigger_event')
+        self._out.append(_record('decision', True, what='deploy', outcome='unknown',
+                                 reason=message))
+        self._out.append(Log('error', message))
+        self._out.append(Answer('unknown', False, message))
+
+    def _reread(self) -> _Wait:
+        """Ask the module what a deploy needs, when the driver's knowledge is old (D15)."""
+        if not self.port_open:
+            return
+        event = yield self._send(p.encode_boot_count_query(), p.BootCount,
+                                 silence_ok=self.online)
+        if isinstance(event, Timeout) and not self.online:
+            return  # silent: offline it is
+        if isinstance(event, (LinkDown, Busy)):
+            return
+        event = yield self._send(p.encode_status_query(), p.Status, retries=1)
+        if not isinstance(event, Timeout):
+            return
+        event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
+        if not isinstance(event, Reply):
+            return
+        armed = event.message.armed
+        event = yield self._send(p.encode_triggered_query(), p.TriggeredState, retries=1)
+        if isinstance(event, Reply):
+            self.armed = armed
+            self.fresh = True
+
+    def _query_triggered(self) -> Generator[Send, Event, Optional[bool]]:
+        event = yield self._send(p.encode_triggered_query(), p.TriggeredState)
+        return event.message.triggered if isinstance(event, Reply) else None
+
+    def _arm(self) -> Generator[Send, Event, str]:
+        """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
+        event = yield self._send(p.encode_arm(True), p.ArmReply, retries=1)
+        if not isinstance(event, Reply):
+            return f'arm not confirmed: {_why(event)}'
+        reply = event.message
+        if not reply.armed:
+            return f'module answered {reply.raw.hex(" ")} to arm: it stays locked'
+        reboots = self.reboots
+        event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
+        if isinstance(event, Timeout):
+            # The status frame tells armed too: a module silent to the armed query alone is
+            # still verified.
+            event = yield self._send(p.encode_status_query(), p.Status, retries=1)
+        if not isinstance(event, Reply):
+            return f'arm not confirmed: {_why(event)}'
+        armed = event.message.armed
+        if reboots == self.reboots:
+            self.armed = armed
+        self._out.append(_record('state', True, armed=armed, via='arm'))
+        if not armed:
+            return 'module acknowledged arm but the query says locked'
+        return ''
+
+    def _deploy(self, call: DeployCall) -> _Wait:
+        t0 = call.now
+        self._out.append(_record('request', what='deploy', token_ok=call.token == DEPLOY_TOKEN,
+                                 arm_if_locked=call.arm_if_locked))
+        if call.token != DEPLOY_TOKEN:
+            self._answer('refused', f"deploy refused: confirm must be exactly '{DEPLOY_TOKEN}' "
+                         f'(got {call.token!r}); nothing sent')
+            return
+        if not self.online or not self.fresh:
+            yield from self._reread()
+        if not self.online:
+            seen = self._seen_triggered()
+            if seen:
+                # A deployment stays one: the module stays triggered until switched off.
+                self._answer('already deployed', f'already deployed: {seen}; it is offline now '
+                             f'({self.offline_reason}); nothing sent', ok=True)
+            else:
+                self._answer('refused', f'deploy refused: module offline '
+                             f'({self.offline_reason}); nothing sent')
+            return
+        if self.fresh and self.triggered:
+            self._answer('already deployed', 'already deployed: the module reports triggered; '
+                         'nothing sent', ok=True)
+            return
+        if not self.fresh:
+            self._answer('refused', 'deploy refused: the module may have rebooted and has not '
+                         'been re-read (it did not answer the status, armed or triggered query), '
+                         'so whether it is armed is not known; nothing sent. Try again in a '
+                         'moment.')
+            return
+        if self.armed is not True:
+            if not call.arm_if_locked:
+                self._answer('refused', 'deploy refused: the module is locked (a locked module '
+                             'cannot deploy); arm it with ~/arm or set arm_if_locked; nothing '
+                             'sent')
+                return
+            problem = yield from self._arm()
+            if problem:
+                self._answer('refused', f'deploy refused: arming failed: {problem}')
+                return
+        yield from self._attempts(call, t0)
+        self._save()
+
+    def _attempts(self, call: DeployCall, t0: float) -> _Wait:
+        attempts = 0
+        reboots = self.reboots
+        said_not_triggered = False
+        while True:
+            if attempts and not (self.fresh and self.armed):
+                # Silent for a moment, or a reboot or a lock seen: read it again first (D15).
+                yield from self._reread()
+                seen = self._seen_triggered()
+                if seen or (self.fresh and self.triggered):
+                    self._answer('deployed', 'deployed: the module reports triggered; its '
+                                 f'acknowledgement was lost ({attempts} attempt(s))', ok=True,
+                                 t0=t0, ack='lost')
+                    return
+                if self.reboots != reboots:
+                    # A reboot after a frame left: "not triggered" now tells nothing of the
+                    # power-up the frame went to (its trigger records settle it).
+                    self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
+                                  'module rebooted since', t0)
+                    return
+                if not self.fresh and not said_not_triggered:
+                    self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
+                                  'module did not answer whether it is triggered', t0)
+                    return
+                if not self.fresh or not self.armed:
+                    state = 'is locked now' if self.fresh else 'rebooted and was not re-read'
+                    self._answer('not deployed', f'deploy NOT acknowledged after {attempts} '
+                                 'attempt(s), the module reports it is not triggered: it did '
+                                 f'NOT deploy, and it {state}; not retrying', t0=t0)
+                    return
+            if self.failed >= MAX_FAILED_DEPLOYS:
+                if attempts:
+                    self._answer('not deployed', f'deploy NOT acknowledged after {attempts} '
+                                 'attempts, and the module reports it is not triggered: it did '
+                                 'NOT deploy. Not retrying (P11: three unsuccessful attempts put '
+                                 'the module into protection)', t0=t0)
+                else:
+                    self._answer('refused', self._guard_text())
+                return
+            if not attempts and call.gate:
+                yield PassGate('deploy')  # every refusal is decided above
+            attempts += 1
+            # The decision is on disk before the frame leaves: a crash between the two must
+            # not leave a deployment the black box never heard of.
+            self._out.append(_record('decision', True, what='deploy: sending the deploy frame',
+                                     attempt=attempts))
+            self.failed += 1
+            self.unacked += 1
+            self._frame_at = self._now
+            self._save()  # a respawned driver counts it too (P11)
+            event = yield self._send(DEPLOY_FRAME, p.DeployAck)
+            if isinstance(event, Busy):
+                self.failed -= 1
+                self.unacked -= 1
+                self._save()
+                self._answer('refused', f'deploy refused: {event.reason}')
+                return
+            if isinstance(event, LinkDown):
+                if not event.frame_left:
+                    self.failed -= 1
+                    self.unacked -= 1
+                    self._save()
+                    if attempts == 1:
+                        self._answer('refused', f'deploy failed before the frame left: '
+                                     f'{event.reason}; nothing sent')
+                        return
+                sent = attempts if event.frame_left else attempts - 1
+                self._unknown(f'{sent} deploy frame(s) sent, but the link dropped '
+                              f'({event.reason}) before any acknowledgement', t0)
+                return
+            if isinstance(event, Reply):
+                self._deploy_reply(event.message, late=False)
+                yield from self._answered(event.message, attempts, t0)
+                return
+            # No acknowledgement: lost on either way, or corrupted. Before any retry, ask
+            # whether it deployed (D6): a triggered module refuses a retry and counts it.
+            triggered = yield from self._query_triggered()
+            if triggered or self.triggered:
+                self._answer('deployed', 'deployed: the module reports triggered; its '
+                             f'acknowledgement was lost ({attempts} attempt(s))', ok=True, t0=t0,
+                             ack='lost')
+                return
+            if triggered is None and self.failed >= MAX_FAILED_DEPLOYS:
+                self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
+                              'module did not answer whether it is triggered', t0)
+                return
+            said_not_triggered = triggered is False
+
+    def _answered(self, ack: p.DeployAck, attempts: int, t0: float) -> _Wait:
+        hexed = ack.raw.hex(' ')
+        if ack.success:
+            latency = (self._now - t0) * 1000.0
+            # The acknowledgement is on disk before anyone hears of it (SIGKILL-safe).
+            self._out.append(_record('decision', True, what='deploy acknowledged', hex=hexed,
+                                     latency_ms=latency, attempts=attempts))
+            self._answer('deployed', f'deployed: acknowledged after {attempts} attempt(s), '
+                         f'{latency:.1f} ms', ok=True, t0=t0, log=False)
+            return
+        self._out.append(_record('decision', what='deploy refused by module', hex=hexed))
+        # Never "did not deploy" while the module says it is triggered (D6).
+        triggered = yield from self._query_triggered()
+        if triggered:
+            self._answer('deployed', f'deployed: the module refused this frame ({hexed}) because '
+                         'it is already triggered: an earlier frame deployed it and its '
+                         'acknowledgement was lost', ok=True, t0=t0, ack='lost')
+        elif triggered is None:
+            self._unknown(f'the module refused the deploy frame ({hexed}) and did not answer '
+                          'whether it is triggered', t0)
+        else:
+            self._answer('not deployed', f'the module answered {hexed} and reports it is not '
+                         'triggered: it did NOT deploy (locked, or in protection after '
+                         'unsuccessful attempts)', t0=t0)
+
+    def _guard_text(self) -> str:
+        if self.unacked >= MAX_FAILED_DEPLOYS:
+            what = f'{self.unacked} deploy frames in a row went unacknowledged'
+        else:
+            what = (f'{self.failed} deploy frames in a row were refused or went '
+                    'unacknowledged')
+        return (f'deploy refused: {what}; a third could put the module into protection (P11). '
+                'Check the link; a module reboot clears this. Nothing sent')
+
+
+def _why(event: Event) -> str:
+    if isinstance(event, Timeout):
+        return event.reason or f'no reply within {REQUEST_TIMEOUT_S * 1000:.0f} ms'
+    if isinstance(event, (LinkDown, Busy)):
+        return event.reason
+    return 'no reply'

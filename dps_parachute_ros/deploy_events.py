@@ -1,0 +1,155 @@
+"""The events a `DeployCore` takes and the actions it returns (``deploy_core``): plain data."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Optional, Tuple, Type, Union
+
+
+# -- events ------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DeployCall:
+    """`~/deploy` asked: `token` must be DEPLOY; `gate`: a release gate is to be passed."""
+
+    now: float
+    token: str
+    arm_if_locked: bool = False
+    gate: bool = False
+
+
+@dataclass(frozen=True)
+class Reply:
+    """A decoded frame from the module: the reply waited for, or one nobody asked for."""
+
+    now: float
+    message: Any
+
+
+@dataclass(frozen=True)
+class Timeout:
+    """The reply the last `Send` expects did not come by its deadline (all its tries)."""
+
+    now: float
+    reason: str = ''
+
+
+@dataclass(frozen=True)
+class LinkDown:
+    """The port closed (unplugged, a write failed). `frame_left`: the frame waited on left."""
+
+    now: float
+    reason: str = 'port closed'
+    frame_left: bool = True
+
+
+@dataclass(frozen=True)
+class LinkUp:
+    """The port (re)opened: nothing is known of the module until it answers."""
+
+    now: float
+
+
+@dataclass(frozen=True)
+class Busy:
+    """The link could not send the last `Send` now (another request of its kind): not sent."""
+
+    now: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class Rebooted:
+    """A reboot seen elsewhere (a boot count read by another path, None: a heartbeat)."""
+
+    now: float
+    boot_count: Optional[int] = None
+
+
+@dataclass(frozen=True)
+class GateDone:
+    """The release gate asked for by `PassGate` was passed."""
+
+    now: float
+
+
+Event = Union[DeployCall, Reply, Timeout, LinkDown, LinkUp, Busy, Rebooted, GateDone]
+
+
+# -- actions -----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Send:
+    """Send `frame` (with `retries`), then feed back its reply (one of `expect`) or Timeout."""
+
+    frame: bytes
+    expect: Tuple[Type, ...]
+    deadline: float
+    retries: int = 0
+    silence_ok: bool = False
+
+
+@dataclass(frozen=True)
+class Record:
+    """A black-box record; `sync`: on disk before the next action is carried out."""
+
+    kind: str
+    fields: Tuple[Tuple[str, Any], ...]
+    sync: bool = False
+
+
+@dataclass(frozen=True)
+class SaveAttempts:
+    """Keep this power-up's unsuccessful deploy frames for a restart (P11)."""
+
+    boot_count: Optional[int]
+    failed: int
+    unacked: int
+
+
+@dataclass(frozen=True)
+class PassGate:
+    """Pass the release gate (feed `GateDone` back); every refusal was decided before it."""
+
+    what: str = 'deploy'
+
+
+@dataclass(frozen=True)
+class Answer:
+    """The one answer to the call.
+
+    `outcome`: refused, deployed, already deployed, not deployed or unknown.
+    """
+
+    outcome: str
+    ok: bool
+    message: str
+    latency_ms: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class Log:
+    """A log line."""
+
+    level: str
+    text: str
+
+
+@dataclass(frozen=True)
+class Report:
+    """A deployment to publish on ``~/trigger_event`` (once per power-up, D7)."""
+
+    via: str
+    boot_count: Optional[int]
+
+
+@dataclass(frozen=True)
+class Stored:
+    """The attempts an earlier run kept (``attempts.Attempts`` fits)."""
+
+    boot_count: int
+    failed: int
+    unacked: int
+
+
+Action = Union[Send, Record, SaveAttempts, PassGate, Answer, Log, Report]
