@@ -26,14 +26,11 @@ from typing import Any, Generator, List, Optional, Set, Tuple, Type, Union
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_events import (  # noqa: F401 (the core's vocabulary, re-exported)
-    Action, Answer, Busy, DeployCall, Event, GateDone, LinkDown, LinkUp, Log, PassGate, Rebooted,
-    Record, Reply, Report, SaveAttempts, Send, Stored, Timeout)
+    Action, Answer, Busy, DeployCall, Event, GateDone, guard_text, LinkDown, LinkUp, Log,
+    MAX_FAILED_DEPLOYS, PassGate, Rebooted, Record, Reply, Report, REQUEST_TIMEOUT_S, SaveAttempts,
+    Send, Stored, Timeout, why)
 
 DEPLOY_TOKEN = 'DEPLOY'
-MAX_FAILED_DEPLOYS = 2
-"""P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
-REQUEST_TIMEOUT_S = 1.0
-"""P12: a request unanswered this long makes the module offline."""
 POWER_UP_HEARTBEATS_S = 0.2
 """Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
 DEPLOY_FRAME = p.encode_deploy()
@@ -48,8 +45,17 @@ class DeployCore:
     """What a deploy decides on, and the deploy procedure; see the module docstring."""
 
     def __init__(self, stored: Optional[Any] = None, port_open: bool = False,
-                 request_timeout_s: float = REQUEST_TIMEOUT_S) -> None:
-        """Start knowing nothing; `stored`: an earlier run's attempts (boot, failed, unacked)."""
+                 request_timeout_s: float = REQUEST_TIMEOUT_S, mirror: bool = False) -> None:
+        """Start knowing nothing; `stored`: an earlier run's attempts (boot, failed, unacked).
+
+        `mirror`: the caller keeps what is known of the module (the session: its reader, worker
+        and monitor threads) and tells it with `know` before each step; the core then leaves
+        the records, logs, reports and saves of that knowledge to the caller, and returns
+        only the procedure's own actions.
+        """
+        self.mirror = mirror
+        self._stale = False
+        self._told_fresh = False               # the core's own verdict: read again before acting
         self.timeout_s = request_timeout_s
         self.port_open = port_open
         self.online = False
@@ -66,6 +72,7 @@ class DeployCore:
         self.outcome_unknown = False
         self._unknown_boot: Optional[int] = None
         self.reboots = 0                  # reboots seen (heartbeat or a changed boot count)
+        self.boot_reads = 0               # boot counts read
         self._last_heartbeat = -1e9
         self._triggered_seen: Optional[Tuple[float, str]] = None
         self._frame_at: Optional[float] = None
@@ -118,6 +125,8 @@ class DeployCore:
         if wait is None:
             return False
         if isinstance(event, Reply):
+            if isinstance(event.message, tuple):  # the records of a trigger-record query
+                return p.TriggerRecord in wait.expect
             return isinstance(event.message, wait.expect)
         return isinstance(event, (Timeout, LinkDown, Busy))
 
@@ -138,6 +147,29 @@ class DeployCore:
 
     # -- what the driver knows ------------------------------------------------------------------
 
+    def know(self, *, port_open: bool, online: bool, offline_reason: str, fresh: bool,
+             armed: Optional[bool], triggered: Optional[bool], boot_count: Optional[int],
+             failed: int, unacked: int, outcome_unknown: bool, unknown_boot: Optional[int],
+             triggered_seen: Optional[Tuple[float, str]], frame_at: Optional[float],
+             reboots: int) -> None:
+        """Take what the caller knows of the module (a `mirror` core, before each step).
+
+        A silence the core saw itself (a request unanswered) keeps it from acting on the
+        caller's "fresh" until it has read the module again.
+        """
+        self.port_open, self.online, self.offline_reason = port_open, online, offline_reason
+        self._told_fresh = fresh
+        self.fresh = fresh and not self._stale
+        self.armed, self.triggered, self.boot_count = armed, triggered, boot_count
+        self.failed, self.unacked = failed, unacked
+        self.outcome_unknown, self._unknown_boot = outcome_unknown, unknown_boot
+        self._triggered_seen, self._frame_at, self.reboots = triggered_seen, frame_at, reboots
+
+    def _know(self, action: Action) -> None:
+        """Emit an action about the module's state, unless the caller keeps that (mirror)."""
+        if not self.mirror:
+            self._out.append(action)
+
     def _link_event(self, event: Event) -> None:
         if isinstance(event, LinkUp):
             self.port_open = True
@@ -156,12 +188,21 @@ class DeployCore:
                 self._boot_count(event.boot_count)
 
     def _offline(self, reason: str) -> None:
-        self.online = False
-        self.offline_reason = reason
         self.fresh = False
+        self._stale = True
+        if not self.mirror:  # (a mirror core's caller judges online: D2)
+            self.online = False
+            self.offline_reason = reason
 
     def _take(self, msg: Any, solicited: bool) -> None:
         """Take a frame from the module: it answers (online), and what it tells."""
+        if self.mirror:
+            # The caller took it already (or refused it: read before a reboot), and told.
+            if isinstance(msg, p.BootCount):
+                self.boot_reads += 1
+            elif isinstance(msg, p.Status):
+                self._reread_done(msg.armed)
+            return
         if self.port_open and not self.online:
             # Back: it may have changed while silent, re-read before acting on it (D15).
             self.online, self.offline_reason, self.fresh = True, '', False
@@ -186,21 +227,21 @@ class DeployCore:
             # P5: nobody asked, so it has just (re)booted: its armed state is unknown (D15).
             self.reboots += 1
             self.fresh, self.armed, self.triggered = False, None, None
-            self._out.append(Log('warn', 'unsolicited heartbeat: the module has (re)booted'))
-            self._out.append(_record('state', event='module reboot (unsolicited heartbeat)'))
+            self._know(Log('warn', 'unsolicited heartbeat: the module has (re)booted'))
+            self._know(_record('state', event='module reboot (unsolicited heartbeat)'))
 
     def _boot_count(self, count: int) -> None:
         previous, self.boot_count = self.boot_count, count
+        self.boot_reads += 1
         if previous is None and self._stored is not None:
             stored, self._stored = self._stored, None
             if stored.boot_count == count:
-                self._out.append(Log('warn', f'{stored.failed} deploy frame(s) without a '
-                                     f'successful acknowledgement in this power-up (boot '
-                                     f'{count}), sent by an earlier run of the driver: they '
-                                     'count (P11)'))
-                self._out.append(_record('state', event='deploy attempts of an earlier run',
-                                         boot_count=count, failed_deploys=stored.failed,
-                                         unacked_deploys=stored.unacked))
+                self._know(Log('warn', f'{stored.failed} deploy frame(s) without a successful '
+                               f'acknowledgement in this power-up (boot {count}), sent by an '
+                               'earlier run of the driver: they count (P11)'))
+                self._know(_record('state', event='deploy attempts of an earlier run',
+                                   boot_count=count, failed_deploys=stored.failed,
+                                   unacked_deploys=stored.unacked))
             else:
                 # Another power-up: the module forgot them (P19); ours of this run stay.
                 self.failed = max(0, self.failed - stored.failed)
@@ -209,21 +250,21 @@ class DeployCore:
             self.reboots += 1
             self.failed = self.unacked = 0
             self.fresh, self.armed, self.triggered = False, None, None
-            self._out.append(Log('warn', f'module boot count {previous} -> {count}: it '
-                                 'rebooted'))
+            self._know(Log('warn', f'module boot count {previous} -> {count}: it rebooted'))
 
     def _set_triggered(self, triggered: bool, via: str, armed: Optional[bool] = None) -> None:
         if armed is not None:
             self.armed = armed
             self.fresh = True
+            self._stale = False
         if triggered and not self.triggered:
             self._triggered_seen = (self._now, via)
         changed = triggered != self.triggered
         self.triggered = triggered
         if changed:
-            self._out.append(_record('state', triggered=triggered, via=via))
+            self._know(_record('state', triggered=triggered, via=via))
             if triggered:
-                self._out.append(Log('error', f'the module reports TRIGGERED (via {via})'))
+                self._know(Log('error', f'the module reports TRIGGERED (via {via})'))
                 self._report(via)
         if self.outcome_unknown and self._unknown_boot == self.boot_count:
             self._resolve_unknown(triggered, 'read after the deploy')
@@ -231,18 +272,21 @@ class DeployCore:
     def _report(self, via: str) -> None:
         if self.boot_count not in self._reported:
             self._reported.add(self.boot_count)
-            self._out.append(Report(via, self.boot_count))
+            self._know(Report(via, self.boot_count))
 
     def _resolve_unknown(self, triggered: bool, how: str) -> None:
         self.outcome_unknown = False
         outcome = 'deployed' if triggered else 'not deployed'
-        self._out.append(_record('decision', True, what='deploy', outcome=outcome,
-                                 resolved=how))
-        self._out.append(Log('error' if triggered else 'warn', 'the earlier deploy whose '
-                             f'outcome was unknown: {outcome} ({how})'))
+        self._know(_record('decision', True, what='deploy', outcome=outcome, resolved=how))
+        self._know(Log('error' if triggered else 'warn', 'the earlier deploy whose outcome was '
+                       f'unknown: {outcome} ({how})'))
 
-    def _save(self) -> None:
-        self._out.append(SaveAttempts(self.boot_count, self.failed, self.unacked))
+    def _save(self, leaving: bool = False) -> None:
+        action = SaveAttempts(self.boot_count, self.failed, self.unacked)
+        if leaving:
+            self._out.append(action)  # before the frame: the procedure's own
+        else:
+            self._know(action)
 
     def _deploy_reply(self, ack: p.DeployAck, late: bool) -> None:
         self.unacked = 0
@@ -252,7 +296,7 @@ class DeployCore:
         if not ack.success:
             return
         if late:
-            self._out.append(Log('warn', 'late deploy acknowledgement: the module deployed'))
+            self._know(Log('warn', 'late deploy acknowledgement: the module deployed'))
         self.armed = False
         self._set_triggered(True, 'deploy ack')
         if self.outcome_unknown:
@@ -270,7 +314,8 @@ class DeployCore:
     # -- the procedure -------------------------------------------------------------------------
 
     def _answer(self, outcome: str, message: str, ok: bool = False,
-                t0: Optional[float] = None, log: bool = True, **extra: Any) -> None:
+                t0: Optional[float] = None, log: bool = True,
+                counts: Optional[Tuple[int, int]] = None, **extra: Any) -> None:
         if outcome == 'refused' and self.outcome_unknown:
             # True of this call, and not the whole truth: a caller must never read "refused"
             # as "the parachute did not deploy" while an earlier frame's fate is not known.
@@ -281,7 +326,7 @@ class DeployCore:
         if log:
             self._out.append(Log('info' if ok else 'warn', message))
         latency = None if t0 is None or not ok else (self._now - t0) * 1000.0
-        self._out.append(Answer(outcome, ok, message, latency))
+        self._out.append(Answer(outcome, ok, message, latency, counts))
 
     def _unknown(self, what: str, t0: float) -> None:
         seen = self._seen_triggered()
@@ -290,7 +335,7 @@ class DeployCore:
             self.failed = self.unacked = 0
             self._save()
             self._answer('deployed', f'deployed: {seen}; its acknowledgement did not come '
-                         f'({what})', ok=True, t0=t0, ack='lost')
+                         f'({what})', ok=True, t0=t0, counts=(0, 0), ack='lost')
             return
         self.outcome_unknown = True
         self._unknown_boot = self.boot_count
@@ -315,24 +360,42 @@ class DeployCore:
         event = yield self._send(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Timeout):
             return
+        reboots = self.reboots
         event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
         if not isinstance(event, Reply):
             return
         armed = event.message.armed
         event = yield self._send(p.encode_triggered_query(), p.TriggeredState, retries=1)
-        if isinstance(event, Reply):
-            self.armed = armed
-            self.fresh = True
+        if isinstance(event, Reply) and reboots == self.reboots:
+            # (An armed state read before a reboot seen since is not this power-up's.)
+            self._reread_done(armed)
+
+    def _reread_done(self, armed: bool) -> None:
+        """Take a re-read: armed and triggered are this power-up's (D15)."""
+        self._stale = False
+        if self.mirror:
+            self.fresh = self._told_fresh  # as the caller took the reply
+        else:
+            self.armed, self.fresh = armed, True
 
     def _query_triggered(self) -> Generator[Send, Event, Optional[bool]]:
         event = yield self._send(p.encode_triggered_query(), p.TriggeredState)
         return event.message.triggered if isinstance(event, Reply) else None
 
+    def _deployed_in(self, boot: Optional[int]) -> Generator[Send, Event, Optional[bool]]:
+        """Whether the trigger records show a deployment in power-up `boot`; None: not known."""
+        if boot is None:
+            return None
+        event = yield self._send(p.encode_trigger_records_query(), p.TriggerRecord)
+        if not isinstance(event, Reply):
+            return None
+        return any(r.boot_count == boot and not r.is_empty for r in event.message)
+
     def _arm(self) -> Generator[Send, Event, str]:
         """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
         event = yield self._send(p.encode_arm(True), p.ArmReply, retries=1)
         if not isinstance(event, Reply):
-            return f'arm not confirmed: {_why(event)}'
+            return f'arm not confirmed: {why(event)}'
         reply = event.message
         if not reply.armed:
             return f'module answered {reply.raw.hex(" ")} to arm: it stays locked'
@@ -343,7 +406,7 @@ class DeployCore:
             # still verified.
             event = yield self._send(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Reply):
-            return f'arm not confirmed: {_why(event)}'
+            return f'arm not confirmed: {why(event)}'
         armed = event.message.armed
         if reboots == self.reboots:
             self.armed = armed
@@ -360,7 +423,8 @@ class DeployCore:
             self._answer('refused', f"deploy refused: confirm must be exactly '{DEPLOY_TOKEN}' "
                          f'(got {call.token!r}); nothing sent')
             return
-        if not self.online or not self.fresh:
+        if not self.online or not self.fresh or self.boot_count is None:
+            # (The boot count too: a reboot after the frame left must be told from none.)
             yield from self._reread()
         if not self.online:
             seen = self._seen_triggered()
@@ -398,10 +462,12 @@ class DeployCore:
     def _attempts(self, call: DeployCall, t0: float) -> _Wait:
         attempts = 0
         reboots = self.reboots
+        frame_boot = self.boot_count  # every frame of this call goes to this power-up
         said_not_triggered = False
         while True:
             if attempts and not (self.fresh and self.armed):
                 # Silent for a moment, or a reboot or a lock seen: read it again first (D15).
+                reads = self.boot_reads
                 yield from self._reread()
                 seen = self._seen_triggered()
                 if seen or (self.fresh and self.triggered):
@@ -409,15 +475,35 @@ class DeployCore:
                                  f'acknowledgement was lost ({attempts} attempt(s))', ok=True,
                                  t0=t0, ack='lost')
                     return
-                if self.reboots != reboots:
+                if self.reboots != reboots or self.boot_count != frame_boot:
                     # A reboot after a frame left: "not triggered" now tells nothing of the
-                    # power-up the frame went to (its trigger records settle it).
-                    self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
-                                  'module rebooted since', t0)
+                    # power-up the frame went to; its trigger records do.
+                    fired = yield from self._deployed_in(frame_boot)
+                    if fired:
+                        self._answer('deployed', f'deployed: the module rebooted after the '
+                                     f'deploy frame left, and its trigger records show a '
+                                     f'deployment in boot {frame_boot}; its acknowledgement was '
+                                     f'lost ({attempts} attempt(s))', ok=True, t0=t0, ack='lost')
+                    elif fired is None:
+                        self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and '
+                                      'the module rebooted since (its trigger records not read)',
+                                      t0)
+                    else:
+                        state = 'is locked now' if self.fresh else 'was not re-read'
+                        self._answer('not deployed', f'deploy NOT acknowledged after {attempts} '
+                                     f'attempt(s); the module rebooted since, and its trigger '
+                                     f'records show no deployment in boot {frame_boot}: it did '
+                                     f'NOT deploy, and it {state}; not retrying', t0=t0)
                     return
-                if not self.fresh and not said_not_triggered:
+                if not said_not_triggered:
                     self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
                                   'module did not answer whether it is triggered', t0)
+                    return
+                if self.boot_reads == reads:
+                    # Its "not triggered" may come from a power-up after a reboot unseen.
+                    self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged; the '
+                                  'module says it is not triggered but did not answer its boot '
+                                  'count, so a reboot since is not ruled out', t0)
                     return
                 if not self.fresh or not self.armed:
                     state = 'is locked now' if self.fresh else 'rebooted and was not re-read'
@@ -432,7 +518,7 @@ class DeployCore:
                                  'NOT deploy. Not retrying (P11: three unsuccessful attempts put '
                                  'the module into protection)', t0=t0)
                 else:
-                    self._answer('refused', self._guard_text())
+                    self._answer('refused', guard_text(self.failed, self.unacked))
                 return
             if not attempts and call.gate:
                 yield PassGate('deploy')  # every refusal is decided above
@@ -444,7 +530,7 @@ class DeployCore:
             self.failed += 1
             self.unacked += 1
             self._frame_at = self._now
-            self._save()  # a respawned driver counts it too (P11)
+            self._save(leaving=True)  # a respawned driver counts it too (P11)
             event = yield self._send(DEPLOY_FRAME, p.DeployAck)
             if isinstance(event, Busy):
                 self.failed -= 1
@@ -462,8 +548,10 @@ class DeployCore:
                                      f'{event.reason}; nothing sent')
                         return
                 sent = attempts if event.frame_left else attempts - 1
-                self._unknown(f'{sent} deploy frame(s) sent, but the link dropped '
-                              f'({event.reason}) before any acknowledgement', t0)
+                why = ('the driver is shutting down' if event.shutting_down
+                       else f'the link dropped ({event.reason})')
+                self._unknown(f'{sent} deploy frame(s) sent, but {why} before any '
+                              'acknowledgement', t0)
                 return
             if isinstance(event, Reply):
                 self._deploy_reply(event.message, late=False)
@@ -507,20 +595,3 @@ class DeployCore:
             self._answer('not deployed', f'the module answered {hexed} and reports it is not '
                          'triggered: it did NOT deploy (locked, or in protection after '
                          'unsuccessful attempts)', t0=t0)
-
-    def _guard_text(self) -> str:
-        if self.unacked >= MAX_FAILED_DEPLOYS:
-            what = f'{self.unacked} deploy frames in a row went unacknowledged'
-        else:
-            what = (f'{self.failed} deploy frames in a row were refused or went '
-                    'unacknowledged')
-        return (f'deploy refused: {what}; a third could put the module into protection (P11). '
-                'Check the link; a module reboot clears this. Nothing sent')
-
-
-def _why(event: Event) -> str:
-    if isinstance(event, Timeout):
-        return event.reason or f'no reply within {REQUEST_TIMEOUT_S * 1000:.0f} ms'
-    if isinstance(event, (LinkDown, Busy)):
-        return event.reason
-    return 'no reply'

@@ -1,9 +1,14 @@
-"""The events a `DeployCore` takes and the actions it returns (``deploy_core``): plain data."""
+"""The events a `DeployCore` takes and the actions it returns (``deploy_core``), and two texts."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any, Optional, Tuple, Type, Union
+
+MAX_FAILED_DEPLOYS = 2
+"""P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
+REQUEST_TIMEOUT_S = 1.0
+"""P12: a request unanswered this long makes the module offline."""
 
 
 # -- events ------------------------------------------------------------------------------------
@@ -41,6 +46,7 @@ class LinkDown:
     now: float
     reason: str = 'port closed'
     frame_left: bool = True
+    shutting_down: bool = False
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,8 @@ class Answer:
     ok: bool
     message: str
     latency_ms: Optional[float] = None
+    counts: Optional[Tuple[int, int]] = None
+    """(failed, unacked) when the answer set them (a deployment seen without its ack)."""
 
 
 @dataclass(frozen=True)
@@ -153,3 +161,22 @@ class Stored:
 
 
 Action = Union[Send, Record, SaveAttempts, PassGate, Answer, Log, Report]
+
+
+def guard_text(failed: int, unacked: int) -> str:
+    """Refuse a deploy frame that could be the third unsuccessful one (P11): the text."""
+    if unacked >= MAX_FAILED_DEPLOYS:
+        what = f'{unacked} deploy frames in a row went unacknowledged'
+    else:
+        what = f'{failed} deploy frames in a row were refused or went unacknowledged'
+    return (f'deploy refused: {what}; a third could put the module into protection (P11). '
+            'Check the link; a module reboot clears this. Nothing sent')
+
+
+def why(event: Event) -> str:
+    """Tell what ended a wait that brought no reply."""
+    if isinstance(event, Timeout):
+        return event.reason or f'no reply within {REQUEST_TIMEOUT_S * 1000:.0f} ms'
+    if isinstance(event, (LinkDown, Busy)):
+        return event.reason
+    return 'no reply'
