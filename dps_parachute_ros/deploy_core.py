@@ -8,9 +8,8 @@ event carries its time (``now``, monotonic seconds), and `DeployCore.step` retur
 to carry out in order. ``uav_serial_common.core_runner`` carries them out over a link; the model
 test (test/test_parachute_model.py) over the device model, in virtual time.
 
-A deploy call is a procedure that waits for replies: it is written as a generator that yields
-each `Send` (or `PassGate`) and gets back the event that ended the wait. Only one call runs at a
-time (the session serializes deploy and arm); a call while one runs is refused, nothing sent.
+A deploy call is a generator that yields each `Send` (or `PassGate`) and gets back the event
+that ended the wait. One call runs at a time; a call while one runs is refused, nothing sent.
 
 The rules, each in one place: a deploy frame only on an armed state read since the last known
 reboot (D15); at most two deploy frames of a power-up without a successful acknowledgement,
@@ -29,58 +28,27 @@ from dps_parachute_ros.deploy_events import (  # noqa: F401 (the core's vocabula
     Action, Answer, Busy, DeployCall, Event, GateDone, guard_text, LinkDown, LinkUp, Log,
     MAX_FAILED_DEPLOYS, PassGate, Rebooted, Record, Reply, Report, REQUEST_TIMEOUT_S, SaveAttempts,
     Send, Stored, Timeout, why)
+from dps_parachute_ros.deploy_knowledge import (  # noqa: F401 (re-exported)
+    _record, DeployKnowledge, POWER_UP_HEARTBEATS_S)
 
 DEPLOY_TOKEN = 'DEPLOY'
-POWER_UP_HEARTBEATS_S = 0.2
-"""Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
 DEPLOY_FRAME = p.encode_deploy()
 _Wait = Generator[Union[Send, PassGate], Event, None]
 
 
-def _record(kind: str, sync: bool = False, **fields: Any) -> Record:
-    return Record(kind, tuple(fields.items()), sync)
-
-
-class DeployCore:
-    """What a deploy decides on, and the deploy procedure; see the module docstring."""
+class DeployCore(DeployKnowledge):
+    """What a deploy decides on (`DeployKnowledge`), and the deploy procedure."""
 
     def __init__(self, stored: Optional[Any] = None, port_open: bool = False,
                  request_timeout_s: float = REQUEST_TIMEOUT_S, mirror: bool = False) -> None:
         """Start knowing nothing; `stored`: an earlier run's attempts (boot, failed, unacked).
 
-        `mirror`: the caller keeps what is known of the module (the session: its reader, worker
-        and monitor threads) and tells it with `know` before each step; the core then leaves
-        the records, logs, reports and saves of that knowledge to the caller, and returns
-        only the procedure's own actions.
+        `mirror`: the caller (the session) keeps what is known of the module and tells it with
+        `know` before each step; the core returns only the procedure's own actions then.
         """
-        self.mirror = mirror
-        self._stale = False
-        self._told_fresh = False               # the core's own verdict: read again before acting
-        self.timeout_s = request_timeout_s
-        self.port_open = port_open
-        self.online = False
-        self.offline_reason = ('no valid frame from the module since the port opened'
-                               if port_open else 'not connected yet')
-        self.fresh = False
-        self.armed: Optional[bool] = None
-        self.triggered: Optional[bool] = None
-        self.boot_count: Optional[int] = None
-        # P11: an earlier run's frames count until a boot count read says another power-up.
-        self._stored = stored if stored is not None and stored.failed > 0 else None
-        self.failed = self._stored.failed if self._stored else 0
-        self.unacked = self._stored.unacked if self._stored else 0
-        self.outcome_unknown = False
-        self._unknown_boot: Optional[int] = None
-        self.reboots = 0                  # reboots seen (heartbeat or a changed boot count)
-        self.boot_reads = 0               # boot counts read
-        self._last_heartbeat = -1e9
-        self._triggered_seen: Optional[Tuple[float, str]] = None
-        self._frame_at: Optional[float] = None
-        self._reported: Set[Optional[int]] = set()
-        self._out: List[Action] = []
+        super().__init__(stored, port_open, request_timeout_s, mirror)
+        self._query_end: Optional[Event] = None  # what ended the last triggered query
         self._call: Optional[_Wait] = None
-        self._waiting: Optional[Union[Send, PassGate]] = None
-        self._now = 0.0
 
     # -- the one entry point -------------------------------------------------------------------
 
@@ -88,11 +56,6 @@ class DeployCore:
     def busy(self) -> bool:
         """Whether a call is running (waiting for a reply or the gate)."""
         return self._call is not None
-
-    @property
-    def waiting_for(self) -> Optional[Union[Send, PassGate]]:
-        """What the running call waits for, or None."""
-        return self._waiting
 
     def step(self, event: Event) -> List[Action]:
         """Take one event; return the actions to carry out, in order."""
@@ -144,172 +107,6 @@ class DeployCore:
               silence_ok: bool = False) -> Send:
         deadline = self._now + self.timeout_s * (retries + 1)
         return Send(frame, (expect,), deadline, retries, silence_ok)
-
-    # -- what the driver knows ------------------------------------------------------------------
-
-    def know(self, *, port_open: bool, online: bool, offline_reason: str, fresh: bool,
-             armed: Optional[bool], triggered: Optional[bool], boot_count: Optional[int],
-             failed: int, unacked: int, outcome_unknown: bool, unknown_boot: Optional[int],
-             triggered_seen: Optional[Tuple[float, str]], frame_at: Optional[float],
-             reboots: int) -> None:
-        """Take what the caller knows of the module (a `mirror` core, before each step).
-
-        A silence the core saw itself (a request unanswered) keeps it from acting on the
-        caller's "fresh" until it has read the module again.
-        """
-        self.port_open, self.online, self.offline_reason = port_open, online, offline_reason
-        self._told_fresh = fresh
-        self.fresh = fresh and not self._stale
-        self.armed, self.triggered, self.boot_count = armed, triggered, boot_count
-        self.failed, self.unacked = failed, unacked
-        self.outcome_unknown, self._unknown_boot = outcome_unknown, unknown_boot
-        self._triggered_seen, self._frame_at, self.reboots = triggered_seen, frame_at, reboots
-
-    def _know(self, action: Action) -> None:
-        """Emit an action about the module's state, unless the caller keeps that (mirror)."""
-        if not self.mirror:
-            self._out.append(action)
-
-    def _link_event(self, event: Event) -> None:
-        if isinstance(event, LinkUp):
-            self.port_open = True
-            self._offline('no valid frame from the module since the port opened')
-        elif isinstance(event, LinkDown):
-            self.port_open = False
-            self._offline(event.reason)
-        elif isinstance(event, Timeout):
-            wait = self._waiting
-            if not (isinstance(wait, Send) and wait.silence_ok):
-                self._offline(f'no reply within {self.timeout_s:.1f} s of a request')
-        elif isinstance(event, Rebooted):
-            if event.boot_count is None:
-                self._heartbeat()
-            else:
-                self._boot_count(event.boot_count)
-
-    def _offline(self, reason: str) -> None:
-        self.fresh = False
-        self._stale = True
-        if not self.mirror:  # (a mirror core's caller judges online: D2)
-            self.online = False
-            self.offline_reason = reason
-
-    def _take(self, msg: Any, solicited: bool) -> None:
-        """Take a frame from the module: it answers (online), and what it tells."""
-        if self.mirror:
-            # The caller took it already (or refused it: read before a reboot), and told.
-            if isinstance(msg, p.BootCount):
-                self.boot_reads += 1
-            elif isinstance(msg, p.Status):
-                self._reread_done(msg.armed)
-            return
-        if self.port_open and not self.online:
-            # Back: it may have changed while silent, re-read before acting on it (D15).
-            self.online, self.offline_reason, self.fresh = True, '', False
-        if isinstance(msg, p.Heartbeat) and not solicited:
-            self._heartbeat()
-        elif isinstance(msg, p.BootCount):
-            self._boot_count(msg.count)
-        elif isinstance(msg, p.Status):
-            self._set_triggered(msg.triggered, 'status' if not solicited else 'query',
-                                armed=msg.armed)
-        elif isinstance(msg, p.ArmedState):
-            self.armed = msg.armed
-        elif isinstance(msg, p.TriggeredState):
-            self._set_triggered(msg.triggered, 'query')
-        elif isinstance(msg, p.DeployAck) and not solicited:
-            self._deploy_reply(msg, late=True)
-
-    def _heartbeat(self) -> None:
-        first = self._now - self._last_heartbeat > POWER_UP_HEARTBEATS_S
-        self._last_heartbeat = self._now
-        if first:
-            # P5: nobody asked, so it has just (re)booted: its armed state is unknown (D15).
-            self.reboots += 1
-            self.fresh, self.armed, self.triggered = False, None, None
-            self._know(Log('warn', 'unsolicited heartbeat: the module has (re)booted'))
-            self._know(_record('state', event='module reboot (unsolicited heartbeat)'))
-
-    def _boot_count(self, count: int) -> None:
-        previous, self.boot_count = self.boot_count, count
-        self.boot_reads += 1
-        if previous is None and self._stored is not None:
-            stored, self._stored = self._stored, None
-            if stored.boot_count == count:
-                self._know(Log('warn', f'{stored.failed} deploy frame(s) without a successful '
-                               f'acknowledgement in this power-up (boot {count}), sent by an '
-                               'earlier run of the driver: they count (P11)'))
-                self._know(_record('state', event='deploy attempts of an earlier run',
-                                   boot_count=count, failed_deploys=stored.failed,
-                                   unacked_deploys=stored.unacked))
-            else:
-                # Another power-up: the module forgot them (P19); ours of this run stay.
-                self.failed = max(0, self.failed - stored.failed)
-                self.unacked = max(0, self.unacked - stored.unacked)
-        if previous is not None and previous != count:
-            self.reboots += 1
-            self.failed = self.unacked = 0
-            self.fresh, self.armed, self.triggered = False, None, None
-            self._know(Log('warn', f'module boot count {previous} -> {count}: it rebooted'))
-
-    def _set_triggered(self, triggered: bool, via: str, armed: Optional[bool] = None) -> None:
-        if armed is not None:
-            self.armed = armed
-            self.fresh = True
-            self._stale = False
-        if triggered and not self.triggered:
-            self._triggered_seen = (self._now, via)
-        changed = triggered != self.triggered
-        self.triggered = triggered
-        if changed:
-            self._know(_record('state', triggered=triggered, via=via))
-            if triggered:
-                self._know(Log('error', f'the module reports TRIGGERED (via {via})'))
-                self._report(via)
-        if self.outcome_unknown and self._unknown_boot == self.boot_count:
-            self._resolve_unknown(triggered, 'read after the deploy')
-
-    def _report(self, via: str) -> None:
-        if self.boot_count not in self._reported:
-            self._reported.add(self.boot_count)
-            self._know(Report(via, self.boot_count))
-
-    def _resolve_unknown(self, triggered: bool, how: str) -> None:
-        self.outcome_unknown = False
-        outcome = 'deployed' if triggered else 'not deployed'
-        self._know(_record('decision', True, what='deploy', outcome=outcome, resolved=how))
-        self._know(Log('error' if triggered else 'warn', 'the earlier deploy whose outcome was '
-                       f'unknown: {outcome} ({how})'))
-
-    def _save(self, leaving: bool = False) -> None:
-        action = SaveAttempts(self.boot_count, self.failed, self.unacked)
-        if leaving:
-            self._out.append(action)  # before the frame: the procedure's own
-        else:
-            self._know(action)
-
-    def _deploy_reply(self, ack: p.DeployAck, late: bool) -> None:
-        self.unacked = 0
-        if ack.success:
-            self.failed = 0
-        self._save()
-        if not ack.success:
-            return
-        if late:
-            self._know(Log('warn', 'late deploy acknowledgement: the module deployed'))
-        self.armed = False
-        self._set_triggered(True, 'deploy ack')
-        if self.outcome_unknown:
-            self._resolve_unknown(True, 'late acknowledgement')
-
-    def _seen_triggered(self) -> str:
-        if not self.triggered or self._triggered_seen is None:
-            return ''
-        at, via = self._triggered_seen
-        text = f'the module reported TRIGGERED (via {via}'
-        if self._frame_at is not None and at >= self._frame_at:
-            text += f', {(at - self._frame_at) * 1000:.0f} ms after the deploy frame left'
-        return text + ')'
 
     # -- the procedure -------------------------------------------------------------------------
 
@@ -370,26 +167,24 @@ class DeployCore:
             # (An armed state read before a reboot seen since is not this power-up's.)
             self._reread_done(armed)
 
-    def _reread_done(self, armed: bool) -> None:
-        """Take a re-read: armed and triggered are this power-up's (D15)."""
-        self._stale = False
-        if self.mirror:
-            self.fresh = self._told_fresh  # as the caller took the reply
-        else:
-            self.armed, self.fresh = armed, True
-
     def _query_triggered(self) -> Generator[Send, Event, Optional[bool]]:
         event = yield self._send(p.encode_triggered_query(), p.TriggeredState)
+        self._query_end = event
         return event.message.triggered if isinstance(event, Reply) else None
 
-    def _deployed_in(self, boot: Optional[int]) -> Generator[Send, Event, Optional[bool]]:
-        """Whether the trigger records show a deployment in power-up `boot`; None: not known."""
-        if boot is None:
+    def _deployed_in(self, boot: Optional[int],
+                     known: Set[Optional[int]]) -> Generator[Send, Event, Optional[bool]]:
+        """Whether the trigger records show a deployment in power-up `boot` or one after it
+        (a reboot no heartbeat told may have come first), but for the power-ups `known` to
+        have deployed before the frame left (one deployment per power-up); None: not known."""
+        if boot is None or self.boot_count is None:
             return None
         event = yield self._send(p.encode_trigger_records_query(), p.TriggerRecord)
         if not isinstance(event, Reply):
             return None
-        return any(r.boot_count == boot and not r.is_empty for r in event.message)
+        since = (self.boot_count - boot) % 256  # (the boot count wraps after 255)
+        return any((r.boot_count - boot) % 256 <= since and not r.is_empty
+                   and r.boot_count not in known for r in event.message)
 
     def _arm(self) -> Generator[Send, Event, str]:
         """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
@@ -423,7 +218,7 @@ class DeployCore:
             self._answer('refused', f"deploy refused: confirm must be exactly '{DEPLOY_TOKEN}' "
                          f'(got {call.token!r}); nothing sent')
             return
-        if not self.online or not self.fresh or self.boot_count is None:
+        if not self.online or not self.fresh or not self.boot_current:
             # (The boot count too: a reboot after the frame left must be told from none.)
             yield from self._reread()
         if not self.online:
@@ -462,7 +257,10 @@ class DeployCore:
     def _attempts(self, call: DeployCall, t0: float) -> _Wait:
         attempts = 0
         reboots = self.reboots
-        frame_boot = self.boot_count  # every frame of this call goes to this power-up
+        # Every frame of this call goes to this power-up (None: a module silent to the boot
+        # count query is deployed too, round 2; its frames count until a read tells, P11).
+        frame_boot = self.boot_count if self.boot_current else None
+        known = set(self._reported)  # power-ups known to have deployed before the frame
         said_not_triggered = False
         while True:
             if attempts and not (self.fresh and self.armed):
@@ -478,12 +276,13 @@ class DeployCore:
                 if self.reboots != reboots or self.boot_count != frame_boot:
                     # A reboot after a frame left: "not triggered" now tells nothing of the
                     # power-up the frame went to; its trigger records do.
-                    fired = yield from self._deployed_in(frame_boot)
+                    fired = yield from self._deployed_in(frame_boot, known)
                     if fired:
                         self._answer('deployed', f'deployed: the module rebooted after the '
                                      f'deploy frame left, and its trigger records show a '
-                                     f'deployment in boot {frame_boot}; its acknowledgement was '
-                                     f'lost ({attempts} attempt(s))', ok=True, t0=t0, ack='lost')
+                                     f'deployment in boot {frame_boot} or after; its '
+                                     f'acknowledgement was lost ({attempts} attempt(s))', ok=True,
+                                     t0=t0, ack='lost')
                     elif fired is None:
                         self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and '
                                       'the module rebooted since (its trigger records not read)',
@@ -492,8 +291,8 @@ class DeployCore:
                         state = 'is locked now' if self.fresh else 'was not re-read'
                         self._answer('not deployed', f'deploy NOT acknowledged after {attempts} '
                                      f'attempt(s); the module rebooted since, and its trigger '
-                                     f'records show no deployment in boot {frame_boot}: it did '
-                                     f'NOT deploy, and it {state}; not retrying', t0=t0)
+                                     f'records show no deployment since boot {frame_boot}: it '
+                                     f'did NOT deploy, and it {state}; not retrying', t0=t0)
                     return
                 if not said_not_triggered:
                     self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
@@ -529,12 +328,14 @@ class DeployCore:
                                      attempt=attempts))
             self.failed += 1
             self.unacked += 1
+            self._sent_since_read += 1
             self._frame_at = self._now
             self._save(leaving=True)  # a respawned driver counts it too (P11)
             event = yield self._send(DEPLOY_FRAME, p.DeployAck)
             if isinstance(event, Busy):
                 self.failed -= 1
                 self.unacked -= 1
+                self._sent_since_read -= 1
                 self._save()
                 self._answer('refused', f'deploy refused: {event.reason}')
                 return
@@ -542,6 +343,7 @@ class DeployCore:
                 if not event.frame_left:
                     self.failed -= 1
                     self.unacked -= 1
+                    self._sent_since_read -= 1
                     self._save()
                     if attempts == 1:
                         self._answer('refused', f'deploy failed before the frame left: '
@@ -564,6 +366,13 @@ class DeployCore:
                 self._answer('deployed', 'deployed: the module reports triggered; its '
                              f'acknowledgement was lost ({attempts} attempt(s))', ok=True, t0=t0,
                              ack='lost')
+                return
+            down = self._query_end
+            if triggered is None and isinstance(down, LinkDown):
+                why = ('the driver is shutting down' if down.shutting_down
+                       else f'the link dropped ({down.reason})')
+                self._unknown(f'{attempts} deploy frame(s) sent, but {why} before any '
+                              'acknowledgement', t0)
                 return
             if triggered is None and self.failed >= MAX_FAILED_DEPLOYS:
                 self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '

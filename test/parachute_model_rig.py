@@ -23,6 +23,9 @@ from uav_serial_common.core_runner import run_core
 
 START = 1000.0
 REPLY_S = 0.004
+REBOOT_S = 0.3
+"""A module takes this long to switch off and boot again (longer than the 0.2 s that one
+power-up's two heartbeats fit in, P5: two reboots never look like one)."""
 """Time from a request to its reply on a clean wire (a 6-byte frame each way at 115200)."""
 FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 'unplug_before',
           'unplug_after', 'reboot', 'reboot_quiet', 'lock_by_other', 'arm_by_other',
@@ -49,8 +52,13 @@ class Call:
 class ModelRig:
     """The core, the model and the wire between them; see the module docstring."""
 
-    def __init__(self, boot_count: int = 7, armed: bool = True) -> None:
+    def __init__(self, boot_count: int = 7, armed: bool = True, mirror: bool = False) -> None:
         self.t = START
+        # mirror: the core as the session runs it, told before each step what a keeper of the
+        # knowledge (the session's threads; here a DeployCore never called) has taken in.
+        self.mirror = mirror
+        self.keeper: Optional[DeployCore] = None
+        self.keeper_armed: Optional[tuple] = None  # (reboots, armed) of the last armed query
         self.model = VirtualParachute(now=self.t - 1.0, boot_count=boot_count)
         self.model.step(self.t)  # its power-up heartbeats went by before the driver started
         self.model.armed = armed
@@ -71,7 +79,11 @@ class ModelRig:
         self.core = self._new_core(None)
 
     def _new_core(self, stored: Optional[Stored]) -> DeployCore:
-        core = DeployCore(stored)
+        if self.mirror:
+            self.keeper = DeployCore(stored)
+            core = DeployCore(mirror=True)
+        else:
+            core = DeployCore(stored)
         self.core = core
         self.armed_read = False
         self.last_boot_told = None
@@ -115,6 +127,7 @@ class ModelRig:
 
     def power_cycle(self, quiet: bool = False) -> None:
         """Switch the module off and on (boot count +1, locked); `quiet`: heartbeats lost."""
+        self.wait(REBOOT_S)
         self.model.power_cycle()
         if quiet or not self.plugged:
             self.unseen_reboot = True
@@ -137,9 +150,34 @@ class ModelRig:
     # -- carrying out the core's actions ------------------------------------------------------
 
     def _run(self, events: List[Any]) -> None:
-        run_core(self.core, events, {
+        run_core(self if self.mirror else self.core, events, {
             Send: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
             SaveAttempts: self._save, PassGate: self._gate, Answer: self._answer})
+
+    def step(self, event: Any) -> List[Any]:
+        """Step a mirror core as the session does: its keeper takes the event in first."""
+        keeper = self.keeper
+        assert keeper is not None
+        if not isinstance(event, (DeployCall, GateDone)):
+            for action in keeper.step(event):
+                if isinstance(action, SaveAttempts):
+                    self.saved = action
+            message = getattr(event, 'message', None)
+            # The session's re-read: armed and triggered read with no reboot between (D15).
+            if isinstance(message, p.ArmedState):
+                self.keeper_armed = (keeper.reboots, message.armed)
+            elif isinstance(message, p.TriggeredState) and self.keeper_armed and \
+                    self.keeper_armed[0] == keeper.reboots:
+                keeper.armed, keeper.fresh = self.keeper_armed[1], True
+        self.core.know(port_open=keeper.port_open, online=keeper.online,
+                       offline_reason=keeper.offline_reason, fresh=keeper.fresh,
+                       armed=keeper.armed, triggered=keeper.triggered,
+                       boot_count=keeper.boot_count, failed=keeper.failed,
+                       unacked=keeper.unacked, outcome_unknown=keeper.outcome_unknown,
+                       unknown_boot=keeper._unknown_boot, triggered_seen=keeper._triggered_seen,
+                       frame_at=keeper._frame_at, reboots=keeper.reboots,
+                       boot_current=keeper.boot_current, deployed_boots=set(keeper._reported))
+        return self.core.step(event)
 
     def _keep(self, action: Any) -> None:
         self.actions.append(action)
@@ -156,6 +194,13 @@ class ModelRig:
         self.actions.append(action)
         if self.call is not None:
             self.call.answers.append(action)
+        keeper = self.keeper
+        if keeper is not None:  # what the session takes from an answer
+            if action.counts is not None:
+                keeper.failed, keeper.unacked = action.counts
+            if action.outcome == 'unknown':
+                keeper.outcome_unknown, keeper._unknown_boot = True, keeper.boot_count
+            self.saved = SaveAttempts(keeper.boot_count, keeper.failed, keeper.unacked)
 
     def _send(self, send: Send) -> List[Any]:
         self.actions.append(send)
@@ -170,13 +215,22 @@ class ModelRig:
             if fault == 'unplug_before':
                 self.unplug_quietly()
                 return events + [LinkDown(self.t, 'unplugged', frame_left=False)]
+            pre = b''
+            if fault in ('reboot', 'reboot_quiet'):
+                self.t += REBOOT_S
+                pre = self.model.step(self.t)  # (what it sent before it went off)
             self._module_fault(fault)
             if send.frame == DEPLOY_FRAME:
                 self._count_deploy_frame()
-            out = b''
+                if self.keeper is not None:  # the session's _on_tx
+                    self.keeper.failed += 1
+                    self.keeper.unacked += 1
+                    self.keeper._sent_since_read += 1
+                    self.keeper._frame_at = self.t
+            out = pre
             if fault != 'drop_request':
                 before = self.model.deployments
-                out = self.model.receive(send.frame, self.t)
+                out = pre + self.model.receive(send.frame, self.t)
                 if self.call is not None:
                     self.call.serial_deployments += self.model.deployments - before
                 self.t += REPLY_S
@@ -221,14 +275,15 @@ class ModelRig:
             model.power_cycle()
             self.unseen_reboot = True  # (its heartbeats may come late, or not at all)
             if fault == 'reboot_quiet':
-                model.step(self.t)  # its heartbeats are lost on the wire
+                self.t += 0.06
+                model.step(self.t)  # its two heartbeats are lost on the wire
         elif fault == 'lock_by_other' and model.armed:
             model.armed = False
             self.unseen_change = True
         elif fault == 'arm_by_other' and not model.triggered and not model.armed:
             model.armed = True
             self.unseen_change = True
-        elif fault == 'trigger_by_other' and model._can_fire():
+        elif fault == 'trigger_by_other' and model._can_fire() and not model.igniter_fault:
             model._fire(p.SOURCE_PWM)
 
     def _received(self, out: bytes, now: float) -> List[Reply]:
