@@ -174,9 +174,12 @@ class DeployCore(DeployKnowledge):
 
     def _deployed_in(self, boot: Optional[int],
                      known: Set[Optional[int]]) -> Generator[Send, Event, Optional[bool]]:
-        """Whether the trigger records show a deployment in power-up `boot` or one after it
-        (a reboot no heartbeat told may have come first), but for the power-ups `known` to
-        have deployed before the frame left (one deployment per power-up); None: not known."""
+        """Read whether the trigger records show a deployment since power-up `boot`.
+
+        Since: a reboot no heartbeat told may have come before the frame. Not the power-ups
+        `known` to have deployed before the frame left (one deployment per power-up). None: not
+        known.
+        """
         if boot is None or self.boot_count is None:
             return None
         event = yield self._send(p.encode_trigger_records_query(), p.TriggerRecord)
