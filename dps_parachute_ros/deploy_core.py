@@ -176,9 +176,9 @@ class DeployCore(DeployKnowledge):
                      known: Set[Optional[int]]) -> Generator[Send, Event, Optional[bool]]:
         """Read whether the trigger records show a deployment since power-up `boot`.
 
-        Since: a reboot no heartbeat told may have come before the frame. Not the power-ups
-        `known` to have deployed before the frame left (one deployment per power-up). None: not
-        known.
+        Since: a reboot no heartbeat told may have come before the frame. By a serial frame
+        (another source's deployment is not this call's), not in the power-ups `known` to have
+        deployed before the frame left (one deployment per power-up). None: not known.
         """
         if boot is None or self.boot_count is None:
             return None
@@ -186,7 +186,7 @@ class DeployCore(DeployKnowledge):
         if not isinstance(event, Reply):
             return None
         since = (self.boot_count - boot) % 256  # (the boot count wraps after 255)
-        return any((r.boot_count - boot) % 256 <= since and not r.is_empty
+        return any((r.boot_count - boot) % 256 <= since and r.serial_trigger
                    and r.boot_count not in known for r in event.message)
 
     def _arm(self) -> Generator[Send, Event, str]:
@@ -270,6 +270,9 @@ class DeployCore(DeployKnowledge):
                 # Silent for a moment, or a reboot or a lock seen: read it again first (D15).
                 reads = self.boot_reads
                 yield from self._reread()
+                # Its status, read again, answers "triggered?" too.
+                said_not_triggered = said_not_triggered or (self.fresh and
+                                                            self.triggered is False)
                 seen = self._seen_triggered()
                 if seen or (self.fresh and self.triggered):
                     self._answer('deployed', 'deployed: the module reports triggered; its '
@@ -282,7 +285,7 @@ class DeployCore(DeployKnowledge):
                     fired = yield from self._deployed_in(frame_boot, known)
                     if fired:
                         self._answer('deployed', f'deployed: the module rebooted after the '
-                                     f'deploy frame left, and its trigger records show a '
+                                     f'deploy frame left, and its trigger records show a serial '
                                      f'deployment in boot {frame_boot} or after; its '
                                      f'acknowledgement was lost ({attempts} attempt(s))', ok=True,
                                      t0=t0, ack='lost')
@@ -294,8 +297,9 @@ class DeployCore(DeployKnowledge):
                         state = 'is locked now' if self.fresh else 'was not re-read'
                         self._answer('not deployed', f'deploy NOT acknowledged after {attempts} '
                                      f'attempt(s); the module rebooted since, and its trigger '
-                                     f'records show no deployment since boot {frame_boot}: it '
-                                     f'did NOT deploy, and it {state}; not retrying', t0=t0)
+                                     'records show no serial deployment since boot '
+                                     f'{frame_boot}: it did NOT deploy, and it {state}; not '
+                                     'retrying', t0=t0)
                     return
                 if not said_not_triggered:
                     self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and the '
