@@ -111,6 +111,8 @@ class SaveAttempts:
     boot_count: Optional[int]
     failed: int
     unacked: int
+    since_read: int = 0
+    """Of them, sent since the boot count was last read (they may have gone to a later boot)."""
 
 
 @dataclass(frozen=True)
@@ -158,6 +160,7 @@ class Stored:
     boot_count: int
     failed: int
     unacked: int
+    since_read: int = 0
 
 
 Action = Union[Send, Record, SaveAttempts, PassGate, Answer, Log, Report]

@@ -165,9 +165,11 @@ class DeployKnowledge:
                                    boot_count=count, failed_deploys=stored.failed,
                                    unacked_deploys=stored.unacked))
             else:
-                # Another power-up: the module forgot them (P19); ours of this run stay.
-                self.failed = max(0, self.failed - stored.failed)
-                self.unacked = max(0, self.unacked - stored.unacked)
+                # Another power-up: the module forgot them (P19), but not those sent after the
+                # earlier run last read the boot count (they may have gone to this one).
+                since = getattr(stored, 'since_read', 0)
+                self.failed = max(0, self.failed - stored.failed) + min(stored.failed, since)
+                self.unacked = max(0, self.unacked - stored.unacked) + min(stored.unacked, since)
         if previous is not None and previous != count:
             self.reboots += 1
             # A new power-up forgets the attempts (P19), but not those that may have come
@@ -209,7 +211,7 @@ class DeployKnowledge:
                        f'unknown: {outcome} ({how})'))
 
     def _save(self, leaving: bool = False) -> None:
-        action = SaveAttempts(self.boot_count, self.failed, self.unacked)
+        action = SaveAttempts(self.boot_count, self.failed, self.unacked, self._sent_since_read)
         if leaving:
             self._out.append(action)  # before the frame: the procedure's own
         else:

@@ -68,8 +68,10 @@ class DeployProcedure:
     def _save_attempts(self, leaving: int = 0) -> None:
         """Keep the unsuccessful deploy frames of this power-up for a later run (P11)."""
         snap = self.snapshot
+        with self._lock:
+            since = self._sent_since_boot_read + leaving
         problem = self._attempts.save(snap.boot_count, snap.failed_deploys + leaving,
-                                      snap.unacked_deploys + leaving)
+                                      snap.unacked_deploys + leaving, since)
         if problem:
             self._log('warn', f'deploy attempts not kept for a restart: {problem}',
                       key='attempts', every_s=60.0)
@@ -204,7 +206,8 @@ class DeployProcedure:
                 self._safety_sync()
 
         def save(action: SaveAttempts) -> None:
-            problem = self._attempts.save(action.boot_count, action.failed, action.unacked)
+            problem = self._attempts.save(action.boot_count, action.failed, action.unacked,
+                                          action.since_read)
             if problem:
                 self._log('warn', f'deploy attempts not kept for a restart: {problem}',
                           key='attempts', every_s=60.0)

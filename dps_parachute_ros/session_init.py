@@ -116,6 +116,15 @@ class Initialization:
                 self._snap = replace(self._snap, failed_deploys=stored.failed,
                                      unacked_deploys=max(stored.unacked,
                                                          self._snap.unacked_deploys))
+            elif previous is None and stored is not None and stored.since_read:
+                # Another power-up; the frames that run sent after its last boot count read
+                # may have gone to this one (a reboot it never saw): they count.
+                self._snap = replace(
+                    self._snap,
+                    failed_deploys=max(self._snap.failed_deploys,
+                                       min(stored.failed, stored.since_read)),
+                    unacked_deploys=max(self._snap.unacked_deploys,
+                                        min(stored.unacked, stored.since_read)))
             if None in self._reported_boots and previous is None:
                 # A deployment reported before the first boot count read happened in this boot.
                 self._reported_boots.discard(None)

@@ -111,7 +111,8 @@ class ModelRig:
         """Respawn the driver: a new core, with the attempts the old one kept."""
         saved = self.saved
         self._new_core(None if saved is None or saved.boot_count is None
-                       else Stored(saved.boot_count, saved.failed, saved.unacked))
+                       else Stored(saved.boot_count, saved.failed, saved.unacked,
+                                   saved.since_read))
 
     def unplug(self) -> None:
         if self.plugged:
@@ -200,7 +201,8 @@ class ModelRig:
                 keeper.failed, keeper.unacked = action.counts
             if action.outcome == 'unknown':
                 keeper.outcome_unknown, keeper._unknown_boot = True, keeper.boot_count
-            self.saved = SaveAttempts(keeper.boot_count, keeper.failed, keeper.unacked)
+            self.saved = SaveAttempts(keeper.boot_count, keeper.failed, keeper.unacked,
+                                      keeper._sent_since_read)
 
     def _send(self, send: Send) -> List[Any]:
         self.actions.append(send)

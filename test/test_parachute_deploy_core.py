@@ -62,7 +62,7 @@ def test_round2_22_1_the_decision_is_recorded_and_synced_before_the_deploy_frame
     assert kinds(actions)[-3:] == ['Record', 'SaveAttempts', 'Send']
     record, save, send = actions[-3:]
     assert record.sync and dict(record.fields)['what'] == 'deploy: sending the deploy frame'
-    assert save == SaveAttempts(5, 1, 1)  # the frame counts before it can leave (P11)
+    assert save == SaveAttempts(5, 1, 1, 1)  # the frame counts before it can leave (P11)
     assert send.frame == DEPLOY_FRAME and send.expect == (p.DeployAck,)
     actions = core.step(Reply(T0 + 0.004, ACK))
     answer = answer_of(actions)

@@ -249,6 +249,26 @@ def test_round2_22_1_another_sources_deployment_unseen_is_not_the_frames():
     assert call.answers[0].outcome != 'deployed', call.answers[0].message
 
 
+def test_round2_22_1_a_respawned_driver_counts_the_frames_sent_after_a_reboot_unseen():
+    # Found by the 20,000-sequence search: the module rebooted unseen (boot 8 -> 9), the
+    # driver sent a frame to it on boot count 8 (refused: its igniter failed), kept "boot 8,
+    # one frame" and was respawned; reading boot 9 it took the frame for another power-up's,
+    # and two more went to boot 9: protection (P11). The frames sent since the last boot count
+    # read are kept, and count.
+    for mirror in (False, True):
+        rig = ModelRig(armed=True, mirror=mirror)
+        rig.deploy(faults=['clean', 'reboot_quiet'])
+        rig.model.armed = True
+        rig.status_frame()
+        rig.model.igniter_fault = True
+        rig.deploy()
+        rig.restart_driver()
+        rig.deploy()
+        rig.deploy()
+        assert all(n <= 2 for n in rig.unacked.values()), (mirror, rig.unacked)
+        assert not rig.model.protection
+
+
 def test_round2_22_1_a_clean_deploy_of_an_armed_module_deploys_it():
     rig = ModelRig(armed=True)
     call = rig.deploy()
