@@ -24,6 +24,10 @@ MODELS = {
                  'test_round2_6_7_11a_board_plan_invariants_hold_over_random_sequences',
     'servo': 'test/test_servo_model.py::'
              'test_round2_22_servo_bus_safety_invariants_hold_in_every_sequence',
+    'parachute': 'test/test_parachute_model.py::'
+                 'test_round2_22_3_parachute_deploy_invariants_hold_over_random_sequences',
+    'parachute_session': 'test/test_parachute_model.py::'
+                         'test_round2_22_3_the_sessions_deploy_core_keeps_the_invariants_too',
     'parachute_settings': 'test/test_parachute_core.py::'
                           'test_round2_1_no_write_the_rule_lets_through_fires_the_module',
 }

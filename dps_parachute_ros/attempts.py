@@ -26,6 +26,8 @@ class Attempts:
     boot_count: int
     failed: int
     unacked: int
+    since_read: int = 0
+    """Of them, sent since the boot count was last read: they may have gone to a later boot."""
 
 
 class AttemptsFile:
@@ -37,11 +39,13 @@ class AttemptsFile:
         self.path = os.path.join(os.path.expanduser(directory),
                                  f'parachute-attempts-{slug}.json')
 
-    def save(self, boot_count: Optional[int], failed: int, unacked: int) -> str:
+    def save(self, boot_count: Optional[int], failed: int, unacked: int,
+             since_read: int = 0) -> str:
         """Write the count; return '' or what went wrong. No boot count: nothing to tie it to."""
         if boot_count is None:
             return ''
-        data = dict(port=self.port, boot_count=boot_count, failed=failed, unacked=unacked)
+        data = dict(port=self.port, boot_count=boot_count, failed=failed, unacked=unacked,
+                    since_read=since_read)
         tmp = f'{self.path}.{os.getpid()}.tmp'
         try:
             os.makedirs(os.path.dirname(self.path), exist_ok=True)
@@ -58,7 +62,7 @@ class AttemptsFile:
             with open(self.path) as src:
                 data = json.load(src)
             attempts = Attempts(str(data['port']), int(data['boot_count']), int(data['failed']),
-                                int(data['unacked']))
+                                int(data['unacked']), int(data.get('since_read', 0)))
         except (OSError, ValueError, KeyError, TypeError):
             return None
         return attempts if attempts.port == self.port else None

@@ -139,6 +139,9 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._config = config
         self._snap = Snapshot(policy=config.trigger_request_policy)
         self._epoch = 0                     # +1 whenever the module may have changed unseen
+        self._reboots = 0                   # reboots seen (a deploy's core compares them)
+        self._boot_read_reboots = -1        # _reboots when the boot count was last read
+        self._sent_since_boot_read = 0      # deploy frames since then (P11)
         self._port_open_count = 0           # link.last_frame count when the port opened
         self._offline_count = 0             # ... when the module went offline
         self._in_flight: Dict[int, Tuple[float, int]] = {}  # request -> (sent, frame count)

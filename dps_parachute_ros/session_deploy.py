@@ -6,9 +6,13 @@ Part of `ParachuteSession` (``dps_parachute_ros.session`` assembles it; the shar
 lock are described there). Threads:
 
 - callers: ``deploy`` and ``arm`` (the node's service threads), serialized by ``_actuation``
-  (never taken on the reader thread or by a trigger-request answer). They decide around
-  blocking requests; each decision is recorded (and synced) before the frame leaves, and the
-  release gate (``release_gate``, when the node sets one) is passed before the first frame.
+  (never taken on the reader thread or by a trigger-request answer). A deploy's decisions are
+  `DeployCore`'s (``deploy_core``, no I/O): the caller's thread steps it, telling it what the
+  session knows before each event, and carries out its actions through
+  ``uav_serial_common.core_runner``: its requests over the link (a reply, a timeout or the
+  link down is the next event), its records (the decision synced before the frame leaves),
+  the release gate (``release_gate``, when the node sets one) before the first frame, and its
+  one answer. ``arm`` decides around blocking requests.
 - the thread that writes a frame (a deploy's caller): ``_on_tx`` counts every deploy frame as
   it leaves, whatever ends the wait for its answer.
 - serial reader: ``_on_deploy_reply`` takes a late acknowledgement (a deploy call takes the one
@@ -23,26 +27,30 @@ from __future__ import annotations
 
 from dataclasses import replace
 import time
-from typing import Any, Optional
+from types import SimpleNamespace
+from typing import Any, List, Optional, Tuple
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_core import (Answer, Busy, DEPLOY_FRAME, DEPLOY_TOKEN, DeployCall,
+                                           DeployCore, Event, GateDone, guard_text, Log, PassGate,
+                                           Record, Reply, Report, SaveAttempts, Send, Timeout)
+from dps_parachute_ros.deploy_core import MAX_FAILED_DEPLOYS  # noqa: F401 (preflight's import)
+from dps_parachute_ros.deploy_core import LinkDown as CoreLinkDown
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
 from dps_parachute_ros.state import Outcome, Result, Snapshot
+from uav_serial_common.core_runner import run_core
 
-DEPLOY_TOKEN = 'DEPLOY'
-MAX_FAILED_DEPLOYS = 2
-"""P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
 REREAD_WAIT_S = 1.0
 """A deploy or an arm waits this long for the module's state to be re-read (D15)."""
 ACTUATION_WAIT_S = 10.0
 """A deploy or arm waits this long for one already running."""
 SAFETY_SYNC_S = 0.5
 """Longest wait for the black box's fsync on a safety event; none while it is failing."""
-DEPLOY_FRAME = p.encode_deploy()
 DEPLOY_OUTCOMES = {'refused': Outcome.REFUSED, 'already deployed': Outcome.DONE,
-                   'deployed': Outcome.DONE, 'not deployed': Outcome.FAILED}
-"""The outcome of each way `_deploy_end` ends a deploy (an unknown one: `_deploy_unknown`);
-another word is DONE when it succeeded, else FAILED (never a refusal not decided as one)."""
+                   'deployed': Outcome.DONE, 'not deployed': Outcome.FAILED,
+                   'unknown': Outcome.UNKNOWN}
+"""The outcome of each way the deploy core ends a call; another word is DONE when it
+succeeded, else FAILED (never a refusal not decided as one)."""
 
 
 class DeployProcedure:
@@ -59,14 +67,17 @@ class DeployProcedure:
             with self._lock:
                 self._deploy_frame_left = True
                 self._deploy_frame_at = self.clock()
+                self._sent_since_boot_read += 1
                 self._snap = replace(self._snap, unacked_deploys=self._snap.unacked_deploys + 1,
                                      failed_deploys=self._snap.failed_deploys + 1)
 
     def _save_attempts(self, leaving: int = 0) -> None:
         """Keep the unsuccessful deploy frames of this power-up for a later run (P11)."""
         snap = self.snapshot
+        with self._lock:
+            since = self._sent_since_boot_read + leaving
         problem = self._attempts.save(snap.boot_count, snap.failed_deploys + leaving,
-                                      snap.unacked_deploys + leaving)
+                                      snap.unacked_deploys + leaving, since)
         if problem:
             self._log('warn', f'deploy attempts not kept for a restart: {problem}',
                       key='attempts', every_s=60.0)
@@ -115,6 +126,9 @@ class DeployProcedure:
                 self._lock.wait(min(remaining, 0.05))
             return self._snap
 
+    def _guard_text(self, snap: Snapshot) -> str:
+        return guard_text(snap.failed_deploys, snap.unacked_deploys)
+
     def _query_triggered(self) -> Optional[bool]:
         """Ask the module whether it is triggered; None when it does not answer."""
         epoch = self._current_epoch()
@@ -127,24 +141,147 @@ class DeployProcedure:
         return triggered
 
     def deploy(self, confirm: str, arm_if_locked: bool = False) -> Result:
-        """`~/deploy`: the rules of the README's "Safety model of deploy" (D6)."""
-        t0 = self.clock()
-        self.blackbox.record('request', what='deploy', token_ok=confirm == DEPLOY_TOKEN,
-                             arm_if_locked=arm_if_locked)
+        """`~/deploy`: the rules of the README's "Safety model of deploy" (D6).
+
+        They are `DeployCore`'s (``deploy_core``); this thread carries out its actions over
+        the link (``_run_deploy``), serialized with arm by ``_actuation``.
+        """
+        call = DeployCall(self.clock(), confirm, arm_if_locked, self.release_gate is not None)
         if confirm != DEPLOY_TOKEN:
-            return self._deploy_end('refused', f"deploy refused: confirm must be exactly "
-                                    f"'{DEPLOY_TOKEN}' (got {confirm!r}); nothing sent")
+            return self._run_deploy(call)  # refused at once: nothing to wait for
         if not self._actuation.acquire(timeout=ACTUATION_WAIT_S):
-            return self._deploy_end('refused', 'deploy refused: another deploy or arm did not '
+            return self._deploy_end(call, 'deploy refused: another deploy or arm did not '
                                     f'finish within {ACTUATION_WAIT_S:.0f} s; nothing sent')
         try:
             if self._stopping.is_set():
-                return self._deploy_end('refused', 'deploy refused: the driver is shutting '
-                                        'down; nothing sent')
-            return self._deploy(arm_if_locked, t0)
+                return self._deploy_end(call, 'deploy refused: the driver is shutting down; '
+                                        'nothing sent', cause='stopping')
+            snap = self.snapshot
+            if snap.online and not snap.fresh:
+                self._wait_fresh()  # the worker's re-read, already under way (D15)
+            return self._run_deploy(call)
         finally:
             self._save_attempts()
             self._actuation.release()
+
+    def _deploy_end(self, call: DeployCall, message: str, cause: str = 'busy') -> Result:
+        """Refuse a deploy before its procedure starts (busy, shutting down)."""
+        self.blackbox.record('request', what='deploy', token_ok=True,
+                             arm_if_locked=call.arm_if_locked)
+        if self.snapshot.deploy_outcome_unknown:
+            message += ('; an earlier deploy frame left without an acknowledgement: its outcome '
+                        'is UNKNOWN (the parachute may have deployed) until the module answers')
+        self.blackbox.record('decision', what='deploy', outcome='refused', success=False,
+                             reason=message)
+        self._safety_sync()
+        self._log('warn', message)
+        return Result.refused(cause, message)
+
+    def _run_deploy(self, call: DeployCall) -> Result:
+        """Step a `DeployCore` that mirrors this session's knowledge, and carry out its actions.
+
+        Before each event the core is told what the session knows now (its reader, worker and
+        monitor threads keep that); a reply is taken into the session first, as any request's
+        is, and then given to the core.
+        """
+        core = DeployCore(mirror=True, request_timeout_s=self.config.request_timeout_s)
+        answers: List[Answer] = []
+        armed_read: List[Tuple[int, bool]] = []  # (epoch, armed) of an armed query, for fresh
+
+        def step(event: Event) -> List[Any]:
+            with self._lock:
+                snap = self._snap
+                core.know(port_open=snap.port_open, online=snap.online,
+                          offline_reason=snap.offline_reason, fresh=snap.fresh, armed=snap.armed,
+                          triggered=snap.triggered, boot_count=snap.boot_count,
+                          failed=snap.failed_deploys, unacked=snap.unacked_deploys,
+                          outcome_unknown=snap.deploy_outcome_unknown,
+                          unknown_boot=self._unknown_boot, triggered_seen=self._triggered_seen,
+                          frame_at=self._deploy_frame_at, reboots=self._reboots,
+                          boot_current=snap.boot_count is not None
+                          and self._boot_read_reboots == self._reboots,
+                          deployed_boots=set(self._reported_boots))
+            return core.step(event)
+
+        def send(action: Send) -> List[Event]:
+            return self._deploy_send(action, armed_read)
+
+        def record(action: Record) -> None:
+            self.blackbox.record(action.kind, **dict(action.fields))
+            if action.sync:
+                self._safety_sync()
+
+        def save(action: SaveAttempts) -> None:
+            problem = self._attempts.save(action.boot_count, action.failed, action.unacked,
+                                          action.since_read)
+            if problem:
+                self._log('warn', f'deploy attempts not kept for a restart: {problem}',
+                          key='attempts', every_s=60.0)
+
+        def gate(action: PassGate) -> List[Event]:
+            if self.release_gate is not None:
+                self.release_gate.before_release(action.what)  # every refusal is decided
+            return [GateDone(self.clock())]
+
+        run_core(SimpleNamespace(step=step), [call], {
+            Send: send, Record: record, SaveAttempts: save, PassGate: gate,
+            Log: lambda action: self._log(action.level, action.text),
+            Report: lambda action: None,  # (mirror: the session reports its deployments)
+            Answer: answers.append})
+        answer = answers[0]
+        if answer.counts is not None:
+            with self._lock:
+                self._snap = replace(self._snap, failed_deploys=answer.counts[0],
+                                     unacked_deploys=answer.counts[1])
+        if answer.outcome == 'unknown':
+            with self._lock:
+                self._unknown_boot = self._snap.boot_count
+            self._update(deploy_outcome_unknown=True)
+            self.listener.on_diagnostics()
+        if answer.ok:
+            self._emit_status()
+        kind = DEPLOY_OUTCOMES.get(answer.outcome, Outcome.DONE if answer.ok else Outcome.FAILED)
+        return Result(kind, answer.message, latency_ms=answer.latency_ms)
+
+    def _deploy_send(self, send: Send, armed_read: List[Tuple[int, bool]]) -> List[Event]:
+        """Carry out one request of the deploy procedure; the event that ends its wait."""
+        epoch = self._current_epoch()
+        deploy = send.frame == DEPLOY_FRAME
+        if deploy:
+            armed_read.clear()
+            with self._lock:
+                self._deploy_frame_left = False
+        try:
+            if p.TriggerRecord in send.expect:
+                reply: Any = tuple(self._fetch_records())
+            else:
+                reply = self._req(send.frame, retries=send.retries, silence_ok=send.silence_ok)
+        except LinkBusy as exc:
+            return [Busy(self.clock(), str(exc))]
+        except LinkDown as exc:
+            with self._lock:
+                left = self._deploy_frame_left or not deploy
+            return [CoreLinkDown(self.clock(), str(exc), left, self._stopping.is_set())]
+        except LinkError as exc:
+            return [Timeout(self.clock(), str(exc))]
+        # Into the session first, as the requests before the core took them.
+        if isinstance(reply, p.BootCount):
+            self._note_boot_count(reply.count)
+        elif isinstance(reply, p.Status):
+            self._on_status(reply, 'query', epoch)
+        elif isinstance(reply, p.ArmedState):
+            self._update_if(epoch, armed=reply.armed)
+            armed_read[:] = [(epoch, reply.armed)]
+        elif isinstance(reply, p.TriggeredState):
+            if armed_read and armed_read[0][0] == epoch:
+                # Armed and triggered read in one epoch: a re-read (D15).
+                self._set_triggered(reply.triggered, 'query', epoch, armed=armed_read[0][1],
+                                    fresh=True)
+            elif epoch == self._current_epoch():
+                self._set_triggered(reply.triggered, via='query')
+        elif isinstance(reply, p.DeployAck):
+            self._on_deploy_reply(reply, late=False)
+        return [Reply(self.clock(), reply)]
 
     def _reread(self, snap: Snapshot) -> Snapshot:
         """Ask the module what a deploy or an arm needs, when the driver's knowledge is old.
@@ -177,188 +314,6 @@ class DeployProcedure:
         except LinkError:
             pass
         return self.snapshot
-
-    def _seen_triggered(self) -> str:
-        """How the driver knows the module deployed, or '' (triggered not seen)."""
-        with self._lock:
-            if not self._snap.triggered or self._triggered_seen is None:
-                return ''
-            at, via = self._triggered_seen
-            sent = self._deploy_frame_at
-        text = f'the module reported TRIGGERED (via {via}'
-        if sent is not None and at >= sent:
-            text += f', {(at - sent) * 1000:.0f} ms after the deploy frame left'
-        return text + ')'
-
-    def _deploy(self, arm_if_locked: bool, t0: float) -> Result:
-        snap = self.snapshot
-        if snap.online and not snap.fresh:
-            snap = self._wait_fresh()
-        if not snap.online or not snap.fresh:
-            snap = self._reread(snap)
-        if not snap.online:
-            seen = self._seen_triggered()
-            if seen:
-                # A deployment stays one: the module stays triggered until switched off.
-                return self._deploy_end('already deployed', f'already deployed: {seen}; it '
-                                        f'is offline now ({snap.offline_reason}); nothing '
-                                        'sent', success=True)
-            return self._deploy_end('refused', f'deploy refused: {self._offline_text(snap)}; '
-                                    'nothing sent')
-        if snap.fresh and snap.triggered:
-            return self._deploy_end('already deployed', 'already deployed: the module reports '
-                                    'triggered; nothing sent', success=True)
-        if not snap.fresh:
-            return self._deploy_end(
-                'refused', 'deploy refused: the module may have rebooted and has not been '
-                're-read (it did not answer the status, armed or triggered query), so whether it '
-                'is armed is not known; nothing sent. Try again in a moment.')
-        if snap.armed is not True:
-            if not arm_if_locked:
-                return self._deploy_end(
-                    'refused', 'deploy refused: the module is locked (a locked module cannot '
-                    'deploy); arm it with ~/arm or set arm_if_locked; nothing sent')
-            armed = self._arm(True, judge=False)  # deploying is what was asked
-            if not armed.ok:
-                return self._deploy_end('refused', f'deploy refused: arming failed: '
-                                        f'{armed.message}')
-        attempts = 0
-        while True:
-            snap = self.snapshot
-            if attempts and not (snap.fresh and snap.armed):
-                # It rebooted (or was locked) during the wait: a retry would go out on old
-                # knowledge (D15). The triggered query just said it did not deploy.
-                snap = self._wait_fresh()
-                if not snap.fresh or not snap.armed:
-                    state = 'is locked now' if snap.fresh else 'rebooted and was not re-read'
-                    return self._deploy_end(
-                        'not deployed', f'deploy NOT acknowledged after {attempts} attempt(s), '
-                        f'the module reports it is not triggered: it did NOT deploy, and it '
-                        f'{state}; not retrying', t0=t0)
-            if snap.failed_deploys >= MAX_FAILED_DEPLOYS:
-                if attempts:
-                    return self._deploy_end(
-                        'not deployed', f'deploy NOT acknowledged after {attempts} attempts, '
-                        'and the module reports it is not triggered: it did NOT deploy. Not '
-                        'retrying (P11: three unsuccessful attempts put the module into '
-                        'protection)', t0=t0)
-                return self._deploy_end('refused', self._guard_text(snap))
-            if not attempts and self.release_gate is not None:
-                self.release_gate.before_release('deploy')  # every refusal is decided above
-            attempts += 1
-            # The decision is on disk before the frame leaves: a crash between the two must
-            # not leave a deployment the black box never heard of.
-            self.blackbox.record('decision', what='deploy: sending the deploy frame',
-                                 attempt=attempts)
-            self._safety_sync()
-            self._save_attempts(leaving=1)  # a respawned driver counts it too (P11)
-            with self._lock:
-                self._deploy_frame_left = False
-            try:
-                ack = self._req(DEPLOY_FRAME)
-            except LinkTimeout:
-                ack = None
-            except LinkBusy as exc:
-                return self._deploy_end('refused', f'deploy refused: {exc}')
-            except LinkDown as exc:
-                with self._lock:
-                    left = self._deploy_frame_left
-                if not left and attempts == 1:
-                    return self._deploy_end('refused', f'deploy failed before the frame left: '
-                                            f'{exc}; nothing sent')
-                why = ('the driver is shutting down' if self._stopping.is_set()
-                       else f'the link dropped ({exc})')
-                sent = attempts if left else attempts - 1
-                return self._deploy_unknown(
-                    f'{sent} deploy frame(s) sent, but {why} before any acknowledgement', t0)
-            if ack is not None:
-                self._on_deploy_reply(ack, late=False)
-                return self._deploy_answered(ack, attempts, t0)
-            # No acknowledgement: lost on either way, or corrupted. Before any retry, ask
-            # whether it deployed (D6): a triggered module refuses a retry and counts it.
-            triggered = self._query_triggered()
-            if triggered or self.snapshot.triggered:
-                return self._deploy_end(
-                    'deployed', f'deployed: the module reports triggered; its acknowledgement '
-                    f'was lost ({attempts} attempt(s))', success=True, t0=t0, ack='lost')
-            if triggered is None and self.snapshot.failed_deploys >= MAX_FAILED_DEPLOYS:
-                return self._deploy_unknown(
-                    f'{attempts} deploy frame(s) sent, none acknowledged, and the module did '
-                    'not answer whether it is triggered', t0)
-
-    def _deploy_answered(self, ack: p.DeployAck, attempts: int, t0: float) -> Result:
-        latency = (self.clock() - t0) * 1000.0
-        if ack.success:
-            # The acknowledgement is on disk before anyone hears of it (SIGKILL-safe).
-            self.blackbox.record('decision', what='deploy acknowledged', hex=ack.raw.hex(' '),
-                                 latency_ms=latency, attempts=attempts)
-            self._safety_sync()
-            return self._deploy_end('deployed', f'deployed: acknowledged after {attempts} '
-                                    f'attempt(s), {latency:.1f} ms', success=True, t0=t0,
-                                    log=False)
-        self.blackbox.record('decision', what='deploy refused by module', hex=ack.raw.hex(' '))
-        # Never "did not deploy" while the module says it is triggered (D6).
-        triggered = self._query_triggered()
-        if triggered:
-            return self._deploy_end(
-                'deployed', f'deployed: the module refused this frame ({ack.raw.hex(" ")}) '
-                'because it is already triggered: an earlier frame deployed it and its '
-                'acknowledgement was lost', success=True, t0=t0, ack='lost')
-        if triggered is None:
-            return self._deploy_unknown(f'the module refused the deploy frame '
-                                        f'({ack.raw.hex(" ")}) and did not answer whether it '
-                                        'is triggered', t0)
-        return self._deploy_end(
-            'not deployed', f'the module answered {ack.raw.hex(" ")} and reports it is not '
-            'triggered: it did NOT deploy (locked, or in protection after unsuccessful '
-            'attempts)', t0=t0)
-
-    def _guard_text(self, snap: Snapshot) -> str:
-        if snap.unacked_deploys >= MAX_FAILED_DEPLOYS:
-            what = f'{snap.unacked_deploys} deploy frames in a row went unacknowledged'
-        else:
-            what = (f'{snap.failed_deploys} deploy frames in a row were refused or went '
-                    'unacknowledged')
-        return (f'deploy refused: {what}; a third could put the module into protection (P11). '
-                'Check the link; a module reboot clears this. Nothing sent')
-
-    def _deploy_unknown(self, what: str, t0: float) -> Result:
-        seen = self._seen_triggered()
-        if seen:
-            # Seen triggered after the frame left: a deployment, whatever became of the reply.
-            with self._lock:
-                self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=0)
-            return self._deploy_end('deployed', f'deployed: {seen}; its acknowledgement did '
-                                    f'not come ({what})', success=True, t0=t0, ack='lost')
-        with self._lock:
-            self._unknown_boot = self._snap.boot_count
-        self._update(deploy_outcome_unknown=True)
-        message = (f'deploy outcome UNKNOWN: {what}. The driver reads the triggered state as '
-                   'soon as the module answers again and reports a deployment on '
-                   '~/trigger_event')
-        self.blackbox.record('decision', what='deploy', outcome='unknown', reason=message)
-        self._safety_sync()
-        self._log('error', message)
-        self.listener.on_diagnostics()
-        return Result.unknown(message, cause='no_reply')
-
-    def _deploy_end(self, outcome: str, message: str, success: bool = False,
-                    t0: Optional[float] = None, log: bool = True, **extra: Any) -> Result:
-        latency = None if t0 is None else (self.clock() - t0) * 1000.0
-        if outcome == 'refused' and self.snapshot.deploy_outcome_unknown:
-            # True of this call, and not the whole truth: a caller must never read "refused"
-            # as "the parachute did not deploy" while an earlier frame's fate is not known.
-            message += ('; an earlier deploy frame left without an acknowledgement: its outcome '
-                        'is UNKNOWN (the parachute may have deployed) until the module answers')
-        self.blackbox.record('decision', what='deploy', outcome=outcome, success=success,
-                             reason=message, **extra)
-        self._safety_sync()
-        if log:
-            self._log('info' if success else 'warn', message)
-        if success:
-            self._emit_status()
-        kind = DEPLOY_OUTCOMES.get(outcome, Outcome.DONE if success else Outcome.FAILED)
-        return Result(kind, message, latency_ms=latency if success else None)
 
     def arm(self, want: bool) -> Result:
         """`~/arm`: arm or lock; success only when the reply and a query agree (P7)."""

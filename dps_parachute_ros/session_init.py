@@ -10,9 +10,10 @@ lock are described there). Threads:
   ``_note_boot_count``: a changed count is a reboot.
 
 Owns, guarded by ``_lock``: ``_epoch`` (+1 whenever the module may have changed unseen: here on
-a reboot, and by ``_on_connection``; every thread reads it), ``_last_boot_heartbeat``,
-``_initialized_at``, ``_init_retry_at``; the ``boot_count`` and ``initialized`` fields of the
-snapshot.
+a reboot, and by ``_on_connection``; every thread reads it), ``_reboots`` (reboots seen),
+``_boot_read_reboots`` and ``_sent_since_boot_read`` (``_on_tx`` counts up: P11 after a reboot
+found late), ``_last_boot_heartbeat``, ``_initialized_at``, ``_init_retry_at``; the
+``boot_count`` and ``initialized`` fields of the snapshot.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class Initialization:
             self._last_boot_heartbeat = now
             if first:
                 self._epoch += 1
+                self._reboots += 1
                 self._snap = replace(self._snap, streaming=False, armed=None, triggered=None,
                                      fresh=False, initialized=False)
         if not first:
@@ -114,6 +116,15 @@ class Initialization:
                 self._snap = replace(self._snap, failed_deploys=stored.failed,
                                      unacked_deploys=max(stored.unacked,
                                                          self._snap.unacked_deploys))
+            elif previous is None and stored is not None and stored.since_read:
+                # Another power-up; the frames that run sent after its last boot count read
+                # may have gone to this one (a reboot it never saw): they count.
+                self._snap = replace(
+                    self._snap,
+                    failed_deploys=max(self._snap.failed_deploys,
+                                       min(stored.failed, stored.since_read)),
+                    unacked_deploys=max(self._snap.unacked_deploys,
+                                        min(stored.unacked, stored.since_read)))
             if None in self._reported_boots and previous is None:
                 # A deployment reported before the first boot count read happened in this boot.
                 self._reported_boots.discard(None)
@@ -126,9 +137,15 @@ class Initialization:
             rebooted = previous is not None and previous != count
             if rebooted:
                 self._epoch += 1
-                # A new power-up clears the module's count of unsuccessful attempts (P19).
-                self._snap = replace(self._snap, unacked_deploys=0, failed_deploys=0, fresh=False,
-                                     armed=None)
+                self._reboots += 1
+                # A new power-up clears the module's count of unsuccessful attempts (P19); the
+                # frames since the last read may have come after the reboot: they stay.
+                sent = self._sent_since_boot_read
+                self._snap = replace(self._snap, fresh=False, armed=None,
+                                     unacked_deploys=min(self._snap.unacked_deploys, sent),
+                                     failed_deploys=min(self._snap.failed_deploys, sent))
+            self._sent_since_boot_read = 0
+            self._boot_read_reboots = self._reboots
             epoch = self._epoch
         if restored:
             self._log('warn', f'{stored.failed} deploy frame(s) without a successful '

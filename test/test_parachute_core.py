@@ -525,6 +525,27 @@ def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
         assert rig.sim.failed_attempts_total == 0 and not rig.sim.triggered
 
 
+def test_round2_22_2_a_deploy_whose_module_rebooted_after_it_deployed_is_a_deployment(rig):
+    """The session's deploy is DeployCore's: the frame deploys the module, its acknowledgement
+    is lost, and the module reboots as the driver asks whether it is triggered ("not
+    triggered" then speaks of the new power-up). The trigger records settle it: deployed."""
+    rig.arm()
+    triggered_query = p.encode_triggered_query()
+
+    def tap(direction, data, t):
+        if direction == 'rx' and DEPLOY in data:
+            rig.runner.faults.drop_next = 1  # its acknowledgement
+        elif direction == 'rx' and triggered_query in data and rig.sim.triggered:
+            rig.sim.power_cycle()  # runner thread: the model's only user right now
+    rig.runner.add_tap(tap)
+    mark = rig.wire.mark()
+    result = rig.session.deploy('DEPLOY')
+    assert result.ok and result.message.startswith('deployed'), result.message
+    assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]
+    with rig.model():
+        assert rig.sim.deployments == 1 and rig.sim.boot_count == 2
+
+
 def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(timed_rig):
     rig = timed_rig
     rig.arm()

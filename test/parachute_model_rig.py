@@ -1,0 +1,336 @@
+"""A `DeployCore` driven against the virtual parachute in virtual time, with wire faults.
+
+`ModelRig` carries out the core's actions with ``uav_serial_common.core_runner.run_core``: a
+`Send` goes to the device model (``dps_parachute_ros.simulation``) through a wire that applies
+the faults queued for it, the model's bytes are decoded by the protocol decoder and fed back as
+`Reply` events (or `Timeout` at the deadline, `LinkDown` when unplugged). It keeps what the
+invariants need: every action carried out, the deploy frames of each power-up without a
+successful acknowledgement, what the core was told of the armed state since the last reboot it
+could know of, and every call with its answers. No thread, no pty, no wall clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_core import (
+    Answer, DEPLOY_FRAME, DeployCall, DeployCore, GateDone, LinkDown, LinkUp, Log, PassGate,
+    POWER_UP_HEARTBEATS_S, Record, Reply, Report, SaveAttempts, Send, Stored, Timeout)
+from dps_parachute_ros.simulation import VirtualParachute
+from uav_serial_common.core_runner import run_core
+
+START = 1000.0
+REPLY_S = 0.004
+REBOOT_S = 0.3
+"""A module takes this long to switch off and boot again (longer than the 0.2 s that one
+power-up's two heartbeats fit in, P5: two reboots never look like one)."""
+"""Time from a request to its reply on a clean wire (a 6-byte frame each way at 115200)."""
+FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 'unplug_before',
+          'unplug_after', 'reboot', 'reboot_quiet', 'lock_by_other', 'arm_by_other',
+          'trigger_by_other')
+"""What can happen to one request on the wire (or to the module just before it arrives)."""
+GARBAGE = bytes([0x00, 0x13, 0x99, 0xFE, 0x37])  # no header byte: it completes no frame
+
+
+@dataclass
+class Call:
+    """One deploy call and what became of it."""
+
+    token: str
+    arm_if_locked: bool
+    answers: List[Answer] = field(default_factory=list)
+    deploy_frames: int = 0          # deploy frames that reached the module
+    deploy_sends: int = 0           # deploy frames the core asked to send
+    serial_deployments: int = 0     # deployments by this call's deploy frames
+    deployments_before: int = 0
+    deployments_after: int = 0
+    triggered_before: bool = False
+
+
+class ModelRig:
+    """The core, the model and the wire between them; see the module docstring."""
+
+    def __init__(self, boot_count: int = 7, armed: bool = True, mirror: bool = False) -> None:
+        self.t = START
+        # mirror: the core as the session runs it, told before each step what a keeper of the
+        # knowledge (the session's threads; here a DeployCore never called) has taken in.
+        self.mirror = mirror
+        self.keeper: Optional[DeployCore] = None
+        self.keeper_armed: Optional[tuple] = None  # (reboots, armed) of the last armed query
+        self.model = VirtualParachute(now=self.t - 1.0, boot_count=boot_count)
+        self.model.step(self.t)  # its power-up heartbeats went by before the driver started
+        self.model.armed = armed
+        self.plugged = True
+        self.saved: Optional[SaveAttempts] = None
+        self.faults: List[str] = []
+        self.actions: List[Any] = []
+        self.calls: List[Call] = []
+        self.call: Optional[Call] = None
+        self.unacked: Dict[int, int] = {}      # model boot count -> deploy frames unacked
+        self.armed_read = False                # an armed=True read since the last known reboot
+        self.last_heartbeat = -1e9
+        self.last_boot_told: Optional[int] = None
+        self.unseen_reboot = False             # a reboot whose heartbeats were lost, not read
+        self.unseen_change = False             # armed changed by another path, not read
+        self.order_problems: List[str] = []
+        self.decoder = p.StreamDecoder('from_module')
+        self.core = self._new_core(None)
+
+    def _new_core(self, stored: Optional[Stored]) -> DeployCore:
+        if self.mirror:
+            self.keeper = DeployCore(stored)
+            core = DeployCore(mirror=True)
+        else:
+            core = DeployCore(stored)
+        self.core = core
+        self.armed_read = False
+        self.last_boot_told = None
+        if self.plugged:
+            self._run([LinkUp(self.t)])
+        return core
+
+    # -- what a test does ---------------------------------------------------------------------
+
+    def deploy(self, token: str = 'DEPLOY', arm_if_locked: bool = False,
+               faults: Optional[List[str]] = None, gate: bool = False) -> Call:
+        """One `~/deploy`, with `faults` applied to its requests in turn; its Call."""
+        self.faults = list(faults or [])
+        call = Call(token, arm_if_locked, deployments_before=self.model.deployments,
+                    triggered_before=self.model.triggered)
+        self.calls.append(call)
+        self.call = call
+        self._run([DeployCall(self.t, token, arm_if_locked, gate)])
+        call.deployments_after = self.model.deployments
+        self.call = None
+        self.faults = []
+        return call
+
+    def restart_driver(self) -> None:
+        """Respawn the driver: a new core, with the attempts the old one kept."""
+        saved = self.saved
+        self._new_core(None if saved is None or saved.boot_count is None
+                       else Stored(saved.boot_count, saved.failed, saved.unacked,
+                                   saved.since_read))
+
+    def unplug(self) -> None:
+        if self.plugged:
+            self.plugged = False
+            self.decoder.reset()
+            self._run([LinkDown(self.t, 'unplugged')])
+
+    def replug(self) -> None:
+        if not self.plugged:
+            self.plugged = True
+            self.armed_read = False
+            self._run([LinkUp(self.t)])
+
+    def power_cycle(self, quiet: bool = False) -> None:
+        """Switch the module off and on (boot count +1, locked); `quiet`: heartbeats lost."""
+        self.wait(REBOOT_S)
+        self.model.power_cycle()
+        if quiet or not self.plugged:
+            self.unseen_reboot = True
+        if quiet:
+            self.model.step(self.t + 0.1)
+        self.wait(0.1)
+
+    def wait(self, seconds: float) -> None:
+        """Time passes; what the module sends meanwhile reaches the core (when plugged)."""
+        self.t += seconds
+        out = self.model.step(self.t)
+        if self.plugged:
+            self._run(self._received(out, self.t))
+
+    def status_frame(self) -> None:
+        """Bring the module's status frame to the core (as the stream or a poll would)."""
+        if self.plugged and self.model.powered:
+            self._run(self._received(self.model._status_frame(), self.t))
+
+    # -- carrying out the core's actions ------------------------------------------------------
+
+    def _run(self, events: List[Any]) -> None:
+        run_core(self if self.mirror else self.core, events, {
+            Send: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
+            SaveAttempts: self._save, PassGate: self._gate, Answer: self._answer})
+
+    def step(self, event: Any) -> List[Any]:
+        """Step a mirror core as the session does: its keeper takes the event in first."""
+        keeper = self.keeper
+        assert keeper is not None
+        if not isinstance(event, (DeployCall, GateDone)):
+            for action in keeper.step(event):
+                if isinstance(action, SaveAttempts):
+                    self.saved = action
+            message = getattr(event, 'message', None)
+            # The session's re-read: armed and triggered read with no reboot between (D15).
+            if isinstance(message, p.ArmedState):
+                self.keeper_armed = (keeper.reboots, message.armed)
+            elif isinstance(message, p.TriggeredState) and self.keeper_armed and \
+                    self.keeper_armed[0] == keeper.reboots:
+                keeper.armed, keeper.fresh = self.keeper_armed[1], True
+        self.core.know(port_open=keeper.port_open, online=keeper.online,
+                       offline_reason=keeper.offline_reason, fresh=keeper.fresh,
+                       armed=keeper.armed, triggered=keeper.triggered,
+                       boot_count=keeper.boot_count, failed=keeper.failed,
+                       unacked=keeper.unacked, outcome_unknown=keeper.outcome_unknown,
+                       unknown_boot=keeper._unknown_boot, triggered_seen=keeper._triggered_seen,
+                       frame_at=keeper._frame_at, reboots=keeper.reboots,
+                       boot_current=keeper.boot_current, deployed_boots=set(keeper._reported))
+        return self.core.step(event)
+
+    def _keep(self, action: Any) -> None:
+        self.actions.append(action)
+
+    def _save(self, action: SaveAttempts) -> None:
+        self.actions.append(action)
+        self.saved = action
+
+    def _gate(self, action: PassGate) -> List[Any]:
+        self.actions.append(action)
+        return [GateDone(self.t)]
+
+    def _answer(self, action: Answer) -> None:
+        self.actions.append(action)
+        if self.call is not None:
+            self.call.answers.append(action)
+        keeper = self.keeper
+        if keeper is not None:  # what the session takes from an answer
+            if action.counts is not None:
+                keeper.failed, keeper.unacked = action.counts
+            if action.outcome == 'unknown':
+                keeper.outcome_unknown, keeper._unknown_boot = True, keeper.boot_count
+            self.saved = SaveAttempts(keeper.boot_count, keeper.failed, keeper.unacked,
+                                      keeper._sent_since_read)
+
+    def _send(self, send: Send) -> List[Any]:
+        self.actions.append(send)
+        if send.frame == DEPLOY_FRAME:
+            self._check_before_deploy_frame()
+        if not self.plugged:
+            return [LinkDown(self.t, 'unplugged', frame_left=False)]
+        events: List[Any] = []
+        for _ in range(send.retries + 1):
+            fault = self.faults.pop(0) if self.faults else 'clean'
+            sent_at = self.t
+            if fault == 'unplug_before':
+                self.unplug_quietly()
+                return events + [LinkDown(self.t, 'unplugged', frame_left=False)]
+            pre = b''
+            if fault in ('reboot', 'reboot_quiet'):
+                self.t += REBOOT_S
+                pre = self.model.step(self.t)  # (what it sent before it went off)
+            self._module_fault(fault)
+            if send.frame == DEPLOY_FRAME:
+                self._count_deploy_frame()
+                if self.keeper is not None:  # the session's _on_tx
+                    self.keeper.failed += 1
+                    self.keeper.unacked += 1
+                    self.keeper._sent_since_read += 1
+                    self.keeper._frame_at = self.t
+            out = pre
+            if fault != 'drop_request':
+                before = self.model.deployments
+                out = pre + self.model.receive(send.frame, self.t)
+                if self.call is not None:
+                    self.call.serial_deployments += self.model.deployments - before
+                self.t += REPLY_S
+                out += self.model.step(self.t)
+                if send.frame == DEPLOY_FRAME and self.call is not None:
+                    self.call.deploy_frames += 1
+            if fault == 'unplug_after':
+                self.unplug_quietly()
+                return events + [LinkDown(self.t, 'unplugged', frame_left=True)]
+            if fault == 'drop_reply':
+                out = b''
+            elif fault == 'corrupt' and out:
+                out = out[:-1] + bytes([out[-1] ^ 0x40])
+            elif fault == 'garbage':
+                out = GARBAGE + out
+            late = fault == 'delay'
+            received = [] if late else self._received(out, self.t)
+            if p.TriggerRecord in send.expect:
+                # The link collects a record query's answer into one reply (query_records).
+                records = tuple(e.message for e in received
+                                if isinstance(e.message, p.TriggerRecord))
+                received = [e for e in received if not isinstance(e.message, p.TriggerRecord)]
+                if records:
+                    return events + received + [Reply(self.t, records)]
+            events += received
+            if any(isinstance(e.message, send.expect) for e in received):
+                return events
+            self.t = max(self.t, sent_at + self.core.timeout_s)
+            if late:
+                self.t += 0.05
+                events.append(Timeout(self.t - 0.05))
+                return events + self._received(out, self.t)
+        return events + [Timeout(self.t)]
+
+    def unplug_quietly(self) -> None:
+        self.plugged = False
+        self.decoder.reset()
+
+    def _module_fault(self, fault: str) -> None:
+        model = self.model
+        if fault in ('reboot', 'reboot_quiet'):
+            model.power_cycle()
+            self.unseen_reboot = True  # (its heartbeats may come late, or not at all)
+            if fault == 'reboot_quiet':
+                self.t += 0.06
+                model.step(self.t)  # its two heartbeats are lost on the wire
+        elif fault == 'lock_by_other' and model.armed:
+            model.armed = False
+            self.unseen_change = True
+        elif fault == 'arm_by_other' and not model.triggered and not model.armed:
+            model.armed = True
+            self.unseen_change = True
+        elif fault == 'trigger_by_other' and model._can_fire() and not model.igniter_fault:
+            model._fire(p.SOURCE_PWM)
+
+    def _received(self, out: bytes, now: float) -> List[Reply]:
+        frames = self.decoder.feed(out) + self.decoder.flush()
+        replies = [Reply(now, p.decode_module_frame(f)) for f in frames]
+        for reply in replies:
+            self._told(reply.message, now)
+        return replies
+
+    # -- what the invariants need -------------------------------------------------------------
+
+    def _told(self, msg: Any, now: float) -> None:
+        """Follow what the core is told: reboots it can know of, armed states, acknowledgements."""
+        if isinstance(msg, p.Heartbeat):
+            if now - self.last_heartbeat > POWER_UP_HEARTBEATS_S:
+                self.armed_read = False
+            self.last_heartbeat = now
+        elif isinstance(msg, p.BootCount):
+            if msg.count == self.model.boot_count:
+                self.unseen_reboot = False
+            if self.last_boot_told is not None and msg.count != self.last_boot_told:
+                self.armed_read = False
+            self.last_boot_told = msg.count
+        elif isinstance(msg, (p.ArmedState, p.Status)):
+            self.armed_read = msg.armed
+            if msg.armed == self.model.armed:
+                self.unseen_change = False
+        elif isinstance(msg, p.DeployAck) and msg.success:
+            self.unacked[self.model.boot_count] = 0
+
+    def _count_deploy_frame(self) -> None:
+        boot = self.model.boot_count
+        self.unacked[boot] = self.unacked.get(boot, 0) + 1
+        if self.call is not None:
+            self.call.deploy_sends += 1
+
+    def _check_before_deploy_frame(self) -> None:
+        if not self.armed_read:
+            self.order_problems.append('a deploy frame on an armed state not read since the '
+                                       'last known reboot or reconnect')
+        before = [a for a in self.actions[:-1] if not isinstance(a, (Log, Report))]
+        record = next((a for a in reversed(before) if isinstance(a, Record)), None)
+        fields = dict(record.fields) if record else {}
+        if record is None or fields.get('what') != 'deploy: sending the deploy frame' or \
+                not record.sync:
+            self.order_problems.append(f'deploy frame without its synced decision: {record}')
+        if not isinstance(before[-1], SaveAttempts) or before[-1].failed < 1:
+            self.order_problems.append('deploy frame left before its attempt was kept')

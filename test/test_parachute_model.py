@@ -1,0 +1,380 @@
+"""The deploy procedure's safety invariants, searched against the virtual parachute (issue 22).
+
+A hypothesis state machine drives `DeployCore` (``dps_parachute_ros.deploy_core``, no I/O)
+against the device model (``dps_parachute_ros.simulation``) in virtual time, through the wire of
+``parachute_model_rig``: random interleavings of deploy calls (good and bad token,
+``arm_if_locked``), the module armed, locked or deployed by someone else, its igniter failing,
+wire faults on each request (the request or the reply dropped, a byte corrupted, the reply past
+its deadline, garbage before it), unplug and replug, module reboots (seen, or with their
+heartbeats lost), and a respawned driver (a new core from the attempts the old one kept). It
+runs twice: the core on its own, and as the session runs it (``mirror``: told before each step
+what the session's threads took in, here a second core that is never called). After every
+step:
+
+- at most two deploy frames of one power-up without a successful acknowledgement (P11), across
+  reconnects and restarts, and the module never in protection;
+- no deploy frame on an armed state not read since the last reboot the driver could know of
+  (or the last reconnect) (D15);
+- every deploy call answered exactly once;
+- never "refused" or "not deployed" when the module deployed during the call, never
+  "deployed" when it never deployed; UNKNOWN only when a deploy frame left;
+- the decision recorded (synced) and the attempt kept before the deploy frame leaves;
+- a module that is armed, answers, is below the P11 limit and not triggered is deployed by a
+  deploy call with the good token on a clean wire (and no reboot the driver could not see since
+  it last read the boot count: until it asks, it cannot know that the module it saw triggered
+  was switched off and on, or armed by another path whose status frame was lost).
+
+(The search found that a module deployed by another source while the driver armed it for a
+deploy is answered "refused: arming failed: ... the query says locked": true of this call, the
+refusal says what the call did, so "refused" is judged against the deployments by the call's
+own frames.)
+
+The findings of issue 21 that concern deploy are plain tests below, stepping the core.
+"""
+
+from __future__ import annotations
+
+from hypothesis import strategies as st
+from hypothesis.stateful import invariant, precondition, rule, RuleBasedStateMachine
+
+from dps_parachute_ros.deploy_core import MAX_FAILED_DEPLOYS
+from model_runs import search
+from parachute_model_rig import Call, FAULTS, ModelRig
+
+
+def deployed_during(call: Call) -> bool:
+    """Whether the module deployed during the call (by its frames or another source)."""
+    return call.deployments_after > call.deployments_before
+
+
+def check_call(rig: ModelRig, call: Call) -> None:
+    """The truth of one call's answer, judged against the model."""
+    assert len(call.answers) == 1, call.answers
+    answer = call.answers[0]
+    assert not rig.core.busy
+    if answer.outcome in ('refused', 'not deployed'):
+        # (A deployment by another source during the call, unseen, does not make this
+        # call's refusal false: it says what this call did.)
+        assert call.serial_deployments == 0, answer.message
+    if answer.outcome == 'refused':
+        assert call.deploy_frames == 0, answer.message
+    assert answer.ok == (answer.outcome in ('deployed', 'already deployed')), answer
+    if answer.ok:
+        # The parachute is out: it deployed once (a reboot since, unseen, does not undo that).
+        assert rig.model.deployments > 0, answer.message
+    if answer.outcome == 'deployed':
+        assert deployed_during(call) or call.triggered_before or rig.model.triggered, \
+            answer.message
+    if answer.outcome == 'unknown':
+        assert call.deploy_sends > 0, answer.message
+
+
+# -- the issue-21 findings that concern deploy, and what the search found ---------------------
+
+def test_round2_22_1_a_deploy_after_an_unplug_does_not_promise_on_old_knowledge():
+    rig = ModelRig(armed=True)
+    rig.status_frame()  # the driver saw it armed...
+    rig.unplug()
+    rig.model.armed = False  # ...and someone locked it while unplugged
+    rig.replug()
+    call = rig.deploy()
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'refused' and 'locked' in call.answers[0].message
+    assert call.deploy_sends == 0 and not rig.order_problems
+
+
+def test_round2_22_1_a_respawned_driver_cannot_send_a_third_frame_to_the_same_power_up():
+    rig = ModelRig(armed=True)
+    rig.model.igniter_fault = True  # every attempt fails, unanswered
+    call = rig.deploy(faults=['clean', 'clean', 'drop_reply', 'clean', 'clean', 'clean',
+                              'drop_reply', 'clean'])
+    assert call.deploy_sends == 2 and call.answers[0].outcome == 'not deployed'
+    rig.restart_driver()
+    assert rig.core.failed == MAX_FAILED_DEPLOYS  # before it read anything of the module
+    again = rig.deploy()
+    assert again.answers[0].outcome == 'refused' and 'P11' in again.answers[0].message
+    assert again.deploy_sends == 0 and not rig.model.protection
+
+
+def test_round2_22_1_a_respawned_driver_counts_nothing_of_another_power_up():
+    rig = ModelRig(armed=True)
+    rig.model.igniter_fault = True
+    rig.deploy(faults=['clean', 'clean', 'drop_reply', 'clean', 'clean', 'clean', 'drop_reply'])
+    rig.model.igniter_fault = False
+    rig.power_cycle(quiet=True)
+    rig.model.armed = True
+    rig.restart_driver()
+    call = rig.deploy()
+    assert call.answers[0].outcome == 'deployed' and rig.model.triggered
+
+
+def test_round2_22_1_triggered_seen_after_the_frame_left_is_a_deployment_not_unknown():
+    rig = ModelRig(armed=True)
+    # The frame deploys it, the acknowledgement is lost, and the link drops while the driver
+    # asks whether it is triggered; the status frame that says TRIGGERED came before.
+    rig.faults = []
+    call = rig.deploy(faults=['clean', 'clean', 'delay', 'unplug_after'])
+    answer = call.answers[0]
+    assert deployed_during(call)
+    assert answer.outcome == 'deployed' and answer.ok, answer.message
+    check_call(rig, call)
+
+
+def test_round2_22_1_a_reboot_after_the_frame_left_is_settled_by_the_trigger_records():
+    # Found by the search: the frame deployed the module, its acknowledgement was lost, and
+    # the module rebooted before the driver asked: "not triggered" then speaks of the new
+    # power-up, and "it did NOT deploy" was false. The trigger records of the power-up the
+    # frame went to settle it; unknown when they are not read.
+    rig = ModelRig(armed=True)
+    call = rig.deploy(faults=['clean', 'clean', 'drop_reply', 'reboot'])
+    assert deployed_during(call)
+    answer = call.answers[0]
+    assert answer.outcome == 'deployed', answer.message
+    assert 'trigger records show a serial deployment in boot 8' in answer.message
+    check_call(rig, call)
+    rig = ModelRig(armed=True)
+    call = rig.deploy(faults=['clean', 'clean', 'drop_reply', 'reboot', 'clean', 'clean',
+                              'drop_reply'])
+    assert deployed_during(call) and call.answers[0].outcome == 'unknown'
+    check_call(rig, call)
+    # The frame lost on its way, then a reboot: the records show no deployment in that boot.
+    rig = ModelRig(armed=True)
+    call = rig.deploy(faults=['clean', 'clean', 'drop_request', 'reboot'])
+    answer = call.answers[0]
+    assert answer.outcome == 'not deployed' and 'did NOT deploy' in answer.message and \
+        'locked now' in answer.message, answer.message
+    check_call(rig, call)
+
+
+def test_round2_22_1_a_deploy_reads_the_boot_count_before_its_frame_leaves():
+    # Found by the 20,000-sequence search: the stream said armed, the boot count was never
+    # read; the frame deployed the module, the acknowledgement was lost, and the module
+    # rebooted with its heartbeats lost before the triggered query: the driver said "it did
+    # NOT deploy, and it is locked now". The kept sequence, then the same faults one request
+    # later (the deploy reads the boot count first now).
+    rig = ModelRig(armed=True)
+    rig.status_frame()
+    call = rig.deploy(faults=['drop_reply', 'reboot_quiet'])
+    check_call(rig, call)
+    rig = ModelRig(armed=True)
+    rig.status_frame()
+    call = rig.deploy(faults=['clean', 'clean', 'drop_reply', 'reboot_quiet'])
+    assert deployed_during(call)
+    answer = call.answers[0]
+    assert answer.outcome == 'deployed' and 'rebooted after the deploy frame left' in \
+        answer.message, answer.message
+    check_call(rig, call)
+
+
+def test_round2_22_1_an_armed_state_read_before_a_reboot_is_not_taken_as_fresh():
+    # Found by the 20,000-sequence search: the re-read's status query went unanswered, the
+    # armed query said armed, and the module rebooted (its heartbeat seen) before it answered
+    # the triggered query: the driver took the armed state of the power-up before and sent the
+    # deploy frame to a module that had not been read since its reboot (D15).
+    rig = ModelRig(armed=True)
+    rig.power_cycle()
+    call = rig.deploy(faults=['clean', 'drop_request', 'drop_request', 'arm_by_other',
+                              'reboot'])
+    assert not rig.order_problems, rig.order_problems
+    assert call.deploy_sends == 0 and call.answers[0].outcome == 'refused'
+    check_call(rig, call)
+
+
+def test_round2_22_1_frames_sent_after_a_reboot_count_for_the_new_power_up():
+    # Found by the 20,000-sequence search: the module rebooted as a deploy frame arrived (its
+    # heartbeat seen), a status frame said armed again, and two more deploys went out on the
+    # old boot count; when the new one was read the driver cleared the count as "another
+    # power-up" although both frames had gone to it, and a third frame followed (P11).
+    rig = ModelRig(armed=True)
+    rig.deploy(faults=['clean', 'clean', 'reboot'])
+    rig.model.armed = True
+    rig.status_frame()
+    rig.deploy(faults=['drop_request'])
+    rig.deploy(faults=['drop_reply'])
+    assert all(n <= 2 for n in rig.unacked.values()), rig.unacked
+    assert not rig.order_problems
+
+
+def test_round2_22_1_the_records_since_the_frames_power_up_settle_a_reboot_told_late():
+    # Found by the 20,000-sequence search: the module rebooted unseen while it was armed for the
+    # deploy, the frame deployed it in that new power-up and its acknowledgement was lost, then
+    # it rebooted again (seen): the records of the boot the driver knew showed nothing, and it
+    # said "did NOT deploy". Any record since that boot settles it.
+    rig = ModelRig(armed=True)
+    rig.power_cycle()
+    call = rig.deploy(arm_if_locked=True, faults=['clean', 'clean', 'reboot_quiet', 'clean',
+                                                  'drop_reply', 'reboot'])
+    assert deployed_during(call)
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'deployed', call.answers[0].message
+
+
+def test_round2_22_1_a_deployment_known_before_the_frame_is_not_the_frames():
+    # Found by the search right after the fix above: the module deployed (acknowledged) in
+    # boot 8, rebooted unseen; the next deploy's frame was lost and a reboot found: the record
+    # of boot 8 is the deployment known before, not this frame's: "did NOT deploy".
+    rig = ModelRig(armed=True)
+    assert rig.deploy().answers[0].outcome == 'deployed'
+    rig.power_cycle(quiet=True)
+    rig.status_frame()
+    call = rig.deploy(arm_if_locked=True, faults=['clean', 'clean', 'drop_request'])
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'not deployed', call.answers[0].message
+
+
+def test_round2_22_1_a_module_silent_to_the_triggered_query_is_read_by_its_status():
+    # The frame and the triggered query are lost; the re-read's status says "not triggered"
+    # in the same power-up: a second frame goes (as before the core), then UNKNOWN (P11).
+    rig = ModelRig(armed=True)
+    call = rig.deploy(faults=['clean', 'clean', 'drop_request', 'drop_request', 'clean',
+                              'clean', 'drop_request', 'drop_request'])
+    check_call(rig, call)
+    assert call.deploy_sends == 2 and call.answers[0].outcome == 'unknown', call.answers
+    assert rig.core.failed == 2
+
+
+def test_round2_22_1_another_sources_deployment_unseen_is_not_the_frames():
+    # Found by the search (the core as the session runs it): deployed in boot 8; a reboot
+    # unseen; another source deployed in boot 9, unseen; another reboot unseen; the next frame
+    # was lost and a reboot found. The PWM record of boot 9 is not this frame's deployment.
+    rig = ModelRig(armed=True, mirror=True)
+    rig.deploy()
+    rig.power_cycle(quiet=True)
+    rig.model.armed = True
+    rig.status_frame()
+    rig.model._fire(0x04)
+    rig.power_cycle(quiet=True)
+    call = rig.deploy(faults=['drop_request'])
+    check_call(rig, call)
+    assert call.answers[0].outcome != 'deployed', call.answers[0].message
+
+
+def test_round2_22_1_a_respawned_driver_counts_the_frames_sent_after_a_reboot_unseen():
+    # Found by the 20,000-sequence search: the module rebooted unseen (boot 8 -> 9), the
+    # driver sent a frame to it on boot count 8 (refused: its igniter failed), kept "boot 8,
+    # one frame" and was respawned; reading boot 9 it took the frame for another power-up's,
+    # and two more went to boot 9: protection (P11). The frames sent since the last boot count
+    # read are kept, and count.
+    for mirror in (False, True):
+        rig = ModelRig(armed=True, mirror=mirror)
+        rig.deploy(faults=['clean', 'reboot_quiet'])
+        rig.model.armed = True
+        rig.status_frame()
+        rig.model.igniter_fault = True
+        rig.deploy()
+        rig.restart_driver()
+        rig.deploy()
+        rig.deploy()
+        assert all(n <= 2 for n in rig.unacked.values()), (mirror, rig.unacked)
+        assert not rig.model.protection
+
+
+def test_round2_22_1_a_clean_deploy_of_an_armed_module_deploys_it():
+    rig = ModelRig(armed=True)
+    call = rig.deploy()
+    assert call.answers[0].outcome == 'deployed' and rig.model.triggered
+    assert not rig.order_problems
+
+
+# -- the search -------------------------------------------------------------------------------
+
+class ParachuteDeployModel(RuleBasedStateMachine):
+    """A DeployCore against the virtual parachute on a faulty wire, in virtual time."""
+
+    MIRROR = False
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rig = ModelRig(armed=True, mirror=self.MIRROR)
+
+    @rule(token=st.sampled_from(['DEPLOY', 'DEPLOY', 'deploy', '']), arm=st.booleans(),
+          faults=st.lists(st.sampled_from(FAULTS), max_size=8), gate=st.booleans())
+    def deploy(self, token: str, arm: bool, faults: list, gate: bool) -> None:
+        call = self.rig.deploy(token, arm, faults, gate)
+        check_call(self.rig, call)
+
+    @precondition(lambda self: self.rig.plugged and self.rig.model.powered
+                  and not self.rig.unseen_reboot and not self.rig.unseen_change
+                  and not self.rig.model.igniter_fault
+                  and self.rig.model.armed and not self.rig.model.triggered
+                  and not self.rig.model.protection
+                  and self.rig.core.failed < MAX_FAILED_DEPLOYS)
+    @rule()
+    def a_module_that_answers_can_be_deployed(self) -> None:
+        call = self.rig.deploy()
+        check_call(self.rig, call)
+        assert call.answers[0].outcome == 'deployed', call.answers[0].message
+        assert self.rig.model.triggered
+
+    @rule(armed=st.booleans(), seen=st.booleans())
+    def someone_else_arms_or_locks(self, armed: bool, seen: bool) -> None:
+        """The module armed or locked by another path; `seen`: its status frame reaches us."""
+        if not self.rig.model.triggered and self.rig.model.armed != armed:
+            self.rig.model.armed = armed
+            self.rig.unseen_change = True
+            if seen:
+                self.rig.status_frame()
+
+    @rule()
+    def someone_else_deploys(self) -> None:
+        """Another source deploys it (a failed attempt of another source, unseen by the driver,
+        would count towards P11 where the driver cannot count it: not modelled)."""
+        if self.rig.model._can_fire() and not self.rig.model.igniter_fault:
+            self.rig.model._fire(0x04)
+
+    @rule(on=st.booleans())
+    def igniter_fault(self, on: bool) -> None:
+        """The module's igniter fails: its deploy attempts fail and count towards P11."""
+        self.rig.model.igniter_fault = on
+
+    @rule()
+    def unplug(self) -> None:
+        self.rig.unplug()
+
+    @rule()
+    def replug(self) -> None:
+        self.rig.replug()
+
+    @rule(quiet=st.booleans())
+    def module_reboots(self, quiet: bool) -> None:
+        self.rig.power_cycle(quiet)
+
+    @rule()
+    def driver_restarts(self) -> None:
+        self.rig.restart_driver()
+
+    @rule(seconds=st.sampled_from([0.01, 0.1, 0.5, 2.0]))
+    def time_passes(self, seconds: float) -> None:
+        self.rig.wait(seconds)
+
+    @rule()
+    def a_status_frame(self) -> None:
+        self.rig.status_frame()
+
+    @invariant()
+    def at_most_two_unacknowledged_deploy_frames_per_power_up(self) -> None:
+        assert all(n <= MAX_FAILED_DEPLOYS for n in self.rig.unacked.values()), self.rig.unacked
+        assert not self.rig.model.protection
+
+    @invariant()
+    def every_deploy_frame_on_a_fresh_armed_state_after_its_synced_decision(self) -> None:
+        assert not self.rig.order_problems, self.rig.order_problems
+
+    @invariant()
+    def every_call_answered_once_and_truly(self) -> None:
+        for call in self.rig.calls:
+            assert len(call.answers) == 1, call.answers
+
+
+class ParachuteSessionDeployModel(ParachuteDeployModel):
+    """The core as the session runs it (mirror): told what the session's threads took in."""
+
+    MIRROR = True
+
+
+def test_round2_22_3_parachute_deploy_invariants_hold_over_random_sequences():
+    search(ParachuteDeployModel, 'parachute', steps=30)
+
+
+def test_round2_22_3_the_sessions_deploy_core_keeps_the_invariants_too():
+    search(ParachuteSessionDeployModel, 'parachute_session', steps=30)
