@@ -302,3 +302,16 @@ def test_issue22_4_no_protocol_module_or_shared_module_over_600_lines():
     long = {str(path.relative_to(ROOT)): n for path in paths
             if (n := len(path.read_text().splitlines())) > 600}
     assert not long, long
+
+
+def test_the_core_tier_names_test_files_that_exist_and_start_no_process_or_pty():
+    # `make test-core` is the tier that runs in seconds: every file it names is there, and none
+    # of them reaches for a process, a pty, a launched node or a ROS graph.
+    from conftest import CORE_TIER
+    for name in sorted(CORE_TIER):
+        path = ROOT / 'test' / name
+        assert path.is_file(), name
+        source = path.read_text()
+        for marker in ('subprocess', 'VirtualSerialPort', 'create_runner', 'RosHarness',
+                       'openpty', 'launch.start', 'rclpy.init('):
+            assert marker not in source, (name, marker)
