@@ -40,7 +40,8 @@ CORE_TIER = frozenset({
     'test_handset_model.py', 'test_handset_protocol.py', 'test_handset_simulation.py',
     'test_mavlink_core.py', 'test_originman_messages.py', 'test_originman_plan.py',
     'test_originman_protocol.py', 'test_originman_simulation.py', 'test_parachute_messages.py',
-    'test_parachute_deploy_core.py', 'test_parachute_model.py', 'test_result.py', 'test_servo_messages.py',
+    'test_parachute_deploy_core.py', 'test_parachute_model.py', 'test_result.py',
+    'test_servo_messages.py',
     'test_servo_model.py', 'test_servo_protocol.py', 'test_servo_registers.py',
     'test_servo_simulation.py', 'test_stream_decoder.py', 'test_uart.py',
 })
