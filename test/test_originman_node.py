@@ -373,9 +373,10 @@ def test_bad_values_are_refused_with_nothing_on_the_wire_and_counted(ros, launch
         assert int(values[f'refused: {cause}']) >= sum(1 for *_, c in BAD_TOPICS if c == cause)
     # A read after them all: whatever the driver wrote before it has reached the board.
     assert rig.call(GetPwmServoState, f'{DRIVER}/pwm_servo/get_state', ids=[1]).success
-    after = rig.board_state(lambda s: s['wire']['counts'].get('PwmRead', 0) == 2, 5,
+    # (Two reads, pulse and offset; a loaded host may send one of them again.)
+    after = rig.board_state(lambda s: s['wire']['counts'].get('PwmRead', 0) >= 2, 5,
                             'the read at the board')['wire']
-    assert after['counts'] == {'PwmRead': 2} and before['recent'] == after['recent'] == []
+    assert set(after['counts']) == {'PwmRead'} and before['recent'] == after['recent'] == []
     assert rig.driver.alive()
     # Each cause is logged, at most once per 5 s.
     log = rig.driver.output()
