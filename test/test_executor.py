@@ -178,3 +178,34 @@ def test_round2_23_a_done_callback_of_a_client_call_keeps_the_executor_spinning(
     assert done.wait(10.0), 'the done callback never ran'
     _publish_until_seen(ros, driver, 11)
     assert driver.errors == []
+
+
+def test_issue22_6_stop_spinning_ends_a_wait_at_once_where_wake_did_not():
+    # A node with no timer (a virtual device's): nothing wakes the executor's wait but the
+    # stop. `wake()` alone let rclpy rebuild its wait set and wait on, which held every node's
+    # exit for the 2-s join timeout of `run_node`.
+    context = Context()
+    rclpy.init(context=context)
+    node = Node('no_timers', context=context)
+    executor = DriverExecutor(num_threads=1, context=context)
+    executor.add_node(node)
+    returned = threading.Event()
+
+    def spin_once() -> None:
+        executor.spin_once()
+        returned.set()
+
+    spinner = threading.Thread(target=spin_once, daemon=True)
+    try:
+        spinner.start()
+        executor.wake()
+        assert not returned.wait(0.3)  # still waiting: wake() is not a stop
+        executor.stop_spinning()
+        wait_for(returned.is_set, 1.0, what='spin_once to return after stop_spinning()')
+        executor.spin_once()  # and every later one returns at once too
+    finally:
+        executor.stop_spinning()
+        spinner.join(2.0)
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

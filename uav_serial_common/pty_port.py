@@ -128,8 +128,9 @@ class VirtualSerialPort:
         """Make every write in progress or to come give up (raise `PortUnplugged`).
 
         For stopping the device: a write to a driver that no longer reads stalls up to
-        `WRITE_STALL_DROP_S` per frame, which held a stop for seconds. The descriptors stay open
-        until `close()`, so a thread still using them never writes to a reused one.
+        `WRITE_STALL_DROP_S` per frame, so a device thread with frames to send could outlast
+        the stop's join. The descriptors stay open until `close()`, so a thread still using
+        them never writes to a reused one.
         """
         self.halted = True
 
