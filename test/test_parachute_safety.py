@@ -97,7 +97,9 @@ def interrupt_twice(rig):
         time.sleep(0.002)
     rig.proc.popen.wait(10)
     assert sent >= 2
-    assert 'SIGINT again: shutdown in progress' in rig.proc.output()
+    # (Signals that arrive before Python runs the handler count once, and a shutdown may end
+    # before the next: "SIGINT again" shows only when one lands mid-shutdown, so it is not
+    # asserted; the exit code and the black box are.)
     return rig.proc.popen.returncode
 
 
