@@ -32,9 +32,8 @@ from typing import Any, List, Optional, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_core import (Answer, Busy, DEPLOY_FRAME, DEPLOY_TOKEN, DeployCall,
-                                           DeployCore, Event, GateDone, guard_text, Log, PassGate,
+                                           DeployCore, Event, GateDone, Log, PassGate,
                                            Record, Reply, Report, SaveAttempts, Send, Timeout)
-from dps_parachute_ros.deploy_core import MAX_FAILED_DEPLOYS  # noqa: F401 (preflight's import)
 from dps_parachute_ros.deploy_core import LinkDown as CoreLinkDown
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
 from dps_parachute_ros.state import Outcome, Result, Snapshot
@@ -125,9 +124,6 @@ class DeployProcedure:
                     break
                 self._lock.wait(min(remaining, 0.05))
             return self._snap
-
-    def _guard_text(self, snap: Snapshot) -> str:
-        return guard_text(snap.failed_deploys, snap.unacked_deploys)
 
     def _query_triggered(self) -> Optional[bool]:
         """Ask the module whether it is triggered; None when it does not answer."""

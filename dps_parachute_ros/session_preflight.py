@@ -10,8 +10,9 @@ from __future__ import annotations
 from typing import Callable, List, Optional, Tuple
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_events import guard_text, MAX_FAILED_DEPLOYS
 from dps_parachute_ros.link import LinkDown, LinkError, LinkTimeout
-from dps_parachute_ros.session_deploy import MAX_FAILED_DEPLOYS, SAFETY_SYNC_S
+from dps_parachute_ros.session_deploy import SAFETY_SYNC_S
 from dps_parachute_ros.session_online import LINK_ERROR_COUNTERS
 from dps_parachute_ros.session_worker import STREAM_GRACE
 from dps_parachute_ros.settings_rule import conditions
@@ -177,7 +178,8 @@ class Preflight:
         # frames this driver sent since the module's last power-up.
         snap = self.snapshot
         if snap.failed_deploys >= MAX_FAILED_DEPLOYS:
-            return (False, 'not in protection', self._guard_text(snap).split(': ', 1)[1])
+            text = guard_text(snap.failed_deploys, snap.unacked_deploys)
+            return (False, 'not in protection', text.split(': ', 1)[1])
         if snap.deploy_outcome_unknown:
             return (False, 'not in protection', 'a deploy whose outcome is unknown')
         detail = 'no unsuccessful deploy attempt since power-up' if not snap.failed_deploys \

@@ -12,6 +12,7 @@ import math
 from typing import Dict, List, Optional, Tuple
 
 from originman_board_ros import protocol as p
+from originman_board_ros.link import READ_TIMEOUT_S
 
 MOTOR_TYPES = ('keep',) + tuple(t.name for t in p.MotorType)
 
@@ -88,7 +89,7 @@ class OriginManConfig:
     bus_servo_ids: Tuple[int, ...] = ()
     bus_servo_poll_hz: float = 10.0
     bus_servo_telemetry_period_s: float = 2.0
-    read_timeout_s: float = 0.1
+    read_timeout_s: float = READ_TIMEOUT_S
     read_retries: int = 1
     settings_check_period_s: float = 5.0
 
