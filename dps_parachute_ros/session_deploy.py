@@ -181,7 +181,6 @@ class DeployProcedure:
         is, and then given to the core.
         """
         core = DeployCore(mirror=True, request_timeout_s=self.config.request_timeout_s)
-        answers: List[Answer] = []
         armed_read: List[Tuple[int, bool]] = []  # (epoch, armed) of an armed query, for fresh
 
         def step(event: Event) -> List[Any]:
@@ -219,12 +218,12 @@ class DeployProcedure:
                 self.release_gate.before_release(action.what)  # every refusal is decided
             return [GateDone(self.clock())]
 
-        run_core(SimpleNamespace(step=step), [call], {
+        done = run_core(SimpleNamespace(step=step), [call], {
             Send: send, Record: record, SaveAttempts: save, PassGate: gate,
             Log: lambda action: self._log(action.level, action.text),
             Report: lambda action: None,  # (mirror: the session reports its deployments)
-            Answer: answers.append})
-        answer = answers[0]
+            Answer: lambda action: None})  # (taken from what run_core carried out)
+        answer = next(action for action in done if isinstance(action, Answer))
         if answer.counts is not None:
             with self._lock:
                 self._snap = replace(self._snap, failed_deploys=answer.counts[0],
