@@ -208,8 +208,7 @@ def main(args: Optional[List[str]] = None) -> int:
     """Run ``servo_bus_node``."""
     # The hot path hands the GIL between the reader thread and the read loop on every reply;
     # the default 5 ms switch interval would add up to that much to each transaction.
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    return run_node(ServoBusNode, args)
+    return run_node(ServoBusNode, args, switch_interval_s=SWITCH_INTERVAL_S)
 
 
 if __name__ == '__main__':

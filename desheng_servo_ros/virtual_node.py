@@ -139,8 +139,7 @@ class VirtualServoBusNode(VirtualDeviceNode):
 def main(args: Optional[List[str]] = None) -> int:
     """Run ``virtual_servo_bus``."""
     # Replies are paced on the device thread; a short GIL switch interval keeps them on time.
-    sys.setswitchinterval(0.0005)
-    return run_node(VirtualServoBusNode, args)
+    return run_node(VirtualServoBusNode, args, switch_interval_s=0.0005)
 
 
 if __name__ == '__main__':

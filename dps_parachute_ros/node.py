@@ -392,8 +392,7 @@ def main(args: Optional[list] = None) -> int:
     # A deploy call waited ~6 ms for the GIL behind the driver's other threads at Python's 5 ms
     # switch interval (deploy latency p50 10.3 -> 5.5 ms with 1 ms), as the servo and OriginMan
     # drivers already found.
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    return run_node(ParachuteNode, args, threads=12)
+    return run_node(ParachuteNode, args, threads=12, switch_interval_s=SWITCH_INTERVAL_S)
 
 
 if __name__ == '__main__':

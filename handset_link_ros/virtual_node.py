@@ -154,8 +154,7 @@ class VirtualHandsetNode(VirtualDeviceNode):
 def main(args: Optional[List[str]] = None) -> int:
     """Run ``virtual_handset`` until Ctrl-C."""
     # Frames are paced on the device thread; a short GIL switch interval keeps them on time.
-    sys.setswitchinterval(0.0005)
-    return run_node(VirtualHandsetNode, args, threads=2)
+    return run_node(VirtualHandsetNode, args, threads=2, switch_interval_s=0.0005)
 
 
 if __name__ == '__main__':

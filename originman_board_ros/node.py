@@ -332,8 +332,8 @@ def main(args: Sequence[str] = None) -> int:
     """Run ``originman_board_node`` until SIGINT/SIGTERM."""
     # The reader thread publishes each IMU report as it arrives; when another thread holds
     # the GIL, it would wait up to the 5 ms default switch interval (imu_latency_p99_ms).
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    return run_node(OriginManBoardNode, args, threads=EXECUTOR_THREADS)
+    return run_node(OriginManBoardNode, args, threads=EXECUTOR_THREADS,
+                    switch_interval_s=SWITCH_INTERVAL_S)
 
 
 if __name__ == '__main__':

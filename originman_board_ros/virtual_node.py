@@ -307,8 +307,7 @@ def _triple_or_none(values: Sequence[float], name: str) -> Optional[List[float]]
 def main(args: Optional[List[str]] = None) -> int:
     """Run ``virtual_originman_board`` until Ctrl-C."""
     # Reports are paced on the device thread; a short GIL switch interval keeps them on time.
-    sys.setswitchinterval(0.0005)
-    return run_node(VirtualOriginManBoardNode, args)
+    return run_node(VirtualOriginManBoardNode, args, switch_interval_s=0.0005)
 
 
 if __name__ == '__main__':

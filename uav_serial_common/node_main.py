@@ -48,13 +48,17 @@ class _Signals:
 
 
 def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
-             threads: int = 4) -> int:
+             threads: int = 4, switch_interval_s: Optional[float] = None) -> int:
     """Create the node, spin it until SIGINT/SIGTERM, then shut down completely.
 
     A node may define ``on_shutdown()``: it runs after spinning stops and before the node is
     destroyed, so a driver can still talk to its device (torque off, motors stopped) as its last
-    act; signals arriving meanwhile do not interrupt it. Returns the process exit code.
+    act; signals arriving meanwhile do not interrupt it. ``switch_interval_s`` sets the GIL
+    switch interval of the process (Python's default, 5 ms, lets a busy thread hold a service
+    call or a paced frame that long). Returns the process exit code.
     """
+    if switch_interval_s is not None:
+        sys.setswitchinterval(switch_interval_s)
     signals = _Signals()
     node = None
     executor = None
