@@ -149,6 +149,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._pending: Optional[_Pending] = None
         self._reported_boots: Set[Optional[int]] = set()   # boots whose deployment was reported
         self._known_records: Optional[Set[bytes]] = None
+        self._records_from_boot: Optional[int] = None  # boot count of the first records read
         self._deploy_frame_left = False
         self._unknown_boot: Optional[int] = None  # boot count when a deploy became unknown
         self._last_boot_heartbeat = -1e9

@@ -12,8 +12,8 @@ lock are described there). Threads:
   happened while nobody watched.
 - callers: a deploy acknowledged reports its deployment (``_report``).
 
-Owns, guarded by ``_lock``: ``_reported_boots``, ``_known_records``, ``_triggered_seen``,
-``_events``, ``_source_owed``, ``_records_retry_at``, ``_records_backoff``,
+Owns, guarded by ``_lock``: ``_reported_boots``, ``_known_records``, ``_records_from_boot``,
+``_triggered_seen``, ``_events``, ``_source_owed``, ``_records_retry_at``, ``_records_backoff``,
 ``_deployment_seq``; the ``triggered`` field of the snapshot.
 """
 
@@ -164,11 +164,18 @@ class DeploymentEvents:
                 bool(fired), f'the module rebooted since (boot {unknown_boot} -> {boot}); its '
                 f'trigger records {"show" if fired else "show no"} deployment in boot '
                 f'{unknown_boot}')
-        if not first:
-            # Deployments that happened while nobody watched (unplugged, rebooted).
-            for record in records:
-                if record.raw not in known:
-                    self._report(record.source, 'record', record, record.boot_count)
+        if first:
+            with self._lock:
+                self._records_from_boot = boot
+            return
+        # Deployments that happened while nobody watched (unplugged, rebooted). Only from the
+        # power-up of the first records read on: an older record missing from that first answer
+        # (cut short on a loaded host) was there before this run, not a deployment since.
+        with self._lock:
+            since = self._records_from_boot
+        for record in records:
+            if record.raw not in known and (since is None or record.boot_count >= since):
+                self._report(record.source, 'record', record, record.boot_count)
 
     def _trigger_job(self) -> None:
         boot = self.snapshot.boot_count

@@ -57,7 +57,7 @@ class Heard(Listener):
 
 
 class Rig:
-    def __init__(self, tmp, blackbox=None, baud=0, setup=None, **config):
+    def __init__(self, tmp, blackbox=None, baud=0, setup=None, tap=None, **config):
         self.tmp = tmp
         self.sim = VirtualParachute(now=time.monotonic() - 1.0)
         self.sim.step(time.monotonic())  # its power-up heartbeats are in the past
@@ -67,6 +67,8 @@ class Rig:
         # a start time at baud 0.)
         self.runner = create_runner(self.sim, str(tmp / 'vpara'), baud=baud).start()
         self.wire = Wire(self.runner)
+        if tap is not None:  # on the wire from the first byte the session sends
+            self.runner.add_tap(lambda direction, data, t: tap(self, direction, data))
         self.clock = FakeClock()
         self.heard = Heard()
         config.setdefault('blackbox_dir', str(tmp / 'bb'))
@@ -562,6 +564,48 @@ def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(timed_rig):
     rig.wait_ready()
     assert rig.session.get_trigger_records().value[-1].serial_trigger
     assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_SERIAL, 'deploy_ack')]
+
+
+def test_round2_22_6_an_old_record_missing_from_the_first_answer_is_no_new_deployment(
+        tmp_path):
+    """A loaded host cut the first record answer short; the full answer after a reconnect
+    holds a record of an earlier power-up. It was there before this run: no trigger event.
+    A deployment while the cable was out is still reported, once."""
+    def flown(sim):
+        for _ in range(8):  # deployments of earlier flights fill every slot
+            sim.armed = True
+            assert sim.trigger_pwm()
+            sim.power_cycle()
+        sim.advance(0.1)  # their power-up heartbeats are in the past
+
+    cut = []
+
+    def cut_first_answer(rig, direction, data):
+        if direction == 'rx' and not cut and bytes([p.CMD_TRIGGER_RECORDS]) in data:
+            cut.append(True)
+            rig.runner.faults.corrupt_next = 1  # the last record frame does not arrive whole
+
+    rig = Rig(tmp_path, setup=flown, tap=cut_first_answer)
+    try:
+        boot = rig.snap.boot_count
+        assert cut
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.online, 3, what='offline')
+        rig.runner.replug()
+        rig.wait_ready(boot)
+        assert rig.heard.events == []
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.online, 3, what='offline')
+        with rig.model():
+            rig.sim.armed = True
+            assert rig.sim.trigger_pwm()  # fired while nobody watched, and switched off
+            rig.sim.power_cycle()
+        rig.runner.replug()
+        rig.wait_ready(boot + 1)
+        wait_for(lambda: rig.heard.events, 3, what='the deployment reported')
+        assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_PWM, 'record')]
+    finally:
+        rig.close()
 
 
 def test_safety_9_a_setting_that_would_deploy_at_once_is_refused_while_armed(rig):
