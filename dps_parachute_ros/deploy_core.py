@@ -88,7 +88,7 @@ class DeployCore(DeployKnowledge):
         if wait is None:
             return False
         if isinstance(event, Reply):
-            if isinstance(event.message, tuple):  # the records of a trigger-record query
+            if isinstance(event.message, p.TriggerRecords):
                 return p.TriggerRecord in wait.expect
             return isinstance(event.message, wait.expect)
         return isinstance(event, (Timeout, LinkDown, Busy))
@@ -178,7 +178,8 @@ class DeployCore(DeployKnowledge):
 
         Since: a reboot no heartbeat told may have come before the frame. By a serial frame
         (another source's deployment is not this call's), not in the power-ups `known` to have
-        deployed before the frame left (one deployment per power-up). None: not known.
+        deployed before the frame left (one deployment per power-up). None: not known
+        (the records not read, or an answer cut short that does not hold it).
         """
         if boot is None or self.boot_count is None:
             return None
@@ -186,8 +187,11 @@ class DeployCore(DeployKnowledge):
         if not isinstance(event, Reply):
             return None
         since = (self.boot_count - boot) % 256  # (the boot count wraps after 255)
-        return any((r.boot_count - boot) % 256 <= since and r.serial_trigger
-                   and r.boot_count not in known for r in event.message)
+        records: p.TriggerRecords = event.message
+        fired = any((r.boot_count - boot) % 256 <= since and r.serial_trigger
+                    and r.boot_count not in known for r in records)
+        # No record of it in an answer cut short is no answer (P15): not "it did NOT deploy".
+        return True if fired else (False if records.complete else None)
 
     def _arm(self) -> Generator[Send, Event, str]:
         """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
@@ -291,7 +295,8 @@ class DeployCore(DeployKnowledge):
                                      t0=t0, ack='lost')
                     elif fired is None:
                         self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged, and '
-                                      'the module rebooted since (its trigger records not read)',
+                                      'the module rebooted since (its trigger records not read '
+                                      'whole)',
                                       t0)
                     else:
                         state = 'is locked now' if self.fresh else 'was not re-read'

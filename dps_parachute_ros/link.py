@@ -199,11 +199,12 @@ class ParachuteLink:
 
     def query_records(self, timeout: float = REQUEST_TIMEOUT_S,
                       quiet_s: float = RECORDS_QUIET_S,
-                      max_records: int = 8) -> list[p.TriggerRecord]:
+                      max_records: int = p.RECORD_SLOTS) -> p.TriggerRecords:
         """Ask for the trigger history and collect every 16-byte record of the answer.
 
-        The number of records in an answer is not documented: collect until ``max_records``
-        or until none came for ``quiet_s``. Raises LinkTimeout when none came at all.
+        The module answers with one frame per slot of its ring (P15): collect until
+        ``max_records`` or until none came for ``quiet_s``; the answer is `complete` only with
+        every slot's frame. Raises LinkTimeout when none came at all.
 
         The gap is the line's, not this thread's: measured from the time the reader received
         the last record, and only once the reader has handed on every byte that came in. A
@@ -245,7 +246,7 @@ class ParachuteLink:
                     raise LinkDown('port closed while waiting for trigger records')
                 self.timeouts += 1
                 raise LinkTimeout(f'no trigger record within {timeout * 1000:.0f} ms')
-            return list(records)
+            return p.TriggerRecords(records)
         finally:
             lock.release()
 

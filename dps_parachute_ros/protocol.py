@@ -44,8 +44,9 @@ from dps_parachute_ros.protocol_replies import (
     ArmedState, ArmReply, AttitudeThreshold, AutoTriggerFlags, BaudRate, BootCount,
     CellVoltage, Charging, decode_auto_trigger_flags, decode_module_bytes, decode_module_frame,
     DeployAck, encode_auto_trigger_flags, FreefallThreshold, FreefallTime, Heartbeat,
-    is_set_ack, LightLevel, LightThreshold, ModuleMessage, reply_matches, ShutdownAck, Status,
-    StreamingReply, TriggeredState, TriggerRecord, TriggerRequest, UnknownFrame, ZeroAck,
+    is_set_ack, LightLevel, LightThreshold, ModuleMessage, RECORD_SLOTS, reply_matches,
+    ShutdownAck, Status, StreamingReply, TriggeredState, TriggerRecord, TriggerRecords,
+    TriggerRequest, UnknownFrame, ZeroAck,
 )
 from dps_parachute_ros.protocol_decoder import StreamDecoder
 
@@ -77,7 +78,8 @@ __all__ = [
     'encode_trigger_record', 'Heartbeat', 'ArmReply', 'DeployAck', 'ShutdownAck',
     'StreamingReply', 'LightLevel', 'LightThreshold', 'AutoTriggerFlags', 'AttitudeThreshold',
     'FreefallThreshold', 'FreefallTime', 'BootCount', 'BaudRate', 'ZeroAck', 'ArmedState',
-    'TriggeredState', 'Status', 'Charging', 'CellVoltage', 'TriggerRecord', 'TriggerRequest',
+    'TriggeredState', 'Status', 'Charging', 'CellVoltage', 'TriggerRecord', 'TriggerRecords',
+    'RECORD_SLOTS', 'TriggerRequest',
     'UnknownFrame', 'ModuleMessage', 'decode_auto_trigger_flags', 'encode_auto_trigger_flags',
     'decode_module_frame', 'decode_module_bytes', 'is_set_ack', 'reply_matches',
     'StreamDecoder',

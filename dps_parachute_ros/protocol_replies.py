@@ -7,7 +7,7 @@ Raw bytes stay on every decoded object as ``raw``. Decision numbers (P1..) refer
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Union
+from typing import Iterable, Tuple, Union
 
 from dps_parachute_ros.protocol_frames import (
     BAUD_CODES, CMD_ARM, CMD_ARMED, CMD_ATTITUDE_THRESHOLD, CMD_ATTITUDE_TRIGGER,
@@ -225,6 +225,33 @@ class TriggerRecord:
     def is_empty(self) -> bool:
         """Whether this is an unused slot rather than a deployment."""
         return self.source == 0
+
+
+RECORD_SLOTS = 8
+"""The module's ring of trigger records: its answer to the query has one frame per slot (P15)."""
+
+
+class TriggerRecords(Tuple[TriggerRecord, ...]):
+    """The records of one answer to the trigger-record query, as they came.
+
+    `complete` when a frame came for every slot of the ring (P15): only then does a record's
+    absence say that the module did not deploy. An answer cut short (a frame lost or corrupted)
+    tells what it holds and nothing about what it does not.
+    """
+
+    complete: bool
+
+    def __new__(cls, records: Iterable[TriggerRecord] = ()) -> 'TriggerRecords':
+        """Take the records of one answer, empty slots included."""
+        self = super().__new__(cls, records)
+        self.complete = len(self) >= RECORD_SLOTS
+        return self
+
+    def stored(self) -> 'TriggerRecords':
+        """The records that describe a deployment (no empty slot); as complete as this."""
+        out = TriggerRecords(r for r in self if not r.is_empty)
+        out.complete = self.complete
+        return out
 
 
 @dataclass(frozen=True, slots=True)

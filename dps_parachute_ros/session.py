@@ -396,6 +396,10 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             records = self._fetch_records()
         except LinkError as exc:
             return Result.failed(f'no trigger records: {exc}', cause='no_reply')
+        if not records.complete:
+            return Result.done(f'{len(records)} record(s) in an answer cut short (a slot\'s frame '
+                               'lost or corrupted): there may be more; ask again',
+                               value=tuple(records))
         return Result.done(f'{len(records)} record(s)', value=tuple(records))
 
     def set_streaming(self, enabled: bool) -> Result:

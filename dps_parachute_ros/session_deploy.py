@@ -248,7 +248,7 @@ class DeployProcedure:
                 self._deploy_frame_left = False
         try:
             if p.TriggerRecord in send.expect:
-                reply: Any = tuple(self._fetch_records())
+                reply: Any = self._fetch_records()
             else:
                 reply = self._req(send.frame, retries=send.retries, silence_ok=send.silence_ok)
         except LinkBusy as exc:

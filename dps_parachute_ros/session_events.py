@@ -132,9 +132,9 @@ class DeploymentEvents:
             self._log('warn', f'trigger records not read ({exc}); trying again in {delay:.0f} s',
                       key='records-retry', every_s=30.0)
 
-    def _fetch_records(self) -> List[p.TriggerRecord]:
+    def _fetch_records(self) -> p.TriggerRecords:
         """Query the history; remember every record; return the non-empty ones."""
-        records = [r for r in self.link.query_records() if not r.is_empty]
+        records = self.link.query_records().stored()
         with self._lock:
             self._known_records = (self._known_records or set()) | {r.raw for r in records}
         self._amend_sources(records)
@@ -159,11 +159,7 @@ class DeploymentEvents:
         with self._lock:
             unknown_boot = self._unknown_boot if self._snap.deploy_outcome_unknown else None
         if unknown_boot is not None and unknown_boot != boot:
-            fired = [r for r in records if r.boot_count == unknown_boot]
-            self._resolve_unknown_deploy(
-                bool(fired), f'the module rebooted since (boot {unknown_boot} -> {boot}); its '
-                f'trigger records {"show" if fired else "show no"} deployment in boot '
-                f'{unknown_boot}')
+            self._settle_unknown_by_records(records, unknown_boot, boot)
         if first:
             with self._lock:
                 self._records_from_boot = boot
@@ -176,6 +172,31 @@ class DeploymentEvents:
         for record in records:
             if record.raw not in known and (since is None or record.boot_count >= since):
                 self._report(record.source, 'record', record, record.boot_count)
+
+    def _settle_unknown_by_records(self, records: p.TriggerRecords, unknown_boot: int,
+                                   boot: Optional[int]) -> None:
+        """Settle a deploy of unknown outcome in an earlier power-up by its trigger records.
+
+        Only a record, or an answer with every slot's frame, tells (P15): an answer cut short
+        is asked for again (twice), then the outcome stays unknown until the next reading.
+        """
+        for attempt in range(3):
+            fired = any(r.boot_count == unknown_boot for r in records)
+            if fired or records.complete:
+                self._resolve_unknown_deploy(
+                    fired, f'the module rebooted since (boot {unknown_boot} -> {boot}); its '
+                    f'trigger records {"show" if fired else "show no"} deployment in boot '
+                    f'{unknown_boot}')
+                return
+            if attempt == 2 or self._stopping.wait(0.2):
+                break
+            try:
+                records = self._fetch_records()
+            except LinkError:
+                break
+        self._log('warn', f'the trigger records came cut short ({len(records)} of '
+                          f'{p.RECORD_SLOTS} slots): the earlier deploy of unknown outcome stays '
+                          'unknown until they are read whole')
 
     def _trigger_job(self) -> None:
         boot = self.snapshot.boot_count

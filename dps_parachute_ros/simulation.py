@@ -22,7 +22,7 @@ ATTITUDE_RESET_MARGIN_DEG = 10
 """The attitude trigger re-arms this far below the threshold (P9)."""
 PROTECTION_AFTER_FAILURES = 3
 """Unsuccessful trigger attempts in a row that put the module into protection (P11)."""
-RECORD_SLOTS = 8
+RECORD_SLOTS = p.RECORD_SLOTS
 """Trigger records kept, oldest overwritten first."""
 
 

@@ -23,14 +23,15 @@ from uav_serial_common.core_runner import run_core
 
 START = 1000.0
 REPLY_S = 0.004
+"""Time from a request to its reply on a clean wire (a 6-byte frame each way at 115200)."""
 REBOOT_S = 0.3
 """A module takes this long to switch off and boot again (longer than the 0.2 s that one
 power-up's two heartbeats fit in, P5: two reboots never look like one)."""
-"""Time from a request to its reply on a clean wire (a 6-byte frame each way at 115200)."""
 FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 'unplug_before',
           'unplug_after', 'reboot', 'reboot_quiet', 'lock_by_other', 'arm_by_other',
-          'trigger_by_other')
-"""What can happen to one request on the wire (or to the module just before it arrives)."""
+          'trigger_by_other', 'cut_records')
+"""What can happen to one request on the wire (or to the module just before it arrives).
+``cut_records``: a trigger-record answer loses its newest record's frame (cut short)."""
 GARBAGE = bytes([0x00, 0x13, 0x99, 0xFE, 0x37])  # no header byte: it completes no frame
 
 
@@ -252,11 +253,14 @@ class ModelRig:
             received = [] if late else self._received(out, self.t)
             if p.TriggerRecord in send.expect:
                 # The link collects a record query's answer into one reply (query_records).
-                records = tuple(e.message for e in received
-                                if isinstance(e.message, p.TriggerRecord))
+                records = [e.message for e in received
+                           if isinstance(e.message, p.TriggerRecord)]
                 received = [e for e in received if not isinstance(e.message, p.TriggerRecord)]
+                stored = [i for i, r in enumerate(records) if not r.is_empty]
+                if fault == 'cut_records' and records:
+                    del records[stored[-1] if stored else -1]
                 if records:
-                    return events + received + [Reply(self.t, records)]
+                    return events + received + [Reply(self.t, p.TriggerRecords(records))]
             events += received
             if any(isinstance(e.message, send.expect) for e in received):
                 return events

@@ -566,29 +566,39 @@ def test_safety_8_a_late_ack_and_a_reconnect_make_one_trigger_event(timed_rig):
     assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_SERIAL, 'deploy_ack')]
 
 
+def flown(flights):
+    """A module setup: deployed (PWM) in each of `flights` earlier power-ups."""
+    def setup(sim):
+        for _ in range(flights):
+            sim.armed = True
+            assert sim.trigger_pwm()
+            sim.power_cycle()
+        sim.advance(0.1)  # their power-up heartbeats are in the past
+    return setup
+
+
+class CutRecordAnswers:
+    """A tap: the next `n` trigger-record answers lose their last frame (corrupted)."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def __call__(self, rig, direction, data):
+        if direction == 'rx' and self.n and p.encode_trigger_records_query() in data:
+            self.n -= 1
+            rig.runner.faults.corrupt_next = 1
+
+
 def test_round2_22_6_an_old_record_missing_from_the_first_answer_is_no_new_deployment(
         tmp_path):
     """A loaded host cut the first record answer short; the full answer after a reconnect
     holds a record of an earlier power-up. It was there before this run: no trigger event.
     A deployment while the cable was out is still reported, once."""
-    def flown(sim):
-        for _ in range(8):  # deployments of earlier flights fill every slot
-            sim.armed = True
-            assert sim.trigger_pwm()
-            sim.power_cycle()
-        sim.advance(0.1)  # their power-up heartbeats are in the past
-
-    cut = []
-
-    def cut_first_answer(rig, direction, data):
-        if direction == 'rx' and not cut and bytes([p.CMD_TRIGGER_RECORDS]) in data:
-            cut.append(True)
-            rig.runner.faults.corrupt_next = 1  # the last record frame does not arrive whole
-
-    rig = Rig(tmp_path, setup=flown, tap=cut_first_answer)
+    cut = CutRecordAnswers(1)
+    rig = Rig(tmp_path, setup=flown(p.RECORD_SLOTS), tap=cut)
     try:
         boot = rig.snap.boot_count
-        assert cut
+        assert cut.n == 0
         rig.runner.unplug()
         wait_for(lambda: not rig.snap.online, 3, what='offline')
         rig.runner.replug()
@@ -604,6 +614,39 @@ def test_round2_22_6_an_old_record_missing_from_the_first_answer_is_no_new_deplo
         rig.wait_ready(boot + 1)
         wait_for(lambda: rig.heard.events, 3, what='the deployment reported')
         assert [(e.source, e.via) for e in rig.heard.events] == [(p.SOURCE_PWM, 'record')]
+    finally:
+        rig.close()
+
+
+def test_round2_22_8_an_unknown_deploy_is_not_settled_by_a_record_answer_cut_short(tmp_path):
+    """The deploy's frame fired the module, the link dropped, the module was switched off and
+    on. Its record is the last frame of the answer: while that frame comes corrupted, the
+    outcome stays unknown ("no deployment in that boot" would be false); read whole, deployed.
+    """
+    cut = CutRecordAnswers(0)
+    rig = Rig(tmp_path, setup=flown(p.RECORD_SLOTS - 1), tap=cut)
+    try:
+        rig.arm()
+        unplug_when_deploy_arrives(rig)
+        assert rig.session.deploy('DEPLOY').outcome is Outcome.UNKNOWN
+        with rig.model():
+            assert rig.sim.triggered
+            rig.sim.power_cycle()
+        cut.n = 10
+        rig.runner.replug()
+        rig.wait_ready()
+        wait_for(lambda: any('cut short' in text for _, text in rig.heard.logs) or
+                 not rig.snap.deploy_outcome_unknown, 5, what='the records read')
+        assert rig.snap.deploy_outcome_unknown
+        assert [r['outcome'] for r in rig.deploy_outcomes()] == ['unknown']
+        result = rig.session.get_trigger_records()
+        assert 'cut short' in result.message and len(result.value) == p.RECORD_SLOTS - 1
+        cut.n = 0
+        rig.runner.unplug()
+        wait_for(lambda: not rig.snap.online, 3, what='offline')
+        rig.runner.replug()
+        wait_for(lambda: not rig.snap.deploy_outcome_unknown, 5, what='the deploy settled')
+        assert [r['outcome'] for r in rig.deploy_outcomes()] == ['unknown', 'deployed']
     finally:
         rig.close()
 

@@ -378,3 +378,16 @@ def test_round2_22_3_parachute_deploy_invariants_hold_over_random_sequences():
 
 def test_round2_22_3_the_sessions_deploy_core_keeps_the_invariants_too():
     search(ParachuteSessionDeployModel, 'parachute_session', steps=30)
+
+
+def test_round2_22_8_a_record_answer_cut_short_never_says_did_not_deploy():
+    # The CI run that failed: a loaded host cut a trigger-record answer short. The frame
+    # deployed the module, its acknowledgement was lost and the module rebooted; the records
+    # answer lost the frame of that deployment: "no serial deployment since boot 8, it did NOT
+    # deploy" was false. An answer without every slot's frame tells what it holds, no absence.
+    rig = ModelRig(armed=True)
+    call = rig.deploy(faults=['clean', 'clean', 'drop_reply', 'reboot'] + ['cut_records'] * 8)
+    assert deployed_during(call)
+    answer = call.answers[0]
+    assert answer.outcome == 'unknown', answer.message
+    check_call(rig, call)
