@@ -248,7 +248,7 @@ class TriggerRecords(Tuple[TriggerRecord, ...]):
         return self
 
     def stored(self) -> 'TriggerRecords':
-        """The records that describe a deployment (no empty slot); as complete as this."""
+        """Return the records that describe a deployment (no empty slot), as complete."""
         out = TriggerRecords(r for r in self if not r.is_empty)
         out.complete = self.complete
         return out
