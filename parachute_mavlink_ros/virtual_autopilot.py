@@ -69,9 +69,13 @@ class VirtualAutopilot(Node):
         self.values: Dict[str, Any] = declare_and_check(self, PARAMS)
         ParameterBinding(self, PARAMS, apply=self.values.update)
         self.armed = True
-        self.conn = mavutil.mavlink_connection(
-            self.values['mavlink_url'], source_system=self.values['system_id'],
-            source_component=self.values['component_id'], autoreconnect=False)
+        url = self.values['mavlink_url']
+        try:
+            self.conn = mavutil.mavlink_connection(
+                url, source_system=self.values['system_id'],
+                source_component=self.values['component_id'], autoreconnect=False)
+        except Exception as exc:  # noqa: BLE001 - pymavlink raises what its transport does
+            raise OSError(f'cannot open mavlink_url {url!r}: {exc}') from None
         self._lock = threading.Lock()   # guards writes to the connection and _acks
         self._acks: List[Any] = []
         self._acks_cond = threading.Condition(self._lock)

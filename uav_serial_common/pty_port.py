@@ -97,9 +97,20 @@ class VirtualSerialPort:
                 os.unlink(tmp)
             except FileNotFoundError:
                 pass
-            os.symlink(self._slave_name, tmp)
-            # rename() replaces atomically: a driver polling the path never sees it missing.
-            os.replace(tmp, self._link_path)
+            try:
+                os.symlink(self._slave_name, tmp)
+                # rename() replaces atomically: a driver polling the path never sees it missing.
+                os.replace(tmp, self._link_path)
+            except OSError as exc:
+                os.close(master)
+                os.close(slave)
+                self._master = self._slave = None
+                folder = os.path.dirname(os.path.abspath(self._link_path))
+                hint = '' if os.path.isdir(folder) else f' (no directory {folder})'
+                error = OSError(f'cannot make the link {self._link_path} to the virtual port: '
+                                f'{exc.strerror}{hint}')
+                error.errno = exc.errno
+                raise error from None
         self.plugged = True
 
     def close(self) -> None:
