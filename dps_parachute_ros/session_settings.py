@@ -377,11 +377,14 @@ class SettingsTransaction:
                         before = self._req(SETTINGS[name].encode_query(), retries=1).value
                 else:
                     before = getattr(self.snapshot, f'{FLAG_SETTINGS[name]}_trigger_enabled')
+                # Counted as written before the frame leaves: a write whose acknowledgement
+                # is lost may have taken, and a refused set changes nothing.
+                written.append((name, before))
                 try:
                     ok, reason = self._write_step(name, value, 'parameters')
                 except Withheld as exc:
+                    written.pop()  # the rule held it back: nothing was sent
                     raise LinkError(str(exc)) from None
-                written.append((name, before))
                 if not ok:
                     raise LinkError(reason)
         except LinkError as exc:
@@ -400,6 +403,8 @@ class SettingsTransaction:
             try:
                 if before is None:
                     raise LinkError('its previous value is not known')
+                if name in SETTINGS and self._still(name, before):
+                    continue  # its write did not take: nothing to put back
                 if name in SETTINGS:
                     ok, reason = self._write_setting(name, SETTINGS[name].to_si(before),
                                                      'putting back a refused parameter set')
@@ -416,8 +421,17 @@ class SettingsTransaction:
         text = f'; put back {", ".join(back)}' if back else ''
         if failed:
             text += f'; could NOT put back {"; ".join(failed)}'
-            self._log('error', f'a refused parameter set left the module changed: {text}')
+            self._log('error', f'a refused parameter set may have left the module changed: '
+                               f'{text}')
         return text
+
+    def _still(self, name: str, before: int) -> bool:
+        """Whether the module answers that setting `name` still has its raw value `before`."""
+        try:
+            now = self._req(SETTINGS[name].encode_query(), retries=1).value
+        except LinkError:
+            return False  # not known: put it back
+        return now == before
 
     def _param_refused(self, changes: Dict[str, Any], reason: str) -> Tuple[bool, str]:
         self.blackbox.record('parameter', changes=changes, accepted=False, reason=reason)

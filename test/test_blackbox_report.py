@@ -300,6 +300,7 @@ def fault_run(bench):
                                       freefall_threshold_g=0.3)
     assert not result.successful and 'put back attitude_threshold_deg' in result.reason, \
         result.reason
+    assert 'could NOT put back freefall_threshold_g' in result.reason, result.reason
     bench.set_params('/virtual_parachute', lost_commands=[])
     bench.mark('parameter set refused')
     bench.set_params('/virtual_parachute', lost_commands=[p.CMD_DEPLOY])
@@ -629,9 +630,13 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert 'attitude_threshold_deg := 50' in refused[3]
     (put_back,) = events_of(summary, 'settings', 'put back after the refused set')
     assert put_back[3].endswith('attitude_threshold_deg')
-    (unconfirmed,) = events_of(summary, 'settings', 'did not confirm the write')
+    # The module never heard the free-fall write, nor its put-back: the driver cannot tell
+    # that from a write that took and went unacknowledged, and says it could not put it back.
+    unconfirmed, again = events_of(summary, 'settings', 'did not confirm the write')
     assert unconfirmed[3].startswith('free-fall threshold 0.3 g')
-    assert between('parameter set', 'parameter set refused', [refused, put_back, unconfirmed])
+    assert again[3].startswith('free-fall threshold ') and '0.3 g' not in again[3]  # before
+    assert between('parameter set', 'parameter set refused',
+                   [refused, put_back, unconfirmed, again])
     assert c['settings put back'] == 1 and c.get('settings not verified', 0) == 0
     # The deploy whose frames were lost: not deployed, as the module said when asked.
     assert len(summary.deployments) == 2, [d.paragraph for d in summary.deployments]

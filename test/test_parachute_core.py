@@ -273,6 +273,24 @@ def test_a_parameter_set_is_written_all_or_nothing(rig):
         assert rig.sim.attitude_threshold_deg == 75 and rig.sim.freefall_threshold_raw == 3
 
 
+def test_round2_22_9_a_refused_set_puts_back_a_write_whose_acknowledgement_was_lost(rig):
+    """The module took the free-fall threshold but its acknowledgements were lost: the set is
+    refused, and a refused set changes nothing (D4), so that write is put back too."""
+    write = SETTINGS['freefall_threshold_g'].encode_set(0.3)
+
+    def lose_ack(direction, data, t):
+        if direction == 'rx' and write in data:
+            rig.runner.faults.drop_next = 1
+    rig.runner.add_tap(lose_ack)
+    ok, reason = rig.session.commit_desired({'attitude_threshold_deg': 75,
+                                             'freefall_threshold_g': 0.3})
+    assert not ok and 'put back' in reason, reason
+    with rig.model():
+        assert rig.sim.freefall_threshold_raw == 5 and rig.sim.attitude_threshold_deg == 70
+    assert 'freefall_threshold_g' in reason.split('put back')[1], reason
+    assert 'could NOT' not in reason, reason
+
+
 # -- trigger-request policy -------------------------------------------------------------------
 
 def ask(rig):
