@@ -464,3 +464,37 @@ def test_safety_19_a_port_that_is_no_serial_device_is_named_for_what_it_is(tmp_p
         assert link.reader_alive
     finally:
         link.stop()
+
+
+def test_issue22_a_reply_the_reader_has_read_but_not_handed_on_is_no_timeout(device):
+    """A loaded host holds the reader between reading the reply and handing it on, past the
+    request's deadline: the reply came in time, so the request gets it (no timeout, no resend
+    on a half-duplex line), and the wait ends as soon as the reader hands it on."""
+    held = threading.Event()
+    release = threading.Event()
+
+    def slow_reader(data):
+        if b're 5' in data:
+            held.set()
+            release.wait(5)  # the reader, descheduled with the reply in hand
+
+    link, _, _ = make_link(device.port.path, on_rx=slow_reader)
+    try:
+        assert link.wait_port_open(2)
+        answered = []
+        sent = time.monotonic()
+        asking = threading.Thread(target=lambda: answered.append(
+            link.request(b'ask 5\n', lambda f: f == b're 5', timeout=1.0)))
+        asking.start()
+        assert held.wait(5)
+        # Past the request's 1-s deadline, the reader still holding the reply (a wait of
+        # one more timeout at most is what a late reader is given).
+        time.sleep(max(0.0, sent + 1.2 - time.monotonic()))
+        assert not answered
+        release.set()
+        asking.join(5)
+        assert answered == [b're 5']
+        assert device.received.count(b'ask 5') == 1 and link.stats.timeouts == 0
+    finally:
+        release.set()
+        link.stop()

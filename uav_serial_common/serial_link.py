@@ -136,6 +136,7 @@ class SerialLink:
         self._fast_fd: Optional[int] = None
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
+        self._rx_handed_on = threading.Condition()  # the reader handed on what it read
         # _Waiter and RunningChain objects. Copy-on-write under the lock: the reader thread reads
         # it without the lock, so a waiter may close the port (a failed write) while it is offered.
         self._waiters: Tuple[Any, ...] = ()
@@ -272,9 +273,12 @@ class SerialLink:
         whether the reply came meanwhile.
         """
         end = time.monotonic() + timeout
-        while self.unread_input() and time.monotonic() < end:
-            if waiter.event.wait(0.002) and waiter.frame is not None:
-                return True
+        with self._rx_handed_on:
+            while not waiter.event.is_set() and self.unread_input():
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._rx_handed_on.wait(remaining)
         return waiter.event.is_set() and waiter.frame is not None
 
     def request_chain(self, chain: RequestChain, flush: bool = False) -> int:
@@ -465,6 +469,11 @@ class SerialLink:
         with self._rx_lock:
             frames = flush()
         self._dispatch(frames)
+        self._handed_on()
+
+    def _handed_on(self) -> None:
+        with self._rx_handed_on:
+            self._rx_handed_on.notify_all()
 
     def _receive(self, data: bytes) -> None:
         if self._fast_fd is None:
@@ -478,6 +487,7 @@ class SerialLink:
             self._dispatch(frames)
         finally:
             self._rx_busy = False
+            self._handed_on()
 
     def _dispatch(self, frames: Iterable[Any]) -> None:
         for frame in frames:
@@ -578,6 +588,7 @@ class SerialLink:
         # Wake every waiter: their request fails at once rather than at its timeout.
         for waiter in self._waiters:
             waiter.event.set()
+        self._handed_on()
         if was_open:
             self._notify(False, reason)
 
