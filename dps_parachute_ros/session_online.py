@@ -12,7 +12,8 @@ lock are described there). Threads:
 
 Owns, guarded by ``_lock``: ``_port_open_count``, ``_offline_count``, ``_link_recorded``,
 ``_link_recorded_at``, ``_link_seen``, ``_link_changed_at``; the ``online`` and
-``offline_reason`` fields of the snapshot. Reads ``_in_flight`` (written by ``_req``).
+``offline_reason`` fields of the snapshot. Reads ``_in_flight`` (written by ``_req``; requests
+that gave up unanswered are dropped here once a frame came after them).
 """
 
 from __future__ import annotations
@@ -114,6 +115,9 @@ class OnlineJudgement:
         now = self.clock()
         count, last = self.link.last_frame
         with self._lock:
+            # A frame since a request answers for the module: it is not silent since then.
+            for token in [k for k, (_, c) in self._in_flight.items() if c < count]:
+                del self._in_flight[token]
             snap = self._snap
             timeout = self._config.offline_timeout_s
             if not snap.port_open:

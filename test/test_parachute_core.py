@@ -245,6 +245,35 @@ def test_an_unanswered_request_makes_the_module_offline(tmp_path):
         rig.close()
 
 
+def test_round2_22_10_a_module_silent_since_a_request_that_gave_up_is_offline(tmp_path):
+    """D2: offline once a request sent after the last frame has gone unanswered for
+    offline_timeout_s. The request itself gave up sooner (request timeout 0.5 s, offline after
+    1 s): the module stays silent, and stays "online" no longer than that."""
+    rig = Rig(tmp_path, stream_status=False)
+    try:
+        with rig.model():
+            rig.sim.lost_commands = set(range(256))  # hears nothing any more
+
+        def silence_judged() -> bool:
+            # (A reply to a poll sent before the module went deaf may come in after the
+            # request left: then it does not count, and the next request's silence does.)
+            result = rig.session.get_config()
+            assert not result.ok and 'no reply' in result.message, result.message
+            assert rig.snap.online  # the fake clock stood still: not 1 s of silence yet
+            rig.clock.advance(1.1)
+            rig.session.tick()
+            return not rig.snap.online
+
+        wait_for(silence_judged, 10, interval=0.0, what='the silent module judged offline')
+        assert 'no reply within 1.0 s' in rig.snap.offline_reason
+        with rig.model():
+            rig.sim.lost_commands = set()
+        rig.session.set_streaming(True)  # a frame again: online
+        wait_for(lambda: rig.snap.online, 5, what='online again with a frame')
+    finally:
+        rig.close()
+
+
 # -- settings ---------------------------------------------------------------------------------
 
 def test_settings_are_reapplied_after_a_reboot(rig):
