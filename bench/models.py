@@ -28,6 +28,8 @@ MODELS = {
                  'test_round2_22_3_parachute_deploy_invariants_hold_over_random_sequences',
     'parachute_session': 'test/test_parachute_model.py::'
                          'test_round2_22_3_the_sessions_deploy_core_keeps_the_invariants_too',
+    'parachute_online': 'test/test_parachute_online_model.py::'
+                        'test_round2_22_11_parachute_online_judgement_holds_over_random_sequences',
     'parachute_settings': 'test/test_parachute_core.py::'
                           'test_round2_1_no_write_the_rule_lets_through_fires_the_module',
 }

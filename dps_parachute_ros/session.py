@@ -58,6 +58,7 @@ from dps_parachute_ros import protocol as p
 from dps_parachute_ros.attempts import AttemptsFile
 from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkError, LinkTimeout, ParachuteLink
+from dps_parachute_ros.online_rule import OnlineRule
 from dps_parachute_ros.session_deploy import DeployProcedure
 from dps_parachute_ros.session_events import DeploymentEvents, RECORDS_RETRY_S
 from dps_parachute_ros.session_init import Initialization
@@ -142,10 +143,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._reboots = 0                   # reboots seen (a deploy's core compares them)
         self._boot_read_reboots = -1        # _reboots when the boot count was last read
         self._sent_since_boot_read = 0      # deploy frames since then (P11)
-        self._port_open_count = 0           # link.last_frame count when the port opened
-        self._offline_count = 0             # ... when the module went offline
-        # Request -> (sent, frame count): in flight, or given up unanswered (until a frame).
-        self._in_flight: Dict[int, Tuple[float, int]] = {}
+        self._online = OnlineRule(config.offline_timeout_s)
         self._in_flight_seq = 0
         self._pending: Optional[_Pending] = None
         self._reported_boots: Set[Optional[int]] = set()   # boots whose deployment was reported
@@ -334,17 +332,13 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
 
     def _req(self, frame: bytes, retries: int = 0, timeout: Optional[float] = None,
              silence_ok: bool = False) -> Any:
-        """Request with the D2 bookkeeping: an unanswered request makes the module offline.
-
-        A request that gave up unanswered stays counted until a frame comes: the module has
-        been silent since it was sent, however soon the request stopped waiting.
-        """
+        """Request with the D2 bookkeeping: an unanswered request makes the module offline."""
         token = None
         if not silence_ok:
             with self._lock:
                 self._in_flight_seq += 1
                 token = self._in_flight_seq
-                self._in_flight[token] = (self.clock(), self.link.last_frame[0])
+                self._online.request_sent(token, self.clock(), self.link.last_frame[0])
         unanswered = False
         try:
             return self.link.request(frame, timeout=timeout or self.config.request_timeout_s,
@@ -353,9 +347,9 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             unanswered = True
             raise
         finally:
-            if token is not None and not unanswered:
+            if token is not None:
                 with self._lock:
-                    self._in_flight.pop(token, None)
+                    self._online.request_ended(token, unanswered)
             self._judge_online()
 
     # -- reader thread ---------------------------------------------------------------------------

@@ -10,10 +10,13 @@ lock are described there). Threads:
 - every thread that sees a frame or ends a request (``_req``) calls ``_judge_online``; the
   serial reader also reports the port opening or closing (``_on_connection``).
 
-Owns, guarded by ``_lock``: ``_port_open_count``, ``_offline_count``, ``_link_recorded``,
-``_link_recorded_at``, ``_link_seen``, ``_link_changed_at``; the ``online`` and
-``offline_reason`` fields of the snapshot. Reads ``_in_flight`` (written by ``_req``; requests
-that gave up unanswered are dropped here once a frame came after them).
+The rule itself is ``online_rule.OnlineRule`` (no I/O, no clock): ``_req`` tells it of each
+request it counts, ``_on_connection`` of each port opening, and ``_judge_online`` asks it for the
+verdict and carries a change out (black box, log, re-initialization, listeners).
+
+Owns, guarded by ``_lock``: ``_online`` (the rule), ``_link_recorded``, ``_link_recorded_at``,
+``_link_seen``, ``_link_changed_at``; the ``online`` and ``offline_reason`` fields of the
+snapshot.
 """
 
 from __future__ import annotations
@@ -57,16 +60,12 @@ class OnlineJudgement:
         count, last = self.link.last_frame
         due = now + IDLE_WAKE_S
         with self._lock:
-            timeout = self._config.offline_timeout_s
             if self._pending is not None:
                 due = min(due, self._pending.deadline)
-            snap = self._snap
-            if snap.online:
-                sent = [t for t, c in self._in_flight.values() if c == count]
-                if sent:
-                    due = min(due, min(sent) + timeout)
-                if snap.streaming and last is not None:
-                    due = min(due, last + timeout)
+            self._online.timeout_s = self._config.offline_timeout_s
+            judged = self._online.next_deadline(count, last, self._snap.streaming)
+            if judged is not None:
+                due = min(due, judged)
         return max(due - now, 0.001)
 
     def _record_link(self, final: bool = False) -> None:
@@ -115,26 +114,11 @@ class OnlineJudgement:
         now = self.clock()
         count, last = self.link.last_frame
         with self._lock:
-            # A frame since a request answers for the module: it is not silent since then.
-            for token in [k for k, (_, c) in self._in_flight.items() if c < count]:
-                del self._in_flight[token]
             snap = self._snap
-            timeout = self._config.offline_timeout_s
-            if not snap.port_open:
-                online, reason = False, self.link.serial.last_error or 'port closed'
-            elif last is None or count <= self._port_open_count:
-                online, reason = False, 'no valid frame from the module since the port opened'
-            elif not snap.online and count <= self._offline_count:
-                online, reason = False, snap.offline_reason  # back only with a new frame
-            else:
-                online, reason = True, ''
-                stale = [t for t, c in self._in_flight.values() if c == count]
-                if stale and now - min(stale) >= timeout:
-                    online = False
-                    reason = f'no reply within {timeout:.1f} s of a request'
-                elif snap.streaming and now - last >= timeout:
-                    online = False
-                    reason = f'no status frame for {timeout:.1f} s while streaming'
+            self._online.timeout_s = self._config.offline_timeout_s
+            verdict = self._online.judge(now, snap.port_open, count, last, snap.streaming,
+                                         self.link.serial.last_error)
+            online, reason = verdict.online, verdict.reason
             if online == snap.online:
                 return
             reread = online and snap.initialized
@@ -146,7 +130,6 @@ class OnlineJudgement:
                 self._snap = replace(snap, online=True, offline_reason='')
             else:
                 self._snap = replace(snap, online=False, offline_reason=reason)
-                self._offline_count = count
             self._lock.notify_all()
         with self._jobs_cond:
             schedule_init = online and (reread or not self._jobs.init_busy)
@@ -166,7 +149,7 @@ class OnlineJudgement:
         with self._lock:
             self._epoch += 1
             if up:
-                self._port_open_count = self.link.last_frame[0]
+                self._online.port_opened(self.link.last_frame[0])
             self._snap = replace(self._snap, port_open=up, initialized=False, fresh=False)
         self.blackbox.record('state', port_open=up, reason=reason)
         if up:

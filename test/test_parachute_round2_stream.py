@@ -33,7 +33,8 @@ def rig(tmp_path):
 
 def quiet(rig, timeout=5.0):
     """Wait until no request of the session waits for a reply (before the clock jumps)."""
-    wait_for(lambda: not rig.session._in_flight, timeout, what='no request in flight')
+    wait_for(lambda: not rig.session._online.requests_in_flight, timeout,
+             what='no request in flight')
 
 
 def kill_stream(rig, tilt=50):
