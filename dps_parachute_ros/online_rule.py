@@ -47,16 +47,16 @@ class OnlineRule:
         return len(self._in_flight)
 
     def port_opened(self, frames: int) -> None:
-        """The port (re)opened; `frames` is the link's frame count then."""
+        """Take the port's (re)opening; `frames` is the link's frame count then."""
         self._frames_at_open = frames
 
     def request_sent(self, token: int, now: float, frames: int) -> None:
-        """A request that D2 counts left at `now`, after `frames` valid frames."""
+        """Take a request that D2 counts, sent at `now` after `frames` valid frames."""
         self._silent_since[token] = (now, frames)
         self._in_flight.add(token)
 
     def request_ended(self, token: int, unanswered: bool) -> None:
-        """A request ended; one that went unanswered counts on until a frame comes."""
+        """End a request; one that went unanswered counts on until a frame comes."""
         self._in_flight.discard(token)
         if not unanswered:
             self._silent_since.pop(token, None)
