@@ -170,7 +170,8 @@ class DeploymentEvents:
         with self._lock:
             since = self._records_from_boot
         for record in records:
-            if record.raw not in known and (since is None or record.boot_count >= since):
+            if record.raw not in known and (since is None or boot is None or (
+                    (record.boot_count - since) % 256 <= (boot - since) % 256)):  # (it wraps)
                 self._report(record.source, 'record', record, record.boot_count)
 
     def _settle_unknown_by_records(self, records: p.TriggerRecords, unknown_boot: int,
@@ -194,9 +195,9 @@ class DeploymentEvents:
                 records = self._fetch_records()
             except LinkError:
                 break
-        self._log('warn', f'the trigger records came cut short ({len(records)} of '
-                          f'{p.RECORD_SLOTS} slots): the earlier deploy of unknown outcome stays '
-                          'unknown until they are read whole')
+        self._log('warn', f'the trigger records came cut short (fewer than the {p.RECORD_SLOTS} '
+                          'slots): the earlier deploy of unknown outcome stays unknown until they '
+                          'are read whole')
 
     def _trigger_job(self) -> None:
         boot = self.snapshot.boot_count
