@@ -414,13 +414,15 @@ class TriggerCore:
         req = self._open
         if req is None:
             return
-        if req.held and self._now >= req.deadline:
+        age = self._now - req.t_rx
+        if age >= MODULE_WINDOW_S:
+            where = '' if req.held else ' the release gate was still being passed:'
+            self._decide(req, 'timed_out', f'{age:.2f} s after the request{where} the '
+                         "module's 1 s window has passed (P10); no confirmation sent",
+                         'window_passed')
+        elif req.held and self._now >= req.deadline:
             self._decide(req, 'timed_out', f'nobody answered within defer_timeout_s = '
                          f'{req.defer_s:.2f} s: denied', 'timed_out')
-        elif not req.held and self._now - req.t_rx >= MODULE_WINDOW_S:
-            self._decide(req, 'timed_out', f"{self._now - req.t_rx:.2f} s after the request "
-                         "the release gate was still being passed: the module's 1 s window "
-                         'has passed (P10); no confirmation sent', 'window_passed')
 
     def _problem(self, req: _Request) -> Optional[Tuple[str, str, str]]:
         """Why `req` may not be confirmed now: (decision, problem, cause), or None."""
