@@ -1068,6 +1068,23 @@ def test_round2_22_7_an_answer_after_the_defer_deadline_confirms_nothing(rig):
     assert_never_confirmed(rig, mark)
 
 
+
+def test_round2_22_7_a_policy_change_never_waits_for_the_release_gate(rig):
+    """A change to confirm settles a held request through the release gate: the parameter
+    callback waited for the gate (up to release_gate_timeout_s, on the executor) before."""
+    mark = held_request(rig)
+    gate = gated(rig)
+    done = []
+    threading.Thread(target=lambda: done.append(policy(rig, 'confirm')), daemon=True).start()
+    assert gate.entered.wait(5.0)
+    wait_for(lambda: done, 5, what='the parameter change to return while the gate waits')
+    assert not rig.heard.decisions  # (decided when the gate is passed)
+    gate.go.set()
+    wait_for(lambda: rig.heard.decisions, 5, what='a decision')
+    assert rig.heard.decisions[-1].decision == 'confirmed'
+    wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
+    assert CONFIRM in rig.wire.since(mark)
+
 # -- round two (issue 21) ---------------------------------------------------------------------
 
 def armed_and_banked(rig, tilt=30):

@@ -97,6 +97,7 @@ class TriggerRig:
         self.problems: List[str] = []
         self.known: Dict[str, Any] = dict(online=True, triggered=False, armed=True, fresh=True)
         self.pending = False
+        self.unseen = False  # the module changed (locked, rebooted) since the driver read it
         self.last_heartbeat = -1e9
         self.confirmed_deployments = 0
         self.monitor_lag = 0.0  # how late the monitor's tick comes after a deadline
@@ -144,7 +145,9 @@ class TriggerRig:
             if m.triggered or m.pending_request:
                 return False
         m.set_tilt(0.0)  # (unlatch its attitude trigger)
-        m.armed = True
+        if not m.armed:
+            m.armed = True
+            self.unseen = True
         m.set_tilt(85.0)
         self.from_model()
         return True
@@ -174,6 +177,7 @@ class TriggerRig:
         if quiet:
             self.model.step(self.t + 0.06)  # both heartbeats, lost on the wire
             self.t += 0.06
+            self.unseen = True
         self.from_model()
 
     def unplug(self) -> None:
@@ -193,6 +197,7 @@ class TriggerRig:
         if self.plugged and self.model.powered:
             self.known.update(online=True, triggered=self.model.triggered,
                               armed=self.model.armed, fresh=True)
+            self.unseen = False
 
     def pass_gate(self, index: int = 0) -> None:
         """The release gate asked for `index`-th returns now."""
@@ -311,6 +316,9 @@ class TriggerRig:
             self.problems.append(f'an answer with no call: {answer}')
             return
         call.answers.append(answer.result)
+        if 'it deploys' in answer.result.message and not self.unseen and \
+                not self.model.triggered:
+            self.problems.append(f'"it deploys", and the module did not: {answer.result}')
         if (answer.result.outcome == Outcome.SENT) != (call.sends == 1) or call.sends > 1:
             self.problems.append(f'answered {answer.result} with {call.sends} confirmation(s) '
                                  'sent')
@@ -479,8 +487,10 @@ class TriggerPolicyModel(RuleBasedStateMachine):
 
     @rule(armed=st.booleans())
     def someone_else_arms_or_locks(self, armed: bool) -> None:
-        if not self.rig.model.triggered:
+        """Armed or locked by another path (its switch); the driver reads it later."""
+        if not self.rig.model.triggered and self.rig.model.armed != armed:
             self.rig.model.armed = armed
+            self.rig.unseen = True
 
     @rule(seconds=st.sampled_from([0.0, 0.1, 0.5, 1.5]))
     def unplugged_for(self, seconds: float) -> None:
