@@ -120,7 +120,7 @@ class TriggerRequests:
         self._trigger(RequestReceived(t_rx, self._gate_ready()))
 
     def _void_pending(self, why: str) -> None:
-        """A reboot seen: a request of the module's last power-up is gone (nothing sent)."""
+        """Void a request of the module's last power-up: it rebooted (nothing is sent)."""
         self._trigger(Rebooted(self.clock()))
 
     def _policy_changed(self, policy: str, defer_timeout_s: float) -> None:

@@ -1,4 +1,4 @@
-"""The trigger-request policy (D8) as a state machine without I/O: events in, actions out (issue 22).
+"""The trigger-request policy (D8) as a state machine without I/O: events in, actions out.
 
 The module asks "may I deploy?" (a trigger request, 0x39) when its crash detection fires on
 external power, and deploys only on a confirmation within 1 s (P10, ``MODULE_WINDOW_S``). The
@@ -27,7 +27,7 @@ The rules, each in one place:
 
 Under ``confirm`` without a release gate the confirmation is the first action of the step that
 takes the request (the reader writes it at once: a confirm takes milliseconds). With a gate, the
-core asks for it (`PassGate`) and decides when it is passed (`GateDone`).
+core asks for it (`PassGate`) and decides when it is passed (`GateDone`). (Issue 22.)
 """
 
 from __future__ import annotations

@@ -1068,7 +1068,6 @@ def test_round2_22_7_an_answer_after_the_defer_deadline_confirms_nothing(rig):
     assert_never_confirmed(rig, mark)
 
 
-
 def test_round2_22_7_a_policy_change_never_waits_for_the_release_gate(rig):
     """A change to confirm settles a held request through the release gate: the parameter
     callback waited for the gate (up to release_gate_timeout_s, on the executor) before."""
@@ -1084,6 +1083,7 @@ def test_round2_22_7_a_policy_change_never_waits_for_the_release_gate(rig):
     assert rig.heard.decisions[-1].decision == 'confirmed'
     wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
     assert CONFIRM in rig.wire.since(mark)
+
 
 # -- round two (issue 21) ---------------------------------------------------------------------
 
