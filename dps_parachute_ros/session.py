@@ -12,7 +12,7 @@ docstring says which threads run its code and which of the state below it owns:
 - ``session_online``: online judgement (D2), the monitor thread, the link's counters;
 - ``session_worker``: the worker thread, its jobs, the poll and the status stream;
 - ``session_init``: (re-)initialization and reboots (D3, D15);
-- ``session_triggers``: the trigger-request policy (D8);
+- ``session_triggers``: the trigger-request policy (D8), whose rules are ``trigger_core``'s;
 - ``session_settings``: the settings rule every write passes (D16), the desired settings, the
   settings services and parameter sets (D4, D5);
 - ``session_events``: deployments as events, one per deployment (D7);
@@ -30,7 +30,8 @@ Threads, what each owns, and the lock that guards what they share:
   whose confirmation is written right there (``session_triggers``: why a confirm takes
   milliseconds). It never waits for a reply (only it delivers replies).
 - gate (``parachute-gate``, ``session_triggers``): with a release gate (``release_gate.py``), a
-  short-lived thread per confirmed trigger request waits for the gate, then confirms.
+  short-lived thread per trigger request to confirm waits for the gate, then steps the
+  trigger-request core, which judges again whether the confirmation may still leave.
 - worker (``parachute-worker``, ``session_worker``): (re-)initializes the module, polls light,
   charging and voltage, sends heartbeats, fetches trigger records. Owns its schedule
   (``next_*`` locals).
@@ -68,7 +69,7 @@ from dps_parachute_ros.session_preflight import (LOW_BATTERY_V,  # noqa: F401 (n
                                                  Preflight)
 from dps_parachute_ros.session_settings import (HELD_RETRY_S,  # noqa: F401 (tests import it here)
                                                 SettingsTransaction)
-from dps_parachute_ros.session_triggers import _Pending, TriggerRequests
+from dps_parachute_ros.session_triggers import TriggerRequests
 from dps_parachute_ros.session_worker import _Jobs, STREAM_RETRY_S, Worker
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener, Result,
                                      SessionConfig, SETTINGS, Snapshot)
@@ -145,7 +146,6 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._sent_since_boot_read = 0      # deploy frames since then (P11)
         self._online = OnlineRule(config.offline_timeout_s)
         self._in_flight_seq = 0
-        self._pending: Optional[_Pending] = None
         self._reported_boots: Set[Optional[int]] = set()   # boots whose deployment was reported
         self._known_records: Optional[Set[bytes]] = None
         self._records_from_boot: Optional[int] = None  # boot count of the first records read
@@ -176,6 +176,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._link_seen: Tuple[int, ...] = (0,) * len(LINK_ERROR_COUNTERS)
         self._silent_flag_queries = 0       # flag queries unanswered (P14): no link error
         self._link_changed_at = -1e9        # when one of the problem counters last grew
+        self._init_triggers()               # the trigger-request core (_trigger_lock)
         # -- guarded by _jobs_cond ----------------------------------------------------------
         self._jobs = _Jobs()
         self._jobs_cond = threading.Condition()
@@ -218,11 +219,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._monitor_wake.set()
         with self._jobs_cond:
             self._jobs_cond.notify_all()
-        with self._lock:
-            pending, self._pending = self._pending, None
-        if pending is not None:
-            self.blackbox.record('decision', what='trigger request', decision='not answered',
-                                 reason='driver stopped while the request was deferred')
+        self._trigger_stop()
         self.link.stop(timeout=1.0)
         for thread in (self._worker, self._monitor):
             if thread.is_alive():
@@ -256,26 +253,16 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             raise ValueError('; '.join(problems))
         with self._lock:
             old, self._config = self._config, config
-            pending = None
             if config.trigger_request_policy != old.trigger_request_policy:
                 self._update(policy=config.trigger_request_policy)
-                pending, self._pending = self._pending, None
         self.link.layout = config.auto_trigger_flag_layout
         if config.blackbox_max_mb != old.blackbox_max_mb:
             self.blackbox.set_max_bytes(int(config.blackbox_max_mb * 1e6)
                                         if config.blackbox_max_mb > 0 else None)
-        if config.trigger_request_policy != old.trigger_request_policy:
-            policy = config.trigger_request_policy
-            self.blackbox.record('decision', what='policy', policy=policy)
-            self.blackbox.sync(None)
-            self._log('info', f'trigger requests: {policy}')
-            if pending is not None:
-                # A policy change settles a waiting request at once, under the new policy (D8).
-                why = f'policy changed to {policy} while the request was pending'
-                if policy == 'confirm':
-                    self._answer_pending(pending, True, policy, why)
-                else:
-                    self._decide('denied', policy, why, pending.t_rx, None)
+        if (config.trigger_request_policy, config.defer_timeout_s) != \
+                (old.trigger_request_policy, old.defer_timeout_s):
+            # (Recorded, and a request still open settled under the new policy, by the core.)
+            self._policy_changed(config.trigger_request_policy, config.defer_timeout_s)
         if config.stream_status != old.stream_status:
             self._schedule('stream')
         if any(getattr(config, n) != getattr(old, n) for n in (*SETTINGS, *FLAG_SETTINGS)):

@@ -59,9 +59,10 @@ class OnlineJudgement:
         now = self.clock()
         count, last = self.link.last_frame
         due = now + IDLE_WAKE_S
+        deadline = self._trigger_deadline()
+        if deadline is not None:
+            due = min(due, deadline)
         with self._lock:
-            if self._pending is not None:
-                due = min(due, self._pending.deadline)
             self._online.timeout_s = self._config.offline_timeout_s
             judged = self._online.next_deadline(count, last, self._snap.streaming)
             if judged is not None:
@@ -98,17 +99,7 @@ class OnlineJudgement:
     def tick(self) -> None:
         """Judge the time-based rules now (the monitor does at each deadline, or IDLE_WAKE_S)."""
         self._judge_online()
-        now = self.clock()
-        with self._lock:
-            pending = self._pending
-            if pending is None or now < pending.deadline:
-                return
-            self._pending = None
-            policy = self._config.trigger_request_policy
-            defer_s = self._config.defer_timeout_s
-        self._decide('timed_out', policy,
-                     f'nobody answered within defer_timeout_s = {defer_s:.2f} s: denied',
-                     pending.t_rx, None)
+        self._trigger_tick(self.clock())  # the defer deadline, the module's window
 
     def _judge_online(self) -> None:
         now = self.clock()

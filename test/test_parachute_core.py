@@ -1053,6 +1053,127 @@ def test_safety_5_7_a_pending_request_across_a_reboot_claims_no_deployment(rig):
     assert CONFIRM not in rig.wire.since(mark)
 
 
+# -- issue 22 item 7: the trigger-request policy's findings (test/test_trigger_model.py) --------
+
+class HeldGate:
+    """A release gate that holds every release until the test lets it go (a slow motor stop)."""
+
+    def __init__(self) -> None:
+        self.entered = threading.Event()
+        self.go = threading.Event()
+
+    def available(self, route):
+        return True
+
+    def before_release(self, route, t_request=None):
+        self.entered.set()
+        self.go.wait(10.0)
+
+
+def gated(rig):
+    gate = HeldGate()
+    rig.session.release_gate = gate
+    return gate
+
+
+def rebooted_while_held(rig, gate):
+    """Power-cycle the module while `gate` holds a release; return when the driver saw it."""
+    assert gate.entered.wait(5.0), 'the release gate was never called'
+    logs = len(rig.heard.logs)
+    boot = rig.power_cycle()
+    wait_for(lambda: any('rebooted' in text for _, text in rig.heard.logs[logs:]), 5,
+             what='the reboot seen')
+    return boot
+
+
+def test_round2_22_7_a_reboot_while_the_gate_is_passed_confirms_nothing(rig):
+    """Found by the trigger-request model: under confirm with a release gate, the module
+    rebooted while the gate waited, and the confirmation went out after it anyway (decided
+    'confirmed'): a rebooted module has forgotten its question, so the confirm answers nobody,
+    or a newer request nobody decided on."""
+    gate = gated(rig)
+    mark = rig.wire.mark()
+    ask(rig)
+    boot = rebooted_while_held(rig, gate)
+    gate.go.set()
+    wait_for(lambda: rig.heard.decisions, 5, what='a decision')
+    rig.wait_ready(boot)
+    assert [d.decision for d in rig.heard.decisions] == ['denied'], rig.heard.decisions
+    assert 'rebooted' in rig.heard.decisions[0].reason
+    assert CONFIRM not in rig.wire.since(mark)
+
+
+def test_round2_22_7_a_change_to_deny_while_the_gate_is_passed_confirms_nothing(rig):
+    """Found by the model: the policy set to deny while the gate waited, and the confirmation
+    left after it under deny."""
+    gate = gated(rig)
+    mark = rig.wire.mark()
+    ask(rig)
+    assert gate.entered.wait(5.0)
+    policy(rig, 'deny')
+    gate.go.set()
+    wait_for(lambda: rig.heard.decisions, 5, what='a decision')
+    assert [(d.decision, d.policy) for d in rig.heard.decisions] == [('denied', 'deny')]
+    assert_never_confirmed(rig, mark)
+
+
+def test_round2_22_7_a_gate_that_outlasts_the_modules_window_confirms_nothing(rig):
+    """Found by the model: a gate that returned after the module's 1 s window (a loaded host)
+    was followed by the confirmation, decided 'confirmed' with a latency over 1 s."""
+    gate = gated(rig)
+    mark = rig.wire.mark()
+    ask(rig)
+    assert gate.entered.wait(5.0)
+    rig.clock.advance(1.0)
+    gate.go.set()
+    wait_for(lambda: rig.heard.decisions, 5, what='a decision')
+    assert [d.decision for d in rig.heard.decisions] == ['timed_out'], rig.heard.decisions
+    assert_never_confirmed(rig, mark)
+
+
+def test_round2_22_7_an_answer_whose_gate_outlasts_a_reboot_is_not_confirmed(rig):
+    """Found by the model: ~/answer_trigger_request true read the module's state, then waited
+    for the gate, during which the module rebooted; it confirmed anyway and answered "sent"."""
+    mark = held_request(rig)
+    gate = gated(rig)
+    out = in_thread(rig.session.answer_trigger_request, True)
+    rebooted_while_held(rig, gate)
+    gate.go.set()
+    wait_for(lambda: out, 5, what='the answer')
+    result = out[0]
+    assert (result.outcome, result.cause) == (Outcome.REFUSED, 'rebooted'), result
+    assert [d.decision for d in rig.heard.decisions] == ['denied'], rig.heard.decisions
+    assert CONFIRM not in rig.wire.since(mark)
+
+
+def test_round2_22_7_an_answer_after_the_defer_deadline_confirms_nothing(rig):
+    """Found by the model: an answer true after defer_timeout_s, before the monitor's tick
+    denied the request (a loaded host), confirmed it."""
+    mark = held_request(rig)
+    rig.clock.advance(0.85)  # past its 0.8 s deadline, within the module's 1 s
+    result = rig.session.answer_trigger_request(True)
+    assert not result.ok and result.outcome == Outcome.REFUSED, result
+    assert [d.decision for d in rig.heard.decisions] == ['timed_out'], rig.heard.decisions
+    assert_never_confirmed(rig, mark)
+
+
+def test_round2_22_7_a_policy_change_never_waits_for_the_release_gate(rig):
+    """A change to confirm settles a held request through the release gate: the parameter
+    callback waited for the gate (up to release_gate_timeout_s, on the executor) before."""
+    mark = held_request(rig)
+    gate = gated(rig)
+    done = []
+    threading.Thread(target=lambda: done.append(policy(rig, 'confirm')), daemon=True).start()
+    assert gate.entered.wait(5.0)
+    wait_for(lambda: done, 5, what='the parameter change to return while the gate waits')
+    assert not rig.heard.decisions  # (decided when the gate is passed)
+    gate.go.set()
+    wait_for(lambda: rig.heard.decisions, 5, what='a decision')
+    assert rig.heard.decisions[-1].decision == 'confirmed'
+    wait_for(lambda: rig.sim.triggered, 3, what='the module to deploy')
+    assert CONFIRM in rig.wire.since(mark)
+
+
 # -- round two (issue 21) ---------------------------------------------------------------------
 
 def armed_and_banked(rig, tilt=30):
