@@ -209,3 +209,47 @@ def test_issue22_6_stop_spinning_ends_a_wait_at_once_where_wake_did_not():
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_issue22_a_handler_waiting_for_a_pool_thread_is_submitted_once():
+    """rclpy yields a task again on every turn until a thread has started it. Each was handed to
+    the pool again: a timer queued behind a busy pool became hundreds of submissions, and the
+    spin thread turned hot doing it (the handset driver's CPU +50 %). It is submitted once, and
+    runs once the pool thread is free."""
+    context = Context()
+    rclpy.init(context=context)
+    node = Node('resubmit_under_test', context=context)
+    holding = threading.Event()
+    release = threading.Event()
+    ran = []
+
+    def hold() -> None:
+        if not holding.is_set():
+            holding.set()
+            release.wait(10.0)
+
+    node.create_timer(0.01, hold, callback_group=MutuallyExclusiveCallbackGroup())
+    node.create_timer(0.01, lambda: ran.append('queued'),
+                      callback_group=MutuallyExclusiveCallbackGroup())
+    executor = DriverExecutor(num_threads=1, context=context)
+    executor.add_node(node)
+    try:
+        while not holding.is_set():
+            executor.spin_once(timeout_sec=1.0)
+        # The other timer's handler is taken and queued behind the held pool thread; rclpy
+        # yields it again on each of these turns.
+        for _ in range(50):
+            executor.spin_once(timeout_sec=0.05)
+        with executor._pool_lock:
+            submitted = [id(task) for task, _ in executor._pool_tasks]
+        assert len(submitted) == len(set(submitted)) == 2, \
+            f'{len(submitted)} pool submissions of {len(set(submitted))} handlers'
+        release.set()
+        wait_for(lambda: ran, 5, what='the queued timer ran')
+        for _ in range(3):
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        release.set()
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
