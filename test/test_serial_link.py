@@ -359,6 +359,23 @@ def test_a_chain_can_retry_a_silent_request_at_once_and_survives_a_handler_bug(d
         assert link.request_chain(ListChain(link, [])) == 0
 
 
+def test_a_chain_takes_a_reply_that_came_in_time_while_the_reader_was_held(device):
+    # A loaded host can hold the reader thread past a reply's deadline with the reply already
+    # in: as request(), the chain waits for the reader instead of counting the reply lost
+    # (and flushing it away with the next request).
+    held = []
+
+    def held_reader(data):
+        if b're 2' in data and not held:
+            held.append(data)
+            time.sleep(0.25)  # the reader, held by a starved host past the 0.2 s deadline
+    with open_link(device.port.path, on_rx=held_reader) as (link, unsolicited, _):
+        chain = ListChain(link, [1, 2, 3])
+        assert link.request_chain(chain) == 3
+        assert held and [frame for frame, _ in chain.results] == [b're 1', b're 2', b're 3']
+        assert link.stats.timeouts == 0 and unsolicited == []
+
+
 class HoldingChain(ListChain):
     """A chain that sends a frame without a reply (`note N`) before each `ask N`."""
 
