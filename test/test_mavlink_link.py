@@ -35,6 +35,11 @@ def rig(tmp_path_factory, request):
     try:
         rig.wait_ready()
         rig.wait_autopilot()
+        # And the parachute node heard by parachute_mavlink (UNINIT until it answered): a
+        # release before that is rightly DENIED, 'no parachute node' (a loaded host's
+        # discovery took seconds, and the first test of a -k selection met it).
+        rig.link.wait(lambda m: m.system_status != mavlink.MAV_STATE_UNINIT, 15,
+                      what='parachute_mavlink hearing the parachute node')
         yield rig
     finally:
         rig.close(request.session.testsfailed > failed_before)
