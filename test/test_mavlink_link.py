@@ -11,7 +11,7 @@ import os
 import random
 
 from dps_parachute_ros import protocol as p
-from mavlink_rig import Hub, MavlinkRig, motor_stops
+from mavlink_rig import Hub, MavlinkRig, motor_stops, sent_motor_stops
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -130,7 +130,7 @@ def test_round2_23_release_stops_the_motors_first_and_deploys_once(fresh):
     final = rig.hub.final_ack(mark)
     assert final.result == mavlink.MAV_RESULT_ACCEPTED, final
     t_frame = wire_time(rig, DEPLOY_FRAME, wire)
-    stops = motor_stops(rig.hub, mark)
+    stops = sent_motor_stops(rig.hub, mark)
     assert stops and stops[0][0] < t_frame
     assert (stops[0][1].param1, stops[0][1].param2) == (0.0, 21196.0)
     t_ack = rig.hub.wait(mark, 'ap', 'COMMAND_ACK', lambda m: (
@@ -179,7 +179,7 @@ def test_round2_23_a_release_the_module_did_not_do_is_failed(fresh):
         rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE)
         final = rig.hub.final_ack(mark, timeout=30.0)
         assert (final.result, final.result_param2) == (mavlink.MAV_RESULT_FAILED, 4), final
-        assert motor_stops(rig.hub, mark)  # the release was attempted: the motors went first
+        assert sent_motor_stops(rig.hub, mark)  # the release was attempted: the motors went first
         assert len(rig.wire.since(wire, p.CMD_DEPLOY)) == 2  # never a third (P11)
         rig.hub.wait(mark, 'node', 'STATUSTEXT', lambda m: 'FAILED' in m.text, 5)
     finally:
@@ -224,7 +224,7 @@ def test_round2_23_mission_deploy_stops_the_motors_first(fresh):
     mark, wire = rig.hub.mark(), rig.wire.mark()
     deploy(rig)
     t_frame = wire_time(rig, DEPLOY_FRAME, wire)
-    stops = motor_stops(rig.hub, mark)
+    stops = sent_motor_stops(rig.hub, mark)
     assert stops and stops[0][0] < t_frame
     record = gate_records(rig)[-1]
     assert record['route'] == 'deploy' and record['success'] is True
@@ -242,7 +242,7 @@ def test_round2_23_module_request_stops_the_motors_inside_its_window(fresh):
     msg = rig.requests.wait(lambda m: True, 5, start=start, what='trigger request decision')
     assert msg.decision == TriggerRequest.CONFIRMED and msg.latency_ms < 1000.0
     t_confirm = wire_time(rig, CONFIRM_FRAME, wire)
-    stops = motor_stops(rig.hub, mark)
+    stops = sent_motor_stops(rig.hub, mark)
     assert stops and stops[0][0] < t_confirm
     t_ack = rig.hub.wait(mark, 'ap', 'COMMAND_ACK', lambda m: (
         m.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM))[0]
@@ -258,7 +258,7 @@ def test_round2_23_an_unconfirmed_motor_stop_still_releases(fresh, answer):
     mark, wire = rig.hub.mark(), rig.wire.mark()
     deploy(rig)
     assert rig.wire.since(wire, p.CMD_DEPLOY) == [DEPLOY_FRAME]
-    assert motor_stops(rig.hub, mark)
+    assert sent_motor_stops(rig.hub, mark)
     rig.hub.wait(mark, 'node', 'STATUSTEXT', lambda m: 'NOT confirmed' in m.text, 5)
     record = gate_records(rig)[-1]
     # False: the gate said "not confirmed"; None: on a loaded host its answer came after
@@ -310,7 +310,7 @@ def test_round2_23_a_vanished_autopilot_is_an_error_and_never_holds_a_release(fr
     rig.link.wait(lambda m: not m.autopilot_heard, 5, start=len(rig.link))
     mark = rig.hub.mark()
     deploy(rig)
-    assert motor_stops(rig.hub, mark)  # sent all the same: it may still hear it
+    assert sent_motor_stops(rig.hub, mark)  # sent all the same: it may still hear it
     record = gate_records(rig)[-1]
     assert record['success'] is False and 'silent' in record['message']
     rig.autopilot_param('silent', False)
