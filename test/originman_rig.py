@@ -27,6 +27,7 @@ from typing import Any, List, Optional, Tuple
 
 from originman_board_ros import protocol as p
 from originman_board_ros.virtual_node import VirtualOriginManBoard
+from uav_serial_common.process import die_with_parent
 
 
 class VirtualBoard(VirtualOriginManBoard):
@@ -89,18 +90,24 @@ class BoardProcess:
         self._log = open(self._log_path, 'wb')
         self._proc = subprocess.Popen(
             [sys.executable, os.path.abspath(__file__), self._address,
-             json.dumps(model_kwargs)], stdout=self._log, stderr=subprocess.STDOUT)
+             json.dumps(model_kwargs)], stdout=self._log, stderr=subprocess.STDOUT,
+            preexec_fn=die_with_parent)
         self._lock = threading.Lock()
+        self._conn = None
         deadline = time.monotonic() + timeout_s
-        while True:
-            try:  # the socket's file exists from its bind, a moment before it listens
-                self._conn = Client(self._address, authkey=AUTHKEY)
-                break
-            except (FileNotFoundError, ConnectionRefusedError):
-                if self._proc.poll() is not None or time.monotonic() > deadline:
-                    self.stop()
-                    raise RuntimeError(f'the board process did not start:\n{self.output()}')
-                time.sleep(0.01)
+        try:
+            while True:
+                try:  # the socket's file exists from its bind, a moment before it listens
+                    self._conn = Client(self._address, authkey=AUTHKEY)
+                    break
+                except (FileNotFoundError, ConnectionRefusedError):
+                    if self._proc.poll() is not None or time.monotonic() > deadline:
+                        raise RuntimeError(
+                            f'the board process did not start:\n{self.output()}') from None
+                    time.sleep(0.01)
+        except BaseException:
+            self.stop()  # never leave the child waiting for a caller that is gone
+            raise
 
     def call(self, name: str, *args: Any) -> Any:
         """Run the board process's ``name(*args)`` and return its result."""
@@ -118,7 +125,7 @@ class BoardProcess:
 
     def stop(self) -> None:
         """Stop the board and its process."""
-        conn = getattr(self, '_conn', None)
+        conn = self._conn
         if conn is not None:
             try:
                 self.call('stop')
@@ -126,6 +133,8 @@ class BoardProcess:
                 pass
             conn.close()
             self._conn = None
+        else:
+            self._proc.kill()  # not started, or waiting for a caller that never came
         try:
             self._proc.wait(10)
         except subprocess.TimeoutExpired:

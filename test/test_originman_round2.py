@@ -23,10 +23,16 @@ class LiveRig:
 
     def __init__(self, tmp_path, board_kwargs=None, on_imu=None, **config):
         self.board = BoardProcess(str(tmp_path / 'board'), **(board_kwargs or {}))
-        self.core = OriginManCore(OriginManConfig(port=self.board.path, **config),
-                                  on_imu=on_imu)
-        self.core.start()
-        wait_for(lambda: self.core.online, 10, what='the board online')
+        try:
+            self.core = OriginManCore(OriginManConfig(port=self.board.path, **config),
+                                      on_imu=on_imu)
+            self.core.start()
+            wait_for(lambda: self.core.online, 10, what='the board online')
+        except BaseException:
+            if hasattr(self, 'core'):
+                self.core.stop(stop_motors=False)
+            self.board.stop()
+            raise
 
     def handled(self, kind, after=0.0):
         """(arrived, handled, command) of each ``kind`` the board handled after ``after``."""
