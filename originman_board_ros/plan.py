@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 from originman_board_ros import protocol as p
 
 __all__ = ['BoardPlan', 'FrameScheduler', 'MotorWatchdog', 'OnlineJudge', 'PACE_AHEAD_S',
-           'STOP_ALL_FRAME', 'board_time']
+           'PACE_MARGIN', 'STOP_ALL_FRAME', 'board_time']
 
 SERVO_BUS_BAUD = 115200
 """The board's servo bus (§6): 10 bits a byte."""
@@ -32,6 +32,12 @@ BUS_MOVE_ITEM_BYTES = 10
 PACE_AHEAD_S = 0.02
 """At most this much servo-bus work (plus one servo move) is left queued on the board; moves are
 released once half of it is done."""
+PACE_MARGIN = 1.25
+"""Every frame is charged this many times its board time (§6's figures), so a flood feeds the
+board 80 % of what it can do: a board slower than §6 says, or one that fell behind for a while,
+works its backlog off meanwhile. Charged at 1.0, every late millisecond stayed queued in front
+of the next stop for as long as the flood lasted (a board 10 % slow held a stop 0.55 s behind
+moves after a 10 s flood)."""
 STOP_ALL_FRAME = p.encode_motor_stop_mask((1 << p.MOTOR_COUNT) - 1)
 PER_FRAME = (p.MAX_DATA - 4) // 3
 """Servos in one BUS_SERVO 0x01 frame."""
@@ -195,12 +201,16 @@ class FrameScheduler:
         return n
 
     def backlog(self, now: float) -> float:
-        """Seconds of work the board still has from frames written before ``now``."""
+        """Seconds of work the board still has from frames written before ``now``.
+
+        Charged with ``PACE_MARGIN``: an upper bound while the board keeps §6's pace.
+        """
         return max(0.0, self.board_free_at - now)
 
     def written(self, frame: bytes, now: float) -> None:
         """``frame`` left at ``now``."""
-        self.board_free_at = max(self.board_free_at, now) + board_time(frame, self.baud)
+        self.board_free_at = max(self.board_free_at, now) + \
+            board_time(frame, self.baud) * PACE_MARGIN
 
     def take(self, now: float) -> Optional[Tuple[str, bytes, object]]:
         """Return the next frame to write at ``now``: ``(kind, frame, ticket)``, or None."""
@@ -215,7 +225,8 @@ class FrameScheduler:
         if now < self.board_free_at - self.ahead_s / 2:
             return None  # released in batches of at least half the room, not one by one
         room = self.ahead_s - self.backlog(now)
-        budget = max(1, min(PER_FRAME, int(room / _bus_bytes_time(BUS_MOVE_ITEM_BYTES))))
+        item_s = _bus_bytes_time(BUS_MOVE_ITEM_BYTES) * PACE_MARGIN
+        budget = max(1, min(PER_FRAME, int(room / item_s)))
         duration = next(iter(self.targets.values()))[1]
         items = []
         for servo_id, (position, ms) in self.targets.items():

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import select
 import socket
+import struct
 import threading
 import time
 from typing import Any, Callable, List, Optional, Tuple
@@ -43,6 +44,23 @@ def free_udp_port() -> int:
         return sock.getsockname()[1]
 
 
+SO_TIMESTAMPNS = 35
+"""Linux: the kernel stamps each datagram with its arrival (not in Python's socket module)."""
+
+
+def arrival_time(ancdata: list) -> float:
+    """When a datagram reached its socket, on the monotonic clock (now, without a stamp).
+
+    The hub runs in the test's process: a loaded host holds its thread, and the time it read a
+    datagram can be later than a frame the node sent after it, seen by another thread.
+    """
+    for level, kind, data in ancdata:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= 16:
+            sec, nsec = struct.unpack('qq', data[:16])
+            return sec + nsec * 1e-9 - (time.time() - time.monotonic())
+    return time.monotonic()
+
+
 class Hub:
     """Forward MAVLink between the node and the autopilot; record and inject."""
 
@@ -67,14 +85,16 @@ class Hub:
 
     def _run(self) -> None:
         socks = [self.to_node, self.from_ap]
+        for sock in socks:
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         while not self._stop.is_set():
             ready, _, _ = select.select(socks, [], [], 0.1)
             for sock in ready:
                 try:
-                    data, address = sock.recvfrom(65535)
+                    data, ancdata, _, address = sock.recvmsg(65535, socket.CMSG_SPACE(16))
                 except OSError:
                     continue
-                now = time.monotonic()
+                now = arrival_time(ancdata)
                 side = 'node' if sock is self.to_node else 'ap'
                 if side == 'ap':
                     self.ap_address = address
@@ -183,6 +203,11 @@ def motor_stops(hub: Hub, mark: int) -> List[Tuple[float, Any]]:
     """Return the motor stops the autopilot received since `mark` (hub: from the node)."""
     return hub.since(mark, 'node', 'COMMAND_LONG', lambda m: m.command in (
         mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_FLIGHTTERMINATION))
+
+
+def sent_motor_stops(hub: Hub, mark: int, timeout: float = 10.0) -> List[Tuple[float, Any]]:
+    """Wait for the node's motor stops since `mark`: a held hub thread reads them late."""
+    return wait_for(lambda: motor_stops(hub, mark), timeout, what='a motor stop from the node')
 
 
 class MavlinkRig(Rig):

@@ -205,9 +205,10 @@ def test_radio_link_lost_requests_return_to_home_and_is_regained(ros, launch, tm
     h.links.wait(lambda m: not m.connected, 5, what='link not connected')
     diag = h.diagnostic('link', lambda s: s.message.startswith('link lost'), 'link lost ERROR')
     assert diag.level == DiagnosticStatus.ERROR
+    # Counted from before the radio is back: the regain may be published before radio() returns.
+    start = len(h.failsafes)
     h.radio(True)
-    back = h.failsafes.wait(lambda m: not m.link_lost, 5, what='link regained',
-                            start=len(h.failsafes))
+    back = h.failsafes.wait(lambda m: not m.link_lost, 5, what='link regained', start=start)
     assert back.action == Failsafe.ACTION_NONE
     assert h.log_line('WARN', ['regained', 'failsafe now NONE'])
     h.links.wait(lambda m: m.connected, 5, what='connected again')

@@ -12,6 +12,7 @@ from hypothesis.stateful import initialize, invariant, precondition, rule, RuleB
 from originman_board_ros import protocol as p
 from originman_board_ros.plan import (BoardPlan, board_time, FrameScheduler, PACE_AHEAD_S,
                                       STOP_ALL_FRAME)
+from originman_board_ros.simulation import VirtualOriginManBoardModel
 from model_runs import search
 import pytest
 
@@ -94,6 +95,56 @@ def test_board_time_counts_the_servo_bus():
     assert board_time(p.encode_bus_move(20, [(i, 500) for i in range(10)])) == pytest.approx(
         (4 + 3 * 10 + 6) * 10 / p.BAUD + 10 * 100 / 115200, rel=0.05)
     assert board_time(LED_FRAME) < 0.0003
+
+
+class SlowBoard(VirtualOriginManBoardModel):
+    """The board model, its receive task ``slower`` times slower than §6 says."""
+
+    def __init__(self, slower, **kwargs):
+        self.slower = slower
+        super().__init__(**kwargs)
+
+    def _handle(self, frame, t):
+        return super()._handle(frame, t) * self.slower
+
+
+@pytest.mark.parametrize('slower', [1.0, 1.1])
+def test_a_stop_waits_little_on_a_slower_board_after_a_long_servo_flood(slower):
+    # A flood of 20 servos at 100 Hz (more than the servo bus carries) for 10 s, then a stop,
+    # in the board model's time. Paced at exactly §6's figures, a board 10 % slower kept every
+    # late millisecond queued: the stop waited 0.55 s behind moves.
+    ids = list(range(1, 21))
+    board = SlowBoard(slower, bus_servo_ids=ids)
+    plan = BoardPlan(0.0, OFFLINE_TIMEOUT_S)
+    plan.connection(True, 0.0)
+    plan.frame(0.0)
+    now = 0.0
+
+    def write_ready():
+        while True:
+            item = plan.take(now)
+            if item is None:
+                return
+            board.receive(item[1], now)
+            plan.scheduler.written(item[1], now)
+
+    for k in range(1000):
+        plan.move(20, [(i, (7 * k + i) % 1000) for i in ids])
+        end = now + 0.01
+        while True:
+            write_ready()
+            due = plan.scheduler.next_time(now)
+            if due is None or due > end:
+                break
+            now = max(now, due)
+        now = end
+    plan.stop_motors()
+    write_ready()
+    board.step(now + 5.0)
+    arrived, handled, _ = [e for e in board.queue_log if isinstance(e[2], p.StopMotors)][0]
+    waited = handled - arrived
+    # Behind at most the paced work and one servo of it, each a little slower.
+    assert waited <= (PACE_AHEAD_S + 10 * 10 / 115200) * slower + 0.002, waited
 
 
 # ----- the state machine ------------------------------------------------------------------------

@@ -14,9 +14,15 @@ from servo_rig import Wire
 from uav_serial_common.pty_port import wire_time
 
 
-RIG_MARGIN_MS = 20.0
+RIG_MARGIN_MS = 500.0
 """The rig's reply margin: a pty's derived 2 ms is shorter than a loaded host's stalls, which
-would count as lost replies in tests about faults and order; the derived one is tested apart."""
+would count as lost replies in tests about faults and order; the derived one is tested apart.
+The virtual bus runs in this process, where a loaded host holds its thread (it answers when it
+gets the GIL back): 20 ms lost a reply in about one make test of eight beside a busy loop (a
+retry too many), and 9 % of replies took longer than 20 ms, 1 % longer than 60 ms and 0.1 %
+longer than 150 ms (at most 0.49 s) with three such processes beside a busy loop, and 200 ms
+still lost one in ten runs at a load of 10. A lost reply costs the tests here this margin each,
+a few times."""
 
 
 @pytest.fixture(scope='module')

@@ -51,6 +51,7 @@ class RunningChain:
         self.match: Match = match_nothing
         self.no_reply = False
         self.deadline = 0.0
+        self.timeout = 0.0
         self.sent = 0
         self.done = False
         self.error: Optional[LinkError] = None
@@ -102,6 +103,7 @@ class RunningChain:
             self.finish()
             return
         self.sent += 1
+        self.timeout = timeout
         self.deadline = time.monotonic() + timeout
         if self.no_reply:
             self.link._hold(self)

@@ -292,6 +292,7 @@ class SerialLink:
         """
         run = RunningChain(self, chain, flush)
         self._add_waiter(run)
+        grace: Optional[Tuple[int, float]] = None  # (request number, end) of a reader's grace
         try:
             with run.lock:
                 run.send_next()
@@ -300,10 +301,18 @@ class SerialLink:
                     if run.done:
                         break
                     run.event.clear()  # set again by a hold the reader cannot end, or the end
-                    remaining = run.deadline - time.monotonic()
+                    now = time.monotonic()
+                    remaining = run.deadline - now
                     if remaining <= 0:
-                        run.expire()
-                        continue
+                        # As request(): bytes that came in before the deadline and that the
+                        # reader has not handed on yet may be the reply. Expiring now would
+                        # count it lost, and the next request's flush would throw it away.
+                        if grace is None or grace[0] != run.sent:
+                            grace = (run.sent, now + run.timeout)
+                        if run.no_reply or now >= grace[1] or not self.unread_input():
+                            run.expire()
+                            continue
+                        remaining = 0.002
                 run.event.wait(remaining)
                 if not self._port_open.is_set():
                     with run.lock:
