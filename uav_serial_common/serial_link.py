@@ -19,7 +19,7 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Optional, Protocol, Tuple
+from typing import Any, Callable, Iterable, Optional, Tuple
 
 import serial
 
@@ -28,6 +28,7 @@ try:
 except ImportError:  # pragma: no cover - not a POSIX system
     _PosixSerial = None
 
+from uav_serial_common.link_types import Decoder, LinkStats
 from uav_serial_common.request_chain import Match, RequestChain, RunningChain
 from uav_serial_common.serial_errors import (
     describe_open_error, LinkDown, LinkError, LinkTimeout, PORT_ERRORS,
@@ -37,36 +38,6 @@ __all__ = [
     'Decoder', 'describe_open_error', 'LinkDown', 'LinkError', 'LinkStats', 'LinkTimeout',
     'Match', 'PORT_ERRORS', 'RequestChain', 'SerialLink',
 ]
-
-
-class Decoder(Protocol):
-    """What the link needs of a streaming decoder (``stream_decoder.StreamDecoder`` is one).
-
-    A decoder that can hold back a frame which could still grow also has ``pending`` (bytes
-    held) and ``flush()`` (settle them, returning frames as ``feed`` does): with ``idle_flush_s``
-    the link calls ``flush()`` once the line has been idle that long. The link looks both up
-    with getattr, so a decoder (or an owner's adapter around one) may leave them out.
-    """
-
-    def feed(self, data: bytes) -> Iterable[Any]:
-        """Consume bytes, return the complete frames found."""
-
-    def reset(self) -> None:
-        """Forget any partial frame."""
-
-
-@dataclass
-class LinkStats:
-    """Counters of one link, since it was created."""
-
-    bytes_in: int = 0
-    bytes_out: int = 0
-    frames_in: int = 0
-    frames_out: int = 0
-    timeouts: int = 0
-    retries: int = 0
-    reconnects: int = 0
-    open_failures: int = 0
 
 
 @dataclass
