@@ -121,8 +121,10 @@ class ParachuteLink:
         self._locks_guard = threading.Lock()
         self._collector: Optional[list] = None
         self._collector_cond = threading.Condition()
-        # When the reader received the bytes of the last record collected (monotonic).
+        # When the reader received the bytes of the last record frame (monotonic).
         self._record_rx_at = 0.0
+        self._tail_owed = 0  # frames of the last records answer that had not come when it ended
+        self._tail_until = 0.0
         self.timeouts = 0
         self.serial = SerialLink(
             url, baud, self._decoder, on_frame=self._on_frame, on_connection=on_connection,
@@ -204,7 +206,9 @@ class ParachuteLink:
 
         The module answers with one frame per slot of its ring (P15): collect until
         ``max_records`` or until none came for ``quiet_s``; the answer is `complete` only with
-        every slot's frame. Raises LinkTimeout when none came at all.
+        every slot's frame. Raises LinkTimeout when none came at all. A query after an answer
+        cut short first lets that answer's late frames pass (up to ``timeout``): a list never
+        holds frames of two answers.
 
         The gap is the line's, not this thread's: measured from the time the reader received
         the last record, and only once the reader has handed on every byte that came in. A
@@ -217,6 +221,11 @@ class ParachuteLink:
         try:
             records: list = []
             with self._collector_cond:
+                # The rest of an earlier answer cut short (its frames owed) may still be
+                # coming: let it pass, or this list would begin with it.
+                while self._tail_owed and time.monotonic() < self._tail_until:
+                    self._collector_cond.wait(self._tail_until - time.monotonic())
+                self._tail_owed = 0
                 self._collector = records
             try:
                 if self.blackbox is not None:
@@ -241,6 +250,9 @@ class ParachuteLink:
             finally:
                 with self._collector_cond:
                     self._collector = None
+                    # Frames still to come (P15), for at most one more timeout.
+                    self._tail_owed = max_records - len(records)
+                    self._tail_until = time.monotonic() + timeout
             if not records:
                 if not self.port_open:
                     raise LinkDown('port closed while waiting for trigger records')
@@ -263,11 +275,14 @@ class ParachuteLink:
         msg = p.decode_module_frame(frame, self.layout)
         if isinstance(msg, p.TriggerRecord):
             with self._collector_cond:
+                # Also when no query collects it: the tail of an answer cut short, which the
+                # next query lets pass first.
+                self._record_rx_at = self.serial.last_rx_time or time.monotonic()
+                self._collector_cond.notify_all()
                 if self._collector is not None:
-                    self._record_rx_at = self.serial.last_rx_time or time.monotonic()
                     self._collector.append(msg)
-                    self._collector_cond.notify_all()
                     return
+                self._tail_owed = max(0, self._tail_owed - 1)
         self._on_message(msg)
 
     def _on_tx(self, data: bytes) -> None:

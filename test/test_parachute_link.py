@@ -179,3 +179,46 @@ def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_r
         link.stop()
         os.close(master)
         os.close(slave)
+
+
+def test_issue22_a_record_query_lets_the_tail_of_an_answer_cut_short_pass_first(tmp_path):
+    """An answer paused past the quiet gap ends the list early (cut short: not complete); its
+    rest comes later. A query right after it waited for nothing: it began its own list with
+    that tail, and with eight frames of two answers called it complete. It lets the tail pass
+    first, so each list holds only its own answer's records.
+
+    The module (this test, on a raw pty) answers each query with three records, a pause of
+    twice the quiet gap, then five more; the records of answer k have uptime k.
+    """
+    master, slave = os.openpty()
+    link = ParachuteLink(os.ttyname(slave), 115200, lambda msg: None)
+    link.start()
+    os.set_blocking(master, True)
+    stop = threading.Event()
+
+    def module():
+        asked, answers = b'', 0
+        while not stop.is_set():
+            asked += os.read(master, 64)
+            while p.encode_trigger_records_query() in asked:
+                asked = asked.split(p.encode_trigger_records_query(), 1)[1]
+                answers += 1
+                answer = [p.encode_trigger_record(1, answers, p.SOURCE_SERIAL, 60, 5, 30, True,
+                                                  False, 20, 180) for _ in range(8)]
+                os.write(master, b''.join(answer[:3]))
+                stop.wait(2 * RECORDS_QUIET_S)
+                os.write(master, b''.join(answer[3:]))
+
+    device = threading.Thread(target=module, daemon=True)
+    try:
+        assert link.serial.wait_port_open(5)
+        device.start()
+        first = link.query_records()
+        second = link.query_records()
+        assert [r.uptime_s for r in first] == [1, 1, 1] and not first.complete
+        assert {r.uptime_s for r in second} == {2}, [r.uptime_s for r in second]
+    finally:
+        stop.set()
+        link.stop()
+        os.close(master)
+        os.close(slave)
