@@ -597,14 +597,19 @@ class DeadlineByTickOnly(TriggerCore):
                   's after the request', 'did not confirm')),
     (DeadlineByTickOnly, ('a confirmation under defer',))])
 def test_round2_22_7_the_search_finds_the_holes_of_the_session_before_the_core(core, found):
-    """The search is strong enough to find each hole the core closed (at a fixed seed)."""
+    """The search is strong enough to find each hole the core closed.
+
+    Hypothesis's derandomized seed still varies between processes here: the deadline's hole
+    took 199-2,955 sequences in six runs, so the budget is 50 default runs, not 10 (a run of
+    10 missed it under CI once).
+    """
 
     class Before(TriggerPolicyModel):
         CORE = core
 
     with pytest.raises(AssertionError) as failure:
         run_state_machine_as_test(Before, settings=settings(
-            max_examples=EXAMPLES * 10, stateful_step_count=50, deadline=None, database=None,
-            derandomize=True, suppress_health_check=list(HealthCheck),
+            max_examples=EXAMPLES * 50, stateful_step_count=50, deadline=None, database=None,
+            suppress_health_check=list(HealthCheck),
             phases=[Phase.generate, Phase.target]))
     assert any(text in str(failure.value) for text in found), failure.value
