@@ -165,3 +165,19 @@ def test_round2_22_12_a_rounded_acceleration_never_lets_a_threshold_write_fire()
     (answer,) = call.answers
     assert answer.result.outcome is Outcome.REFUSED and answer.result.cause == 'would_deploy'
     assert rig.model.freefall_threshold_raw == 1 and not call.reached
+
+
+def test_round2_22_12_a_lost_acknowledgement_makes_the_setting_unknown_to_the_rule():
+    """The core side of the pty test of the same name: judged on the threshold read again."""
+    rig = SettingsRig()
+    rig.write((('attitude_trigger', False),), '~/set_auto_triggers', [])
+    rig.model.set_tilt(30)
+    rig.world('arm_by_other')
+    call = rig.write((('attitude_threshold_deg', 10),), '~/set_thresholds', ['clean', 'drop_reply'])
+    (answer,) = call.answers
+    assert answer.result.outcome is Outcome.UNKNOWN and rig.model.attitude_threshold_deg == 10
+    assert rig.known['attitude_threshold_deg'] is None
+    call = rig.write((('attitude_trigger', True),), '~/set_auto_triggers', [])
+    (answer,) = call.answers
+    assert answer.result.cause == 'would_deploy' and not call.reached, answer
+    assert not rig.violations and not rig.model.attitude_trigger_enabled
