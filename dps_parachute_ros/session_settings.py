@@ -17,8 +17,8 @@ lock are described there). Threads:
   ``_gate`` from an arm.
 
 Owns ``_settings_lock``; guarded by ``_lock``: ``_held``, ``_held_retry_at``,
-``_flags_query_sent``, ``_flags_query_answered``, ``_silent_flag_queries``; the settings, ``mismatch``, ``held`` and
-``config_reads`` fields of the snapshot.
+``_flags_query_sent``, ``_flags_query_answered``, ``_silent_flag_queries``; the settings,
+``mismatch``, ``held`` and ``config_reads`` fields of the snapshot.
 """
 
 from __future__ import annotations

@@ -160,7 +160,7 @@ class SettingsCore:
     # -- the rule ------------------------------------------------------------------------------
 
     def trigger(self) -> Trigger:
-        """The trigger settings as known, for the rule."""
+        """Return the trigger settings as known, for the rule."""
         return Trigger(self.values['attitude_threshold_deg'],
                        self.values['freefall_threshold_g'],
                        self.flags['attitude_trigger'], self.flags['freefall_trigger'])
@@ -169,8 +169,9 @@ class SettingsCore:
         """Why writing `steps` (in order) would deploy the module at once, or '' to write.
 
         The one check of every settings write (D16): the thresholds the rule needs are read if
-        not known (`_needed`), the status is read afresh and judged by `settings_rule.would_deploy`. A
-        refusal is recorded. Raises Stop when the module does not answer (nothing written).
+        not known (`_needed`), the status is read afresh and judged by
+        `settings_rule.would_deploy`. A refusal is recorded. Raises Stop when the module does not
+        answer (nothing written).
         """
         rule = [rule_step(name, value) for name, value in steps]
         if not any(name in JUDGED_STEPS for name, _ in rule):
@@ -198,7 +199,7 @@ class SettingsCore:
 
     @staticmethod
     def _needed(rule: Sequence[Step]) -> List[str]:
-        """The thresholds the rule judges `rule` on (a step that sets one brings its own)."""
+        """Return the thresholds `rule` is judged on (a step that sets one brings its own)."""
         needed: List[str] = []
         written = set()
         for name, _ in rule:
@@ -333,12 +334,12 @@ class SettingsCore:
 
     @staticmethod
     def _ordered(steps: List[Tuple[str, Any]]) -> List[Tuple[str, Any]]:
-        """Steps in the rule's safest order (a disable first, an enable last)."""
+        """Return the steps in the rule's safest order (a disable first, an enable last)."""
         by_step = {rule_step(name, value): (name, value) for name, value in steps}
         return [by_step[step] for step in order(by_step)]
 
     def _before(self, name: str) -> _Wait:
-        """The value of `name` before it is written (read when not known; None: not known)."""
+        """Return the value of `name` before its write (read when not known; None: not known)."""
         if name in FLAGS:
             return self.flags[name]
         if self.values[name] is None:

@@ -48,12 +48,12 @@ WRITE_CODES = {p.CMD_ATTITUDE_THRESHOLD: 'attitude_threshold_deg',
 
 
 def raw_of(name: str, value: Any) -> Any:
-    """The module's raw value of a parameter value (a flag: its bool)."""
+    """Return the module's raw value of a parameter value (a flag: its bool)."""
     return bool(value) if name in FLAGS else SETTINGS[name].to_raw(value)
 
 
 def firing(model: VirtualParachute) -> Set[str]:
-    """The trigger conditions the module meets now and would act on (P21, its own rule)."""
+    """Return the trigger conditions the module meets now and would act on (P21)."""
     if not (model.powered and model.armed and not model.triggered and not model.protection):
         return set()
     met = set()
@@ -93,7 +93,7 @@ class SettingsRig:
         self.core = SettingsCore()
 
     def truth(self) -> Dict[str, Any]:
-        """The module's settings by parameter name (raw; flags as bools)."""
+        """Return the module's settings by parameter name (raw; flags as bools)."""
         return {name: getattr(self.model, attr) for name, attr in FIELDS.items()}
 
     # -- what a test does ---------------------------------------------------------------------
@@ -127,7 +127,7 @@ class SettingsRig:
         self.model.step(self.t)
 
     def power_cycle(self) -> None:
-        """The module switches off and on (locked; its settings kept, P17)."""
+        """Switch the module off and on (it boots locked; its settings are kept, P17)."""
         self.wait(REBOOT_S)
         self.model.power_cycle()
         self.wait(0.1)
@@ -139,7 +139,7 @@ class SettingsRig:
         self.known = self.truth()
 
     def world(self, fault: str, tilt: float = 75.0, accel: float = 0.2) -> None:
-        """What the world does to the module (a tilt, a fall, an arm by another path)."""
+        """Do to the module what the world does (a tilt, a fall, an arm by another path)."""
         model = self.model
         if fault == 'tilt':
             model.set_tilt(tilt)
@@ -209,7 +209,7 @@ class SettingsRig:
         return events + [Timeout(self.t)]
 
     def _deliver(self, frame: bytes, write: bool, name: str) -> bytes:
-        """The frame reaches the module; a write is checked against D16 as it lands."""
+        """Bring the frame to the module; check a write against D16 as it lands."""
         model = self.model
         out = model.step(self.t)  # (what time alone brings is not the write's doing)
         before = firing(model)

@@ -173,7 +173,8 @@ def test_round2_22_12_a_lost_acknowledgement_makes_the_setting_unknown_to_the_ru
     rig.write((('attitude_trigger', False),), '~/set_auto_triggers', [])
     rig.model.set_tilt(30)
     rig.world('arm_by_other')
-    call = rig.write((('attitude_threshold_deg', 10),), '~/set_thresholds', ['clean', 'drop_reply'])
+    call = rig.write((('attitude_threshold_deg', 10),), '~/set_thresholds',
+                     ['clean', 'drop_reply'])
     (answer,) = call.answers
     assert answer.result.outcome is Outcome.UNKNOWN and rig.model.attitude_threshold_deg == 10
     assert rig.known['attitude_threshold_deg'] is None
