@@ -277,8 +277,12 @@ class SettingsCore:
             try:
                 if deadline is not None and self._now > deadline:
                     raise Stop(f'no time left for {name} within {call.budget_s} s')
-                danger = yield from self._judge(
-                    [(name, value)] if call.hold else plan[index:], call.origin)
+                # A set is judged whole before its first write (it is refused, nothing sent,
+                # rather than left half written), then each write on its own; a parameter set
+                # stays judged whole (all or nothing).
+                whole = index == 0 and not call.hold or call.all_or_nothing
+                danger = yield from self._judge(plan[index:] if whole else [(name, value)],
+                                                call.origin)
                 if danger and call.hold:
                     written.held[name] = (value, danger)
                     continue
@@ -296,7 +300,7 @@ class SettingsCore:
                 notes.append(written.verified[name])
             except Stop as exc:
                 written.failed.setdefault(name, exc.reason)
-                if call.hold and not exc.silent:
+                if not call.all_or_nothing and not exc.silent:  # the others are still written
                     notes.append(exc.reason)
                     continue
                 failure = exc
