@@ -15,6 +15,8 @@ The rules, each in one place:
   status read afresh just before it (`_judge`): a write whose judgement could not be made is not
   sent; a threshold the rule needs and the core does not know is read first (the rule cannot
   judge an unknown threshold);
+- a reply is never taken for a fresher one: after a request timed out, the next reply of its kind
+  may be its late one, and is not taken (`_request`);
 - every write is verified: a numeric setting by a read-back, a trigger flag by the reply that
   reports both flags (P8); a write whose reply did not come is not known to have taken or not:
   the setting is not known any more (``Learned(name, None)``) and the answer says UNKNOWN, never
@@ -22,6 +24,7 @@ The rules, each in one place:
 - a parameter set counts a write as written before its frame leaves; when one fails, those are
   put back (newest first, each through the rule again), unless the module reads back the old
   value; a put-back that does not go through is named ("could NOT put back");
+- an arm and the auto-trigger flag query (P14) are judged by the same `_judge` (`JudgeCall`);
 - every call gets exactly one `Answer`: DONE (all verified), REFUSED (nothing was sent: offline,
   or the rule refused the set before its first write), FAILED (the module did not take it, or
   nothing was written after all), UNKNOWN (a write's outcome was not seen, or a put-back failed).
@@ -33,8 +36,8 @@ from typing import Any, Dict, Generator, List, Optional, Sequence, Tuple, Type
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.settings_events import (  # noqa: F401 (the core's vocabulary)
-    Action, Answer, Busy, Event, FLAGS, Learned, LinkDown, Log, Record, Reply, REPLIES,
-    REQUEST_TIMEOUT_S, Send, Timeout, WriteCall, Written)
+    Action, Answer, Busy, Event, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply,
+    REPLIES, REQUEST_TIMEOUT_S, Send, Timeout, WriteCall, Written)
 from dps_parachute_ros.settings_rule import (ATTITUDE_STEPS, FREEFALL_STEPS, JUDGED_STEPS, order,
                                              Step, Trigger, would_deploy)
 from dps_parachute_ros.state import SETTINGS
@@ -84,6 +87,7 @@ class SettingsCore:
         self._out: List[Action] = []
         self._call: Optional[_Wait] = None
         self._waiting: Optional[Send] = None
+        self._late: Dict[Type, int] = {}  # reply type -> replies that may still come late
 
     def know(self, online: bool, offline_text: str = '',
              values: Optional[Dict[str, Optional[int]]] = None,
@@ -104,12 +108,13 @@ class SettingsCore:
     def step(self, event: Event) -> List[Action]:
         """Take one event; return the actions to carry out, in order."""
         self._now = event.now
-        if isinstance(event, WriteCall):
+        if isinstance(event, (WriteCall, JudgeCall)):
             if self._call is not None:
                 self._answer(Result.refused('busy', 'another settings write is still running; '
                                             'nothing sent'))
             else:
-                self._call = self._write(event)
+                self._call = self._write(event) if isinstance(event, WriteCall) \
+                    else self._judge_call(event)
                 self._advance(None)
         elif self._call is not None and self._answers_wait(event):
             self._advance(event)
@@ -148,11 +153,23 @@ class SettingsCore:
         self._out.append(Learned(name, value))
 
     def _request(self, frame: bytes, expect: Type, retries: int = 0) -> _Wait:
-        """Send `frame`; return its reply, or raise Stop(silent) with why it did not come."""
-        event = yield Send(frame, (expect,), self._now + self.timeout_s * (retries + 1),
-                           retries)
-        if isinstance(event, Reply):
-            return event.message
+        """Send `frame`; return its reply, or raise Stop(silent) with why it did not come.
+
+        A reply of a kind whose earlier request timed out may be that one, late (a status from
+        before the module was armed, a value from before a write): it is not taken; the frame
+        (a query, or a write of the same value: either changes nothing sent again) goes again
+        and the next reply is. Each request that timed out counts its tries.
+        """
+        while True:
+            event = yield Send(frame, (expect,), self._now + self.timeout_s * (retries + 1),
+                               retries)
+            if not isinstance(event, Reply):
+                break
+            if not self._late.get(expect):
+                return event.message
+            self._late[expect] -= 1
+        if isinstance(event, Timeout):
+            self._late[expect] = self._late.get(expect, 0) + retries + 1
         reason = getattr(event, 'reason', '') or \
             f'no reply within {self.timeout_s * 1000:.0f} ms'
         raise Stop(f'no reply: {reason}', silent=True)
@@ -211,6 +228,14 @@ class SettingsCore:
                         threshold not in needed:
                     needed.append(threshold)
         return needed
+
+    def _judge_call(self, call: JudgeCall) -> _Wait:
+        try:
+            danger = yield from self._judge(call.steps, call.origin)
+        except Stop as exc:
+            self._answer(Result.failed(exc.reason, 'no_reply'))
+            return
+        self._answer(Result.refused('would_deploy', danger) if danger else Result.done(''))
 
     # -- one write, verified -------------------------------------------------------------------
 

@@ -44,7 +44,21 @@ class WriteCall:
     changes: Optional[Tuple[Tuple[str, Any], ...]] = None
 
 
-Event = Union[WriteCall, Reply, Timeout, LinkDown, Busy]
+@dataclass(frozen=True)
+class JudgeCall:
+    """Judge rule `steps` (``('armed', True)``, ``('attitude', True)`` ...) by the rule (D16).
+
+    For what is not a settings write and must pass the same check: an arm, the auto-trigger
+    flag query (P14). Answered DONE (it may go), REFUSED ``would_deploy`` (why not) or FAILED
+    ``no_reply`` (the module did not answer: it may not go).
+    """
+
+    now: float
+    steps: Tuple[Tuple[str, Any], ...]
+    origin: str
+
+
+Event = Union[WriteCall, JudgeCall, Reply, Timeout, LinkDown, Busy]
 
 
 # -- actions -----------------------------------------------------------------------------------

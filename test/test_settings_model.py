@@ -7,7 +7,8 @@ calls, desired settings applied at connect and after a reboot, the module armed 
 or falling (so the rule matters), reboots and unplugs in the middle of a set. After every step,
 against the module model itself:
 
-- D16: no write reaches an armed module that then asks or fires because of it, by any path;
+- D16: no write reaches an armed module that then asks or fires because of it, by any path, and
+  no arm the rule let through makes the module ask or fire;
 - an accepted call (DONE) left the module as asked;
 - a refused parameter set left the module as it was, except what its refusal names as not put
   back; a REFUSED call sent no write at all;
@@ -83,8 +84,14 @@ class SettingsMachine(RuleBasedStateMachine):
 
     @rule(armed=st.booleans())
     def arm_or_lock(self, armed: bool) -> None:
-        """Another path arms or locks the module (``~/arm`` passes the same rule)."""
+        """Another path arms or locks the module (a PWM input, a ground station)."""
         self.rig.world('arm_by_other' if armed else 'lock_by_other')
+
+    @rule(wire=faults)
+    def arm_through_the_rule(self, wire: List[str]) -> None:
+        """``~/arm true``: a step of the same rule (P21: arming beyond a threshold fires)."""
+        call = self.rig.arm(wire)
+        assert len(call.answers) == 1, call.answers
 
     @rule(seconds=st.sampled_from([0.1, 1.0, 3.0]))
     def wait(self, seconds: float) -> None:
@@ -182,3 +189,23 @@ def test_round2_22_12_a_lost_acknowledgement_makes_the_setting_unknown_to_the_ru
     (answer,) = call.answers
     assert answer.result.cause == 'would_deploy' and not call.reached, answer
     assert not rig.violations and not rig.model.attitude_trigger_enabled
+
+
+def test_round2_22_12_a_late_status_is_never_taken_for_the_one_that_judges_a_write():
+    """The search found it (bench size): the rule judged a put-back on a late status.
+
+    A parameter set's status query timed out; its reply came late, after the put-back of the
+    attitude trigger had asked for the status again, and the module had been armed (another
+    path) in between: the late 'locked' status was taken for the fresh one and the enable of
+    the attitude trigger reached the armed module at 75° of tilt over a 10° threshold.
+    """
+    rig = SettingsRig()
+    rig.write((('attitude_threshold_deg', 10),), 'parameters', ['tilt'], all_or_nothing=True)
+    call = rig.write((('attitude_threshold_deg', 10), ('attitude_trigger', False),
+                      ('freefall_trigger', False)), 'parameters',
+                     ['clean', 'clean', 'delay', 'arm_by_other'], all_or_nothing=True)
+    assert not rig.violations, rig.violations
+    (answer,) = call.answers
+    assert not answer.result.ok and 'could NOT put back attitude_trigger' in \
+        answer.result.message, answer.result
+    assert rig.model.armed and not rig.model.attitude_trigger_enabled
