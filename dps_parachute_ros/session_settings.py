@@ -29,11 +29,13 @@ from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
-from dps_parachute_ros.settings_core import (Answer, Busy, Learned, Log, Record, Reply, Send,
-                                             SettingsCore, Timeout, WriteCall, Written)
+from dps_parachute_ros.settings_core import (Answer, Busy, JudgeCall, Learned, Log, Record,
+                                             Reply, Send, SettingsCore, Timeout, WriteCall,
+                                             Written)
 from dps_parachute_ros.settings_core import LinkDown as CoreLinkDown
 from dps_parachute_ros.settings_rule import JUDGED_STEPS, Step, Trigger, would_deploy
-from dps_parachute_ros.state import FLAG_SETTINGS, Result, SessionConfig, SETTINGS, Snapshot
+from dps_parachute_ros.state import (FLAG_SETTINGS, Outcome, Result, SessionConfig, SETTINGS,
+                                     Snapshot)
 from uav_serial_common.core_runner import run_core
 
 FLAGS_QUERY_TIMEOUT_S = 0.3
@@ -94,24 +96,20 @@ class SettingsTransaction:
                        snap.attitude_trigger_enabled, snap.freefall_trigger_enabled)
 
     def _gate(self, steps: List[Step], origin: str) -> str:
-        """Why writing `steps` (in order) would deploy the module at once, or '' to write.
+        """Why doing `steps` (an arm, the flag query) would deploy the module at once, or ''.
 
-        The one check of every settings write, whoever asks (D16): the status is read afresh
-        (raises LinkError when it is not answered: nothing is written then) and judged by
-        `settings_rule.would_deploy`. A refusal is recorded in the black box.
+        The settings core's one check (D16, `JudgeCall`): the thresholds it needs and does not
+        know are read, the status afresh (raises LinkError when the module does not answer:
+        nothing is sent then), judged by `settings_rule.would_deploy`; a refusal is recorded.
         """
         if not any(name in JUDGED_STEPS for name, _ in steps):
             return ''
-        epoch = self._current_epoch()
-        status = self._req(p.encode_status_query(), retries=1)
-        self._on_status(status, via='query', epoch=epoch)
-        danger = would_deploy(self._trigger_settings(self.snapshot), status.armed,
-                              status.triggered, float(status.tilt_deg), float(status.accel_g),
-                              steps)
-        if danger:
-            self.blackbox.record('decision', what='settings write withheld', origin=origin,
-                                 steps=[list(step) for step in steps], reason=danger)
-        return danger
+        result = self._settings_run(JudgeCall(self.clock(), tuple(steps), origin))
+        if result.outcome is Outcome.REFUSED and result.cause == 'would_deploy':
+            return result.message
+        if not result.ok:
+            raise LinkTimeout(result.message)
+        return ''
 
     @staticmethod
     def _step(param: str, value: Any) -> Step:

@@ -16,7 +16,8 @@ from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.settings_core import (
-    Answer, FLAGS, Learned, LinkDown, Log, Record, Reply, Send, SettingsCore, Timeout, WriteCall)
+    Answer, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply, Send, SettingsCore, Timeout,
+    WriteCall)
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import SETTINGS
 from uav_serial_common.core_runner import run_core
@@ -68,7 +69,7 @@ def firing(model: VirtualParachute) -> Set[str]:
 class Call:
     """One write call and what became of it."""
 
-    event: WriteCall
+    event: Any
     before: Dict[str, Any]
     answers: List[Answer] = field(default_factory=list)
     reached: List[str] = field(default_factory=list)
@@ -101,9 +102,19 @@ class SettingsRig:
     def write(self, steps: Tuple[Tuple[str, Any], ...], origin: str, faults: List[str],
               all_or_nothing: bool = False, hold: bool = False) -> Call:
         """One write call with `faults` applied to its frames in turn; its Call."""
+        return self._call(WriteCall(self.t, steps, origin, all_or_nothing, hold,
+                                    1.8 if all_or_nothing else None), faults)
+
+    def arm(self, faults: List[str]) -> Call:
+        """``~/arm true``: judged by the core's rule (`JudgeCall`), then armed if it may."""
+        call = self._call(JudgeCall(self.t, (('armed', True),), '~/arm'), faults)
+        if call.answers and call.answers[0].result.ok and self.plugged:
+            self._deliver(p.encode_arm(True), True, 'armed')
+        return call
+
+    def _call(self, event: Any, faults: List[str]) -> Call:
         self.faults = list(faults)
-        call = Call(WriteCall(self.t, steps, origin, all_or_nothing, hold,
-                              1.8 if all_or_nothing else None), self.truth())
+        call = Call(event, self.truth())
         self.calls.append(call)
         self.call = call
         self.core = SettingsCore()  # one per call, as the session makes it

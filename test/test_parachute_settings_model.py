@@ -145,3 +145,30 @@ def test_round2_22_12_a_write_whose_acknowledgement_was_lost_is_judged_as_taken(
         assert result.outcome is Outcome.REFUSED and result.cause == 'would_deploy', result
     finally:
         rig.close()
+
+
+def test_round2_22_12_an_arm_after_a_lost_acknowledgement_is_judged_on_the_threshold_read(
+        tmp_path):
+    """An arm is a step of the same rule (D16, P21): judged on the threshold the module has.
+
+    After a threshold write whose acknowledgement was lost, the session judged an arm on the
+    value from before (60°; with the settings core: on no value, which meets nothing) and armed
+    the module at 30° of tilt, which had taken the 10° threshold and asked at once.
+    """
+    tap = LoseWrites()
+    rig = Rig(tmp_path, tap=tap)
+    try:
+        with rig.model():
+            rig.sim.set_tilt(30)
+        tap.faults = ['lose_ack']
+        result = rig.session.set_thresholds({'attitude_threshold_deg': 10})  # locked: judged ok
+        assert result.outcome is Outcome.UNKNOWN, result
+        with rig.model():
+            assert rig.sim.attitude_threshold_deg == 10 and rig.sim.attitude_trigger_enabled
+        result = rig.session.arm(True)
+        with rig.model():
+            armed, asked = rig.sim.armed, rig.sim.requests_sent
+        assert not armed and asked == 0, result
+        assert result.outcome is Outcome.REFUSED and result.cause == 'would_deploy', result
+    finally:
+        rig.close()
