@@ -1,8 +1,8 @@
 """The rule "a settings write never fires the parachute" (D16), as a pure function. No I/O.
 
 Every write of a module setting is a `settings_core.SettingsCore` transaction, which reads the
-status afresh before each write and asks `would_deploy` here (an arm and the flag query ask it
-through `ParachuteSession._gate`): at connect, after a reboot or a reconnect, for a parameter
+status afresh before each write and asks `would_deploy` here (an arm and the flag query too,
+as a `JudgeCall`): at connect, after a reboot or a reconnect, for a parameter
 set, for ``~/set_thresholds`` and ``~/set_auto_triggers``, when putting back a refused set, and
 for the auto-trigger flag query (P14: a firmware may take it as "enable the attitude trigger").
 The same function decides, on each status frame, whether a desired setting held back at connect
