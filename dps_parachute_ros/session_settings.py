@@ -257,7 +257,6 @@ class SettingsTransaction:
                 Answer: lambda action: None})  # (taken from what run_core carried out)
         finally:
             self._settings_lock.release()
-        self._update_mismatch()
         answers = [action.result for action in done if isinstance(action, Answer)]
         # (The core answers every call once; this is for a bug, never silence.)
         return answers[0] if answers else Result.failed('the settings core gave no answer',
@@ -300,16 +299,20 @@ class SettingsTransaction:
             except p.ProtocolError as exc:
                 return Result.refused('out_of_range', f'refused, nothing sent: {exc}')
         self.blackbox.record('request', what='set_thresholds', values=values)
-        return self._settings_run(WriteCall(self.clock(), tuple(values.items()),
-                                            '~/set_thresholds'))
+        result = self._settings_run(WriteCall(self.clock(), tuple(values.items()),
+                                              '~/set_thresholds'))
+        self._update_mismatch()
+        return result
 
     def set_auto_triggers(self, attitude: bool, freefall: bool) -> Result:
         """`~/set_auto_triggers`: enable/disable both auto triggers, verified (D5)."""
         self.blackbox.record('request', what='set_auto_triggers', attitude=attitude,
                              freefall=freefall)
-        return self._settings_run(WriteCall(
+        result = self._settings_run(WriteCall(
             self.clock(), (('attitude_trigger', attitude), ('freefall_trigger', freefall)),
             '~/set_auto_triggers'))
+        self._update_mismatch()
+        return result
 
     def commit_desired(self, changes: Dict[str, Any]) -> Tuple[bool, str]:
         """Write desired settings of a parameter set to the module: all or nothing (D4).
@@ -326,4 +329,6 @@ class SettingsTransaction:
         result = self._settings_run(WriteCall(
             self.clock(), steps, 'parameters', all_or_nothing=True,
             budget_s=PARAM_WRITE_BUDGET_S, changes=tuple(changes.items())))
+        if not result.ok:
+            self._update_mismatch()  # (what was put back, or is not known any more)
         return result.ok, '' if result.ok else result.message
