@@ -306,6 +306,9 @@ class SettingsCore:
                 # rather than left half written), then each write on its own; a parameter set
                 # stays judged whole (all or nothing).
                 whole = index == 0 and not call.hold or call.all_or_nothing
+                # What it had is read first: the status that judges a write is the last frame
+                # before it (a module armed in between would be judged on an old status).
+                before = (yield from self._before(name)) if call.all_or_nothing else None
                 danger = yield from self._judge(plan[index:] if whole else [(name, value)],
                                                 call.origin)
                 if danger and call.hold:
@@ -319,7 +322,6 @@ class SettingsCore:
                 if danger:
                     raise Stop(f'{show(name, value)} not written: {danger}')
                 if call.all_or_nothing:
-                    before = yield from self._before(name)
                     done.append((name, before))
                 written.verified[name] = yield from self._write_one(name, value, written)
                 notes.append(written.verified[name])

@@ -209,3 +209,25 @@ def test_round2_22_12_a_late_status_is_never_taken_for_the_one_that_judges_a_wri
     assert not answer.result.ok and 'could NOT put back attitude_trigger' in \
         answer.result.message, answer.result
     assert rig.model.armed and not rig.model.attitude_trigger_enabled
+
+
+def test_round2_22_12_the_status_that_judges_a_write_is_the_last_frame_before_it():
+    """A parameter set reads a value it does not know (to put it back) before the judgement.
+
+    Found reading the core's first version beside the search (the session before the core
+    judged each write again, just before it): the value was read after the status, so a module
+    armed (another path) in between was judged locked, and a 20° threshold reached it at 30° of
+    tilt. The status is read last now, as it is for a put-back.
+    """
+    rig = SettingsRig()
+    rig.model.set_tilt(30)
+    call = rig.write((('attitude_threshold_deg', 80),), '~/set_thresholds',
+                     ['clean', 'drop_reply'])
+    assert call.answers[0].result.outcome is Outcome.UNKNOWN
+    assert rig.known['attitude_threshold_deg'] is None and rig.model.attitude_threshold_deg == 80
+    call = rig.write((('attitude_threshold_deg', 20),), 'parameters',
+                     ['clean', 'arm_by_other'], all_or_nothing=True)
+    assert not rig.violations, rig.violations
+    (answer,) = call.answers
+    assert answer.result.cause == 'would_deploy' and not call.reached, answer.result
+    assert rig.model.armed and rig.model.attitude_threshold_deg == 80
