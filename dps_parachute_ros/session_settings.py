@@ -29,9 +29,9 @@ from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
-from dps_parachute_ros.settings_core import (Answer, Busy, JudgeCall, Learned, Log, Record,
-                                             Reply, Send, SettingsCore, Timeout, WriteCall,
-                                             Written)
+from dps_parachute_ros.settings_core import (Answer, Busy, Drained, JudgeCall, Learned, Log,
+                                             Record, Reply, Send, SettingsCore, Timeout,
+                                             WriteCall, Written)
 from dps_parachute_ros.settings_core import LinkDown as CoreLinkDown
 from dps_parachute_ros.settings_rule import JUDGED_STEPS, Step, Trigger, would_deploy
 from dps_parachute_ros.state import (FLAG_SETTINGS, Outcome, Result, SessionConfig, SETTINGS,
@@ -44,6 +44,8 @@ PARAM_WRITE_BUDGET_S = 1.8
 """A runtime parameter change that writes to the module answers within this time (D4)."""
 HELD_RETRY_S = 1.0
 """A desired setting held back (it would deploy at once) is tried again at most this often."""
+DRAIN_ROUNDS = 8
+"""A settings write goes on this many times past a reply its core did not take (late ones)."""
 SETTINGS_WAIT_S = 10.0
 """A settings write waits this long for the one running."""
 
@@ -250,11 +252,16 @@ class SettingsTransaction:
                                  for name, which in FLAG_SETTINGS.items()})
                 return core.step(event)
 
-            done = run_core(SimpleNamespace(step=step), [call], {
+            handlers = {
                 Send: self._settings_send, Learned: self._settings_learned,
                 Record: lambda action: self.blackbox.record(action.kind, **dict(action.fields)),
                 Log: lambda action: self._log(action.level, action.text),
-                Answer: lambda action: None})  # (taken from what run_core carried out)
+                Answer: lambda action: None}  # (taken from what run_core carried out)
+            done = run_core(SimpleNamespace(step=step), [call], handlers)
+            for _ in range(DRAIN_ROUNDS):  # a reply it did not take (maybe a late one)
+                if not core.busy:
+                    break
+                done += run_core(SimpleNamespace(step=step), [Drained(self.clock())], handlers)
         finally:
             self._settings_lock.release()
         answers = [action.result for action in done if isinstance(action, Answer)]

@@ -36,14 +36,16 @@ from typing import Any, Dict, Generator, List, Optional, Sequence, Tuple, Type
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.settings_events import (  # noqa: F401 (the core's vocabulary)
-    Action, Answer, Busy, Event, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply,
+    Action, Answer, Busy, Drained, Event, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply,
     REPLIES, REQUEST_TIMEOUT_S, Send, Timeout, WriteCall, Written)
 from dps_parachute_ros.settings_rule import (ATTITUDE_STEPS, FREEFALL_STEPS, JUDGED_STEPS, order,
                                              Step, Trigger, would_deploy)
 from dps_parachute_ros.state import SETTINGS
 from uav_serial_common.result import Result
 
-_Wait = Generator[Send, Event, Any]
+_Wait = Generator[Any, Event, Any]
+_KEEP = object()
+"""Yielded by a call to wait on for the reply to the Send before, sending nothing."""
 PUT_BACK = 'putting back a refused parameter set'
 
 
@@ -127,17 +129,20 @@ class SettingsCore:
             return False
         if isinstance(event, Reply):
             return isinstance(event.message, wait.expect)
-        return isinstance(event, (Timeout, LinkDown, Busy))
+        return isinstance(event, (Timeout, LinkDown, Busy, Drained))
 
     def _advance(self, event: Optional[Event]) -> None:
         assert self._call is not None
         try:
-            self._waiting = self._call.send(event)  # type: ignore[arg-type]
+            waiting = self._call.send(event)  # type: ignore[arg-type]
         except StopIteration:
             self._call = None
             self._waiting = None
             return
-        self._out.append(self._waiting)
+        if waiting is _KEEP:
+            return  # (still waiting for the reply to the Send before)
+        self._waiting = waiting
+        self._out.append(waiting)
 
     def _answer(self, result: Result) -> None:
         self._out.append(Answer(result))
@@ -156,23 +161,30 @@ class SettingsCore:
         """Send `frame`; return its reply, or raise Stop(silent) with why it did not come.
 
         A reply of a kind whose earlier request timed out may be that one, late (a status from
-        before the module was armed, a value from before a write): it is not taken; the frame
-        (a query, or a write of the same value: either changes nothing sent again) goes again
-        and the next reply is. Each request that timed out counts its tries.
+        before the module was armed, a value from before a write): it is not taken, and the
+        core waits for the next; when none is coming (`Drained`) the frame (a query, or a write
+        of the same value: either changes nothing sent again) goes again. Each request that
+        timed out counts its tries.
         """
+        event = yield self._frame(frame, expect, retries)
         while True:
-            event = yield Send(frame, (expect,), self._now + self.timeout_s * (retries + 1),
-                               retries)
-            if not isinstance(event, Reply):
+            if isinstance(event, Reply) and self._late.get(expect):
+                self._late[expect] -= 1
+                event = yield _KEEP
+            elif isinstance(event, Drained):
+                event = yield self._frame(frame, expect, retries)
+            else:
                 break
-            if not self._late.get(expect):
-                return event.message
-            self._late[expect] -= 1
+        if isinstance(event, Reply):
+            return event.message
         if isinstance(event, Timeout):
             self._late[expect] = self._late.get(expect, 0) + retries + 1
         reason = getattr(event, 'reason', '') or \
             f'no reply within {self.timeout_s * 1000:.0f} ms'
         raise Stop(f'no reply: {reason}', silent=True)
+
+    def _frame(self, frame: bytes, expect: Type, retries: int) -> Send:
+        return Send(frame, (expect,), self._now + self.timeout_s * (retries + 1), retries)
 
     # -- the rule ------------------------------------------------------------------------------
 

@@ -58,7 +58,18 @@ class JudgeCall:
     origin: str
 
 
-Event = Union[WriteCall, JudgeCall, Reply, Timeout, LinkDown, Busy]
+@dataclass(frozen=True)
+class Drained:
+    """No other reply is coming for the `Send` waited on (its runtime handed over all it had).
+
+    A reply the core did not take (it may be an earlier request's, late) leaves it waiting; the
+    runtime says so, and the core sends the frame again.
+    """
+
+    now: float
+
+
+Event = Union[WriteCall, JudgeCall, Reply, Timeout, LinkDown, Busy, Drained]
 
 
 # -- actions -----------------------------------------------------------------------------------

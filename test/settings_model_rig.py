@@ -16,8 +16,8 @@ from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.settings_core import (
-    Answer, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply, Send, SettingsCore, Timeout,
-    WriteCall)
+    Answer, Drained, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply, Send, SettingsCore,
+    Timeout, WriteCall)
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import SETTINGS
 from uav_serial_common.core_runner import run_core
@@ -118,9 +118,13 @@ class SettingsRig:
         self.calls.append(call)
         self.call = call
         self.core = SettingsCore()  # one per call, as the session makes it
-        run_core(self, [call.event], {Send: self._send, Learned: self._learned,
-                                      Record: self.actions.append, Log: self.actions.append,
-                                      Answer: self._answer})
+        handlers = {Send: self._send, Learned: self._learned, Record: self.actions.append,
+                    Log: self.actions.append, Answer: self._answer}
+        run_core(self, [call.event], handlers)
+        for _ in range(8):  # a reply it did not take: the session says Drained too
+            if not self.core.busy:
+                break
+            run_core(self, [Drained(self.t)], handlers)
         self.call = None
         self.faults = []
         return call

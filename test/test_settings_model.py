@@ -231,3 +231,24 @@ def test_round2_22_12_the_status_that_judges_a_write_is_the_last_frame_before_it
     (answer,) = call.answers
     assert answer.result.cause == 'would_deploy' and not call.reached, answer.result
     assert rig.model.armed and rig.model.attitude_threshold_deg == 80
+
+
+def test_round2_22_12_a_reply_sent_for_again_is_the_one_that_judges():
+    """The search found it (bench size) in the first fix of the late status (above).
+
+    That fix sent the status query again for each reply it did not take and took the next
+    reply: the reply to the query before the last, from before the module was tilted to 75°,
+    judged the put-back of the attitude trigger, which reached the armed module over a 10°
+    threshold. A reply not taken now waits for the reply to the same frame; only when none is
+    coming (`Drained`) does the frame go again.
+    """
+    rig = SettingsRig()
+    rig.arm([])
+    assert rig.model.armed
+    call = rig.write((('attitude_threshold_deg', 10), ('attitude_trigger', False)), 'parameters',
+                     ['clean', 'clean', 'delay', 'clean', 'clean', 'tilt'], all_or_nothing=True)
+    assert not rig.violations, rig.violations
+    (answer,) = call.answers
+    assert not answer.result.ok and 'put back attitude_trigger' in answer.result.message, \
+        answer.result
+    assert rig.model.attitude_trigger_enabled and rig.model.attitude_threshold_deg == 60
