@@ -32,6 +32,8 @@ MODELS = {
                         'test_round2_22_11_parachute_online_judgement_holds_over_random_sequences',
     'parachute_settings': 'test/test_parachute_core.py::'
                           'test_round2_1_no_write_the_rule_lets_through_fires_the_module',
+    'parachute_settings_core': 'test/test_settings_model.py::'
+                               'test_round2_22_12_settings_invariants_hold_over_random_sequences',
     'parachute_trigger': 'test/test_trigger_model.py::'
                          'test_round2_22_7_trigger_request_invariants_hold_over_random_sequences',
 }

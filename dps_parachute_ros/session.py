@@ -170,6 +170,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._flags_query_sent = False
         self._held: Dict[str, Tuple[Any, str]] = {}  # desired setting -> (value, why not written)
         self._held_retry_at = -1e9
+        self._settings_lock = threading.RLock()  # one settings write at a time
         self._throttle = Throttle()
         self._link_recorded: Tuple[int, ...] = (0,) * len(LINK_PROBLEM_COUNTERS)
         self._link_recorded_at = -1e9

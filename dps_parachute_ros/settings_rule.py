@@ -1,7 +1,8 @@
 """The rule "a settings write never fires the parachute" (D16), as a pure function. No I/O.
 
-Every write of a module setting goes through `ParachuteSession._gate`, which reads the status
-afresh and asks `would_deploy` here: at connect, after a reboot or a reconnect, for a parameter
+Every write of a module setting is a `settings_core.SettingsCore` transaction, which reads the
+status afresh before each write and asks `would_deploy` here (an arm and the flag query too,
+as a `JudgeCall`): at connect, after a reboot or a reconnect, for a parameter
 set, for ``~/set_thresholds`` and ``~/set_auto_triggers``, when putting back a refused set, and
 for the auto-trigger flag query (P14: a firmware may take it as "enable the attitude trigger").
 The same function decides, on each status frame, whether a desired setting held back at connect
@@ -71,8 +72,9 @@ def conditions(trigger: Trigger, tilt_deg: float, accel_g: float,
     """Return the trigger conditions that `trigger` meets at this tilt and acceleration.
 
     The module's rule (P21), judged conservatively: tilt at or above the threshold (it needs
-    strictly above: a degree of margin), |a| below the free-fall threshold (it fires after the
-    free-fall time), a flag not known counts as enabled.
+    strictly above: a degree of margin), |a| at or below the free-fall threshold (it fires
+    below it, after the free-fall time; the status rounds |a| to 0.1 g, so a reading at the
+    threshold may be just below it), a flag not known counts as enabled.
     """
     met = []
     if 'attitude' in which and trigger.attitude_enabled is not False and \
@@ -81,8 +83,11 @@ def conditions(trigger: Trigger, tilt_deg: float, accel_g: float,
         met.append(f'tilt {tilt_deg:g}° ≥ attitude threshold {trigger.attitude_threshold_deg}°')
     if 'freefall' in which and trigger.freefall_enabled is not False and \
             trigger.freefall_threshold_raw is not None and \
-            round(accel_g * 10) < trigger.freefall_threshold_raw:
-        met.append(f'acceleration {accel_g:.1f} g < free-fall threshold '
+            round(accel_g * 10) <= trigger.freefall_threshold_raw:
+        # The status gives |a| rounded to 0.1 g: at the threshold it may be just below it.
+        relation = '<' if round(accel_g * 10) < trigger.freefall_threshold_raw else \
+            '(rounded to 0.1 g) may be below'
+        met.append(f'acceleration {accel_g:.1f} g {relation} free-fall threshold '
                    f'{trigger.freefall_threshold_raw / 10:.1f} g')
     return met
 

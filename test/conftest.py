@@ -44,7 +44,8 @@ CORE_TIER = frozenset({
     'test_parachute_online_model.py', 'test_result.py',
     'test_servo_messages.py',
     'test_servo_model.py', 'test_servo_protocol.py', 'test_servo_registers.py',
-    'test_servo_simulation.py', 'test_stream_decoder.py', 'test_trigger_model.py', 'test_uart.py',
+    'test_servo_simulation.py', 'test_settings_model.py', 'test_stream_decoder.py',
+    'test_trigger_model.py', 'test_uart.py',
 })
 """The test tier that runs in seconds: protocols, cores, device models and the model searches,
 with no process, pty or ROS graph (``make test-core``; ``make test`` runs every tier)."""

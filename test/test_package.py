@@ -233,7 +233,7 @@ ROS_FREE = {
                           'session_worker', 'session_init', 'session_triggers',
                           'session_settings', 'session_events', 'session_deploy',
                           'session_preflight', 'deploy_core', 'deploy_events', 'deploy_knowledge',
-                          'trigger_core',
+                          'trigger_core', 'settings_core', 'settings_events',
                           'blackbox', 'simulation'],
     'parachute_blackbox': ['read', 'analysis', 'report'],
     'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],

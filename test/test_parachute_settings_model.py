@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 
 from dps_parachute_ros import protocol as p
 from test_parachute_core import Rig
+from uav_serial_common.result import Outcome
 
 EXAMPLES = int(os.environ.get('UAV_PTY_EXAMPLES', '10'))
 
@@ -113,5 +114,61 @@ def test_round2_22_9_a_refused_parameter_set_changes_nothing_but_what_it_names(t
                 assert after[name.strip()] == before[name.strip()], (name, reason)
 
         one_set()
+    finally:
+        rig.close()
+
+
+def test_round2_22_12_a_write_whose_acknowledgement_was_lost_is_judged_as_taken(tmp_path):
+    """A threshold write whose acknowledgement was lost may have taken (D4, D16).
+
+    The settings search found it (the core kept the value from before the write): the next
+    write, an enable of the attitude trigger, was judged on the old 60° threshold and reached
+    the armed module at 30° of tilt, which had taken the 10° threshold and asked at once.
+    """
+    tap = LoseWrites()
+    rig = Rig(tmp_path, tap=tap)
+    try:
+        assert rig.session.set_auto_triggers(False, True).ok
+        with rig.model():
+            rig.sim.set_tilt(30)
+        rig.arm()  # (the attitude trigger is disabled: arming at 30° fires nothing)
+        tap.faults = ['lose_ack']
+        result = rig.session.set_thresholds({'attitude_threshold_deg': 10})
+        assert result.outcome is Outcome.UNKNOWN and 'not written' not in result.message, \
+            result
+        with rig.model():
+            assert rig.sim.attitude_threshold_deg == 10  # it took
+        result = rig.session.set_auto_triggers(True, True)
+        with rig.model():
+            asked, enabled = rig.sim.requests_sent, rig.sim.attitude_trigger_enabled
+        assert asked == 0 and not enabled, result
+        assert result.outcome is Outcome.REFUSED and result.cause == 'would_deploy', result
+    finally:
+        rig.close()
+
+
+def test_round2_22_12_an_arm_after_a_lost_acknowledgement_is_judged_on_the_threshold_read(
+        tmp_path):
+    """An arm is a step of the same rule (D16, P21): judged on the threshold the module has.
+
+    After a threshold write whose acknowledgement was lost, the session judged an arm on the
+    value from before (60°; with the settings core: on no value, which meets nothing) and armed
+    the module at 30° of tilt, which had taken the 10° threshold and asked at once.
+    """
+    tap = LoseWrites()
+    rig = Rig(tmp_path, tap=tap)
+    try:
+        with rig.model():
+            rig.sim.set_tilt(30)
+        tap.faults = ['lose_ack']
+        result = rig.session.set_thresholds({'attitude_threshold_deg': 10})  # locked: judged ok
+        assert result.outcome is Outcome.UNKNOWN, result
+        with rig.model():
+            assert rig.sim.attitude_threshold_deg == 10 and rig.sim.attitude_trigger_enabled
+        result = rig.session.arm(True)
+        with rig.model():
+            armed, asked = rig.sim.armed, rig.sim.requests_sent
+        assert not armed and asked == 0, result
+        assert result.outcome is Outcome.REFUSED and result.cause == 'would_deploy', result
     finally:
         rig.close()
