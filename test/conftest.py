@@ -29,6 +29,8 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
     # Waits end when their condition holds; their bounds are stretched for a loaded machine.
     os.environ.setdefault('UAV_WAIT_SCALE', '3')
+    # Virtual devices keep their device's time on a busy host (process.device_process).
+    os.environ.setdefault('UAV_DEVICE_NICE', '-10')
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')

@@ -27,7 +27,7 @@ from typing import Any, List, Optional, Tuple
 
 from originman_board_ros import protocol as p
 from originman_board_ros.virtual_node import VirtualOriginManBoard
-from uav_serial_common.process import die_with_parent
+from uav_serial_common.process import device_process
 
 
 class VirtualBoard(VirtualOriginManBoard):
@@ -91,7 +91,7 @@ class BoardProcess:
         self._proc = subprocess.Popen(
             [sys.executable, os.path.abspath(__file__), self._address,
              json.dumps(model_kwargs)], stdout=self._log, stderr=subprocess.STDOUT,
-            preexec_fn=die_with_parent)
+            preexec_fn=device_process)
         self._lock = threading.Lock()
         self._conn = None
         deadline = time.monotonic() + timeout_s

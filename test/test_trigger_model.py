@@ -594,7 +594,7 @@ class DeadlineByTickOnly(TriggerCore):
 
 @pytest.mark.parametrize('core, found', [
     (GateUnseen, ('after a reboot voided', 'a confirmation under deny',
-                  's after the request', 'did not confirm')),
+                  'a confirmation under defer', 's after the request', 'did not confirm')),
     (DeadlineByTickOnly, ('a confirmation under defer',))])
 def test_round2_22_7_the_search_finds_the_holes_of_the_session_before_the_core(core, found):
     """The search is strong enough to find each hole the core closed.

@@ -55,6 +55,21 @@ def die_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
+def device_process() -> None:
+    """``preexec_fn`` of a virtual device: it dies with its parent, at ``UAV_DEVICE_NICE``.
+
+    A virtual device stands for hardware with a CPU of its own: starved by a busy host, it reads
+    a driver's paced frames late and all at once, and its timing is no longer the device's. The
+    test harness sets ``UAV_DEVICE_NICE`` (-10); where the priority cannot be raised (not root)
+    the device runs at its parent's.
+    """
+    die_with_parent()
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, int(os.environ.get('UAV_DEVICE_NICE', '0')))
+    except (OSError, ValueError):
+        pass
+
+
 class WaitTimeout(AssertionError, TimeoutError):
     """A `wait_for` that timed out: a failed assertion in a test, a TimeoutError elsewhere."""
 
@@ -172,8 +187,10 @@ class LaunchedProcesses:
         env = dict(os.environ)
         env.update(extra_env or {})
         with open(stdout_path, 'wb') as out, open(stderr_path, 'wb') as err:
+            device = executable.startswith('virtual_')
             popen = subprocess.Popen(args, stdout=out, stderr=err, env=env,
-                                     start_new_session=True, preexec_fn=die_with_parent)
+                                     start_new_session=True,
+                                     preexec_fn=device_process if device else die_with_parent)
         proc = LaunchedProcess(executable, popen, stderr_path, stdout_path)
         self.processes.append(proc)
         try:
