@@ -64,10 +64,12 @@ def device_process() -> None:
     the device runs at its parent's.
     """
     die_with_parent()
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, int(os.environ.get('UAV_DEVICE_NICE', '0')))
-    except (OSError, ValueError):
-        pass
+    nice = os.environ.get('UAV_DEVICE_NICE')
+    if nice:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, int(nice))
+        except (OSError, ValueError):
+            pass
 
 
 class WaitTimeout(AssertionError, TimeoutError):

@@ -16,6 +16,7 @@ driver's "wrong baud?" diagnostics can be exercised.
 from __future__ import annotations
 
 import logging
+import os
 import random
 import threading
 import time
@@ -152,6 +153,14 @@ class VirtualDeviceRunner:
     # -- the device thread ----------------------------------------------------------------------
 
     def _run(self) -> None:
+        # A device has a CPU of its own: under the test harness (UAV_DEVICE_NICE), this thread
+        # runs at that priority even inside a test's process, so a busy host does not starve it.
+        nice = os.environ.get('UAV_DEVICE_NICE')
+        if nice:
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), int(nice))
+            except (OSError, ValueError):
+                pass
         rx_busy_until = 0.0
         while self._running.is_set():
             try:
