@@ -206,7 +206,10 @@ def test_trigger_request_confirm_and_deny(rig, policy):
             assert msg.decision == TriggerRequest.CONFIRMED and msg.decision_name == 'confirmed'
             assert msg.latency_ms >= 0
             wait_for(lambda: CONFIRM_FRAME in rig.wire.since(mark), 2, what='confirmation')
-            event = rig.events.wait(lambda m: m.via == TriggerEvent.VIA_STATUS and
+            # Learnt from the status flag, or (a re-initialization after the rig's power cycle
+            # still running on a loaded host) from the new record its end reads: both true.
+            event = rig.events.wait(lambda m: m.via in (TriggerEvent.VIA_STATUS,
+                                                        TriggerEvent.VIA_RECORD) and
                                     m.source == TriggerEvent.SOURCE_ATTITUDE, 5,
                                     what='attitude trigger event')
             assert event.record_known and event.record.source_name == 'attitude'
