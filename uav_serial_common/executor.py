@@ -113,7 +113,8 @@ class DriverExecutor(Executor):
                 return
             if handler in self._queued:
                 # Yielded again before a worker started it: once in the pool is enough.
-                self._started.wait_for(lambda: handler not in self._queued, QUEUED_WAIT_S)
+                self._started.wait_for(lambda: handler not in self._queued or
+                                       handler.executing(), QUEUED_WAIT_S)
                 return
             self._queued.add(handler)
             self._pool_tasks.append((handler, self._workers.submit(self._run_pooled, handler)))
@@ -124,10 +125,14 @@ class DriverExecutor(Executor):
             task.result()
 
     def _run_pooled(self, handler: Task) -> None:
-        with self._pool_lock:
-            self._queued.discard(handler)
-            self._started.notify_all()
-        handler()
+        # Queued until it has run (or awaits): between a worker taking it and rclpy marking it
+        # executing, rclpy may yield it again, and it must not go to the pool twice.
+        try:
+            handler()
+        finally:
+            with self._pool_lock:
+                self._queued.discard(handler)
+                self._started.notify_all()
         if self._closing:
             _settle(handler)  # nobody else reads it once shutdown has begun
 
