@@ -35,6 +35,17 @@ FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 
 GARBAGE = bytes([0x00, 0x13, 0x99, 0xFE, 0x37])  # no header byte: it completes no frame
 
 
+def faulty_reply(fault: str, out: bytes) -> bytes:
+    """Return what of the module's reply `out` reaches the driver under a wire `fault`."""
+    if fault == 'drop_reply':
+        return b''
+    if fault == 'corrupt' and out:
+        return out[:-1] + bytes([out[-1] ^ 0x40])
+    if fault == 'garbage':
+        return GARBAGE + out
+    return out
+
+
 @dataclass
 class Call:
     """One deploy call and what became of it."""
@@ -243,12 +254,7 @@ class ModelRig:
             if fault == 'unplug_after':
                 self.unplug_quietly()
                 return events + [LinkDown(self.t, 'unplugged', frame_left=True)]
-            if fault == 'drop_reply':
-                out = b''
-            elif fault == 'corrupt' and out:
-                out = out[:-1] + bytes([out[-1] ^ 0x40])
-            elif fault == 'garbage':
-                out = GARBAGE + out
+            out = faulty_reply(fault, out)
             late = fault == 'delay'
             received = [] if late else self._received(out, self.t)
             if p.TriggerRecord in send.expect:

@@ -20,18 +20,16 @@ from dps_parachute_ros.settings_core import (
     Timeout, WriteCall)
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import SETTINGS
+from parachute_model_rig import faulty_reply, REBOOT_S, REPLY_S
 from uav_serial_common.core_runner import run_core
 
 START = 1000.0
-REPLY_S = 0.004
-REBOOT_S = 0.3
 WIRE_FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage',
                'unplug_before', 'unplug_after', 'reboot')
 """What can happen to one frame on the wire (or to the module just before it arrives)."""
 WORLD_FAULTS = ('tilt', 'fall', 'level', 'arm_by_other', 'lock_by_other')
 """What the world does to the module meanwhile: before a query only, never between the status
 read that judged a write and the write (no driver can close that race)."""
-GARBAGE = bytes([0x00, 0x13, 0x99, 0xFE, 0x37])
 FIELDS = {
     # parameter: the module model's field, and the parameter value's raw value there
     'attitude_threshold_deg': 'attitude_threshold_deg',
@@ -206,12 +204,7 @@ class SettingsRig:
             if fault == 'unplug_after':
                 self._unplug()
                 return events + [LinkDown(self.t, 'unplugged', frame_left=True)]
-            if fault == 'drop_reply':
-                out = b''
-            elif fault == 'corrupt' and out:
-                out = out[:-1] + bytes([out[-1] ^ 0x40])
-            elif fault == 'garbage':
-                out = GARBAGE + out
+            out = faulty_reply(fault, out)
             late = fault == 'delay'
             received = [] if late else self._received(out)
             events += received
