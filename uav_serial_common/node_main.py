@@ -41,9 +41,12 @@ class _Signals:
 
     def _on_signal(self, signum: int, frame: object) -> None:
         self.count += 1
-        if self.stop.is_set():
+        if self.count > 1 or self.stop.is_set():
+            # Never the event's lock again: a signal that lands while the main thread is inside
+            # stop.set() (or another handler is) re-entered it, recursing until Python gave up.
             print(f'{signal.Signals(signum).name} again: shutdown in progress, finishing it',
                   file=sys.stderr, flush=True)
+            return
         self.stop.set()
 
 
