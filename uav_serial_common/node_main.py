@@ -12,6 +12,8 @@ logged and ignored. ``ros2 launch`` escalates to SIGKILL only after its timeouts
 
 from __future__ import annotations
 
+import os
+import select
 import signal
 import sys
 import threading
@@ -30,24 +32,62 @@ _SPIN_EXIT_S = 2.0
 
 
 class _Signals:
-    """SIGINT/SIGTERM as a flag: the first starts the shutdown, later ones are only noted."""
+    """SIGINT/SIGTERM as a flag: the first starts the shutdown, later ones are only noted.
+
+    The handler runs in the main thread between two bytecodes, possibly while that thread holds
+    a lock (an Event's, a buffered stream's): so it takes none. It sets a plain flag and writes
+    a byte to a pipe the main thread waits on, and says "again" with one `os.write`.
+    """
 
     def __init__(self) -> None:
-        self.stop = threading.Event()
+        self.requested = False
         self.count = 0
+        self._read, write = os.pipe()
+        os.set_blocking(write, False)
+        self._write: Optional[int] = write
         self.previous = {}
         for sig in (signal.SIGINT, signal.SIGTERM):
             self.previous[sig] = signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, frame: object) -> None:
         self.count += 1
-        if self.count > 1 or self.stop.is_set():
-            # Never the event's lock again: a signal that lands while the main thread is inside
-            # stop.set() (or another handler is) re-entered it, recursing until Python gave up.
-            print(f'{signal.Signals(signum).name} again: shutdown in progress, finishing it',
-                  file=sys.stderr, flush=True)
+        if self.count > 1 or self.requested:
+            try:
+                os.write(2, f'{signal.Signals(signum).name} again: shutdown in progress, '
+                            'finishing it\n'.encode())
+            except OSError:
+                pass
             return
-        self.stop.set()
+        self.wake()
+
+    def wake(self) -> None:
+        """Ask the main thread to shut down (a signal, or the executor that ended)."""
+        self.requested = True
+        fd = self._write
+        if fd is None:  # closed: nobody waits any more (and the number may be reused)
+            return
+        try:
+            os.write(fd, b'\0')
+        except OSError:  # the pipe is full: the main thread has its wake-ups already
+            pass
+
+    def wait(self, timeout: float) -> bool:
+        """Wait until a shutdown is asked for, at most `timeout` s; return whether it is."""
+        if not self.requested:
+            select.select([self._read], [], [], timeout)
+        return self.requested
+
+    def close(self) -> None:
+        """Close the pipe (signals that still come find the flag set and only write to 2)."""
+        self.requested = True
+        if self._write is None:
+            return
+        fds, self._write = (self._read, self._write), None
+        for fd in fds:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
 
 
 def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
@@ -63,27 +103,28 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
     if switch_interval_s is not None:
         sys.setswitchinterval(switch_interval_s)
     signals = _Signals()
+    stop = threading.Event()
     node = None
     executor = None
     spinner = None
     code = 0
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        if signals.stop.is_set():
+        if signals.requested:
             return 0
         node = factory()
         executor = DriverExecutor(num_threads=threads)
         executor.add_node(node)
-        spinner = threading.Thread(target=_spin, args=(executor, signals.stop),
+        spinner = threading.Thread(target=_spin, args=(executor, stop, signals.wake),
                                    name='executor', daemon=True)
         spinner.start()
-        while not signals.stop.wait(_WAIT_STEP_S):
+        while not signals.wait(_WAIT_STEP_S):
             pass
     except Exception as exc:  # noqa: BLE001 - report a startup failure as one clear line
         print(f'fatal: {exc}', file=sys.stderr)
         code = 1
     finally:
-        signals.stop.set()
+        stop.set()
         if executor is not None:
             try:
                 executor.stop_spinning()  # out of its wait now: it waits without a timeout
@@ -116,10 +157,11 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
         # killed by SIGINT; ignored signals stay ignored.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signals.close()
     return code
 
 
-def _spin(executor: DriverExecutor, stop: threading.Event) -> None:
+def _spin(executor: DriverExecutor, stop: threading.Event, ended: Callable[[], None]) -> None:
     try:
         # No timeout: rclpy makes a timer for every timed wait, and each wake-up walks every
         # entity of the node in Python (~0.3 ms of CPU). The shutdown wakes it (wake() above;
@@ -133,3 +175,4 @@ def _spin(executor: DriverExecutor, stop: threading.Event) -> None:
     finally:
         # An external shutdown (the context shut down elsewhere) ends the process too.
         stop.set()
+        ended()
