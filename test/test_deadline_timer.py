@@ -100,13 +100,14 @@ def test_round2_2_timer_keeps_a_wake_that_comes_while_the_duty_runs() -> None:
         assert timer.stop(BOUND_S)
 
 
-def test_round2_2_timer_logs_a_failing_duty_and_goes_on() -> None:
-    def plan(index: int) -> Optional[float]:
-        if index == 0:
-            raise ValueError('a bug in the rules')
-        return None
+def fail_first(index: int) -> Optional[float]:
+    if index == 0:
+        raise ValueError('a bug in the rules')
+    return None
 
-    duty = Duty(plan)
+
+def test_round2_2_timer_logs_a_failing_duty_and_goes_on() -> None:
+    duty = Duty(fail_first)
     timer = make(duty, retry_s=0.01)
     timer.start()
     try:
@@ -118,15 +119,10 @@ def test_round2_2_timer_logs_a_failing_duty_and_goes_on() -> None:
 
 
 def test_round2_2_timer_outlives_a_failing_error_callback() -> None:
-    def plan(index: int) -> Optional[float]:
-        if index == 0:
-            raise ValueError('a bug in the rules')
-        return None
-
     def on_error(exc: BaseException) -> None:
         raise RuntimeError('a bug in the logger')
 
-    duty = Duty(plan)
+    duty = Duty(fail_first)
     timer = DeadlineTimer(duty, name='test-timer', on_error=on_error, idle_s=FAR_S)
     timer.start()
     try:
