@@ -63,8 +63,8 @@ from dps_parachute_ros.online_rule import OnlineRule
 from dps_parachute_ros.session_deploy import DeployProcedure
 from dps_parachute_ros.session_events import DeploymentEvents, RECORDS_RETRY_S
 from dps_parachute_ros.session_init import Initialization
-from dps_parachute_ros.session_online import (LINK_ERROR_COUNTERS, LINK_PROBLEM_COUNTERS,
-                                              OnlineJudgement)
+from dps_parachute_ros.session_online import (IDLE_WAKE_S, LINK_ERROR_COUNTERS,
+                                              LINK_PROBLEM_COUNTERS, OnlineJudgement)
 from dps_parachute_ros.session_preflight import (LOW_BATTERY_V,  # noqa: F401 (node.py imports it)
                                                  Preflight)
 from dps_parachute_ros.session_settings import (HELD_RETRY_S,  # noqa: F401 (tests import it here)
@@ -73,6 +73,7 @@ from dps_parachute_ros.session_triggers import TriggerRequests
 from dps_parachute_ros.session_worker import _Jobs, STREAM_RETRY_S, Worker
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener, Result,
                                      SessionConfig, SETTINGS, Snapshot)
+from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.logs import Throttle
 
 SHUTDOWN_TOKEN = 'SHUTDOWN'
@@ -186,7 +187,6 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._attempts = AttemptsFile(config.blackbox_dir, config.port)
         self.release_gate: Optional[Any] = None  # a ReleaseGate (release_gate.py), or None
         self._stopping = threading.Event()
-        self._monitor_wake = threading.Event()
         max_bytes = int(config.blackbox_max_mb * 1e6) if config.blackbox_max_mb > 0 else None
         self.blackbox = blackbox or BlackBox(config.blackbox_dir, max_bytes=max_bytes,
                                              on_problem=self._on_blackbox_problem)
@@ -199,8 +199,9 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             logger=_LinkLog(self._log), layout=config.auto_trigger_flag_layout, clock=clock,
             on_tx=self._on_tx)
         self._worker = threading.Thread(target=self._work, name='parachute-worker', daemon=True)
-        self._monitor = threading.Thread(target=self._monitor_loop, name='parachute-monitor',
-                                         daemon=True)
+        self._monitor = DeadlineTimer(
+            self._monitor_duty, name='parachute-monitor', clock=self.clock, idle_s=IDLE_WAKE_S,
+            retry_s=IDLE_WAKE_S, on_error=self._monitor_failed)
 
     # -- life cycle ----------------------------------------------------------------------------
 
@@ -217,14 +218,13 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
     def stop(self) -> None:
         """Stop everything and close the black box; bounded (< 4 s). The module is left as is."""
         self._stopping.set()
-        self._monitor_wake.set()
+        self._monitor.stop(timeout=1.0)
         with self._jobs_cond:
             self._jobs_cond.notify_all()
         self._trigger_stop()
         self.link.stop(timeout=1.0)
-        for thread in (self._worker, self._monitor):
-            if thread.is_alive():
-                thread.join(1.0)
+        if self._worker.is_alive():
+            self._worker.join(1.0)
         # A deploy or arm in flight has just lost its link: let it record its outcome.
         if self._actuation.acquire(timeout=1.0):
             self._actuation.release()

@@ -3,10 +3,11 @@
 Part of `ParachuteSession` (``dps_parachute_ros.session`` assembles it; the shared state and the
 lock are described there). Threads:
 
-- monitor (``parachute-monitor``): ``_monitor_loop`` judges online/offline and the defer deadline
-  from the clock (``tick()``), and records the link's error counters in the black box when they
-  change; no I/O. It sleeps until the next of those deadlines (``_monitor_wait``, at most
-  ``IDLE_WAKE_S``); a deferred request wakes it (``_monitor_wake``).
+- monitor (``parachute-monitor``, a ``DeadlineTimer`` running ``_monitor_duty``) judges
+  online/offline and the defer deadline from the clock (``tick()``), and records the link's
+  error counters in the black box when they change; no I/O. It sleeps until the next of those
+  deadlines (``_monitor_due``, at most ``IDLE_WAKE_S``); a deferred request wakes it
+  (``_monitor.wake()``).
 - every thread that sees a frame or ends a request (``_req``) calls ``_judge_online``; the
   serial reader also reports the port opening or closing (``_on_connection``).
 
@@ -38,36 +39,25 @@ state changes nobody signals within it). Each wake-up costs CPU: they used to po
 class OnlineJudgement:
     """Online judgement of `ParachuteSession` (a mixin: it uses the session's state)."""
 
-    def _monitor_loop(self) -> None:
-        wake = self._monitor_wake
-        wait = IDLE_WAKE_S
-        while not self._stopping.is_set():
-            wake.wait(wait)
-            wake.clear()
-            if self._stopping.is_set():
-                return
-            try:
-                self.tick()
-                self._record_link()
-                wait = self._monitor_wait()
-            except Exception as exc:  # noqa: BLE001 - the monitor must survive a bug
-                self._log('error', f'monitor failed: {exc!r}', key='monitor')
-                wait = IDLE_WAKE_S
+    def _monitor_duty(self) -> Optional[float]:
+        """Judge the time-based rules now; return when next due (the monitor's duty)."""
+        if self._stopping.is_set():
+            return None
+        self.tick()
+        self._record_link()
+        return self._monitor_due()
 
-    def _monitor_wait(self) -> float:
-        """Return how long the monitor may sleep: until the next deadline ``tick()`` judges."""
-        now = self.clock()
+    def _monitor_failed(self, exc: BaseException) -> None:
+        self._log('error', f'monitor failed: {exc!r}', key='monitor')
+
+    def _monitor_due(self) -> Optional[float]:
+        """Return the next deadline ``tick()`` judges (clock time), None if none."""
         count, last = self.link.last_frame
-        due = now + IDLE_WAKE_S
-        deadline = self._trigger_deadline()
-        if deadline is not None:
-            due = min(due, deadline)
+        due = self._trigger_deadline()
         with self._lock:
             self._online.timeout_s = self._config.offline_timeout_s
             judged = self._online.next_deadline(count, last, self._snap.streaming)
-            if judged is not None:
-                due = min(due, judged)
-        return max(due - now, 0.001)
+        return min((t for t in (due, judged) if t is not None), default=None)
 
     def _record_link(self, final: bool = False) -> None:
         """Record the link's error counters when they changed (throttled; `final`: now)."""

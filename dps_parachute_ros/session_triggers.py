@@ -65,7 +65,7 @@ class TriggerRequests:
         with self._trigger_lock:
             run_core(SimpleNamespace(step=step), [event], {
                 Send: self._trigger_send, Decide: self._trigger_decide,
-                Record: self._trigger_record, SetTimer: lambda _: self._monitor_wake.set(),
+                Record: self._trigger_record, SetTimer: lambda _: self._monitor.wake(),
                 Log: lambda action: self._log(action.level, action.text),
                 Pending: self._trigger_pending, PassGate: gates.append,
                 Answer: lambda action: answers.append(action.result)})

@@ -42,6 +42,7 @@ from handset_link_ros.link import ModemLink, Received
 from handset_link_ros.rules import (ACTION_NONE, ACTION_RETURN_TO_HOME,  # noqa: F401 (API)
                                     BATTERY_CLEAR_MARGIN, Failsafe, FailsafeChanged,
                                     HandsetRules, LinkChanged, Log, Output)
+from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.logs import Throttle
 from uav_serial_common.records import evolve
 
@@ -183,8 +184,8 @@ class HandsetCore:
         self._on_log = on_log or _python_log
         self._lock = threading.Lock()
         self._emit_lock = threading.RLock()
-        self._stop = threading.Event()
-        self._timer: Optional[threading.Thread] = None
+        self._timer = DeadlineTimer(self._timer_duty, name='handset-link-timer', clock=clock,
+                                    idle_s=MAX_TIMER_SLEEP_S, on_error=self._timer_failed)
 
         self._setpoint = Setpoint()
         self._aux = Auxiliary()
@@ -224,19 +225,13 @@ class HandsetCore:
                 emits = [(self._on_link, self._link_state(now)),
                          (self._on_failsafe, self._rules.failsafe(now))]
             self._emit(emits)
-        if run_threads and self._timer is None:
-            self._stop.clear()
+        if run_threads and not self._timer.is_alive():
             self.link.start()
-            self._timer = threading.Thread(target=self._run_timer, name='handset-link-timer',
-                                           daemon=True)
             self._timer.start()
 
     def stop(self) -> None:
         """Stop the timer thread and close the port."""
-        self._stop.set()
-        if self._timer is not None:
-            self._timer.join(2.0)
-            self._timer = None
+        self._timer.stop(2.0)
         self.link.stop()
 
     # -- inputs ---------------------------------------------------------------------------------
@@ -460,20 +455,13 @@ class HandsetCore:
 
     # -- timer thread ---------------------------------------------------------------------------
 
-    def _run_timer(self) -> None:
-        wait = 0.0
-        while not self._stop.wait(wait):
-            try:
-                self.poll()
-            except Exception:  # noqa: BLE001 - the failsafe timer must outlive any bug
-                self._log('ERROR', f'handset timer failed:\n{traceback.format_exc()}')
-            wait = self._next_wait()
+    def _timer_duty(self) -> Optional[float]:
+        """Poll now, return when ``poll()`` is next due (the timer thread's duty)."""
+        self.poll()
+        return self.next_deadline()
 
-    def _next_wait(self) -> float:
-        now = self._clock()
-        due = self.next_deadline()
-        wait = (now + MAX_TIMER_SLEEP_S if due is None else due) - now
-        return min(MAX_TIMER_SLEEP_S, max(0.001, wait))
+    def _timer_failed(self, exc: BaseException) -> None:
+        self._log('ERROR', f'handset timer failed:\n{traceback.format_exc()}')
 
     def next_deadline(self) -> Optional[float]:
         """When ``poll()`` next has something to do (clock time), None if nothing is due.

@@ -30,9 +30,9 @@ Threads and state (who owns what):
   :meth:`_on_report` converts each report and calls the matching ``on_*`` callback directly; it
   writes ``_battery_mv`` and the report counters under ``_lock``. ``_on_connection`` (also the
   reader thread) tells the plan the port opened or closed.
-* the **timer thread** fires the motor watchdog at its deadline and releases paced bus servo
-  moves; it never reads or waits for the board, so a read that is not answered cannot hold a
-  stop back (issue 21 item 6).
+* the **timer thread** (a ``DeadlineTimer`` running :meth:`_timer_duty`) fires the motor
+  watchdog at its deadline and releases paced bus servo moves; it never reads or waits for
+  the board, so a read that is not answered cannot hold a stop back (issue 21 item 6).
 * the **worker thread** runs :meth:`poll` when a duty may be due (:meth:`next_wake`: at
   most ``IDLE_MAX_S`` apart, every ``WORKER_PERIOD_S`` while offline): the silence judgement
   (and ``on_online_change``), desired settings (``core_settings``), the settings check and the
@@ -74,6 +74,7 @@ from originman_board_ros.core_types import (  # noqa: F401 (the names of this mo
     SbusSample, STANDARD_GRAVITY)
 from originman_board_ros.link import LinkDown, LinkError, OriginManLink
 from originman_board_ros.plan import BoardPlan
+from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.result import Outcome, Result  # noqa: F401 (what the core answers)
 
 __all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'ButtonSample', 'ConfigError',
@@ -143,8 +144,11 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         # failed: the reason) when its ticket is in _results after its drain.
         self._send_lock = threading.Lock()
         self._results: Dict[object, Optional[str]] = {}
-        self._timer_wake = threading.Event()
-        self._timer: Optional[threading.Thread] = None
+        # The watchdog and the paced frames have a thread of their own that never waits
+        # behind a read (issue 21 item 6).
+        self._timer = DeadlineTimer(self._timer_duty, name='originman-timer', clock=clock,
+                                    idle_s=TIMER_IDLE_S, min_sleep_s=0.0005,
+                                    on_error=self._timer_failed)
         # Reader thread (under _lock).
         self._battery_mv: Optional[int] = None
         self._reports = {'imu': 0, 'battery': 0, 'button': 0, 'sbus': 0, 'gamepad': 0,
@@ -179,10 +183,6 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             return
         self._stop.clear()
         self.link.start()
-        # The watchdog and the paced frames have a thread of their own that never waits
-        # behind a read (issue 21 item 6).
-        self._timer = threading.Thread(target=self._run_timer, name='originman-timer',
-                                       daemon=True)
         self._timer.start()
         if worker:
             self._thread = threading.Thread(target=self._run, name='originman-core',
@@ -200,10 +200,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             self.stop_all_motors()
         self._stop.set()
         self._wake.set()
-        self._timer_wake.set()
-        if self._timer is not None:
-            self._timer.join(3.0)
-            self._timer = None
+        self._timer.stop(3.0)
         if self._thread is not None:
             self._thread.join(3.0)
             worker_ran = True
@@ -241,7 +238,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
                     self._settings_ok = False
                     self._settings_message = 'writing'
         self._wake.set()
-        self._timer_wake.set()
+        self._timer.wake()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -380,31 +377,31 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         with self._lock:
             self._plan.scheduler.written(frame, self._pace_clock())
 
-    def _run_timer(self) -> None:
-        """Fire the watchdog and release paced frames; never read or wait on the board."""
-        while not self._stop.is_set():
-            try:
-                now = self._clock()
-                with self._lock:
-                    fired = self._plan.tick_watchdog(now)
-                if fired:
-                    self._log.warning(f'no motor command for motor_timeout_s '
-                                      f'{self.config.motor_timeout_s:g} s: stopping every motor')
-                self._drain()
-                now, pace_now = self._clock(), self._pace_clock()
-                waits = [TIMER_IDLE_S]
-                with self._lock:
-                    deadline = self._plan.watchdog.deadline
-                    if deadline is not None and self._plan.judge.port_open:
-                        waits.append(deadline - now)
-                    due = self._plan.scheduler.next_time(pace_now)
-                    if due is not None:
-                        waits.append(due - pace_now)
-            except Exception:  # noqa: BLE001 - the watchdog's thread must outlive a bug
-                self._log.exception('originman core: timer failed')
-                waits = [0.01]
-            self._timer_wake.wait(max(0.0005, min(waits)))
-            self._timer_wake.clear()
+    def _timer_duty(self) -> Optional[float]:
+        """Fire the watchdog, release paced frames; return when next due (on ``_clock``).
+
+        Never reads or waits on the board.
+        """
+        now = self._clock()
+        with self._lock:
+            fired = self._plan.tick_watchdog(now)
+        if fired:
+            self._log.warning(f'no motor command for motor_timeout_s '
+                              f'{self.config.motor_timeout_s:g} s: stopping every motor')
+        self._drain()
+        now, pace_now = self._clock(), self._pace_clock()
+        dues = []
+        with self._lock:
+            deadline = self._plan.watchdog.deadline
+            if deadline is not None and self._plan.judge.port_open:
+                dues.append(deadline)
+            due = self._plan.scheduler.next_time(pace_now)
+            if due is not None:
+                dues.append(now + (due - pace_now))  # the pace clock's deadline, on _clock
+        return min(dues, default=None)
+
+    def _timer_failed(self, exc: BaseException) -> None:
+        self._log.exception('originman core: timer failed')
 
     # -- reader thread --------------------------------------------------------------------------
 
@@ -417,7 +414,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         if change is not None:
             self._changed(change, now)
         self._wake.set()
-        self._timer_wake.set()
+        self._timer.wake()
 
     def _on_frames(self, now: float) -> None:
         # Issue 21 item 11(a): online from the frame itself, before anyone sees it published.

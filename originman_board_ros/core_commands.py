@@ -210,7 +210,7 @@ class Commands:
                                                 ticket)
         if not accepted:
             return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
-        self._timer_wake.set()  # a new motor deadline: the timer may be sleeping past it
+        self._timer.wake()  # a new motor deadline: the timer may be sleeping past it
         if not frames:
             return Result.sent(f'{what}: sent')
         self._drain()
@@ -279,7 +279,7 @@ class Commands:
         with self._lock:
             waiting = [i for i, _ in items if i in self._plan.scheduler.targets]
         if waiting:
-            self._timer_wake.set()
+            self._timer.wake()
             return Result.sent(f'{what}: queued (the servo bus is busy; a newer target of the '
                                'same servo replaces it)')
         return Result.sent(f'{what}: sent')

@@ -38,7 +38,8 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 CORE_TIER = frozenset({
-    'test_dps_protocol.py', 'test_dps_simulation.py', 'test_handset_messages.py',
+    'test_deadline_timer.py', 'test_dps_protocol.py', 'test_dps_simulation.py',
+    'test_handset_messages.py',
     'test_handset_model.py', 'test_handset_protocol.py', 'test_handset_simulation.py',
     'test_mavlink_core.py', 'test_node_main.py', 'test_originman_messages.py',
     'test_originman_plan.py',
