@@ -103,8 +103,8 @@ class DeployCore(DeployKnowledge):
             return
         self._out.append(self._waiting)
 
-    def _send(self, frame: bytes, expect: Type, retries: int = 0,
-              silence_ok: bool = False) -> Request:
+    def _request(self, frame: bytes, expect: Type, retries: int = 0,
+                 silence_ok: bool = False) -> Request:
         deadline = self._now + self.timeout_s * (retries + 1)
         return Request(frame, (expect,), deadline, retries, silence_ok)
 
@@ -148,27 +148,27 @@ class DeployCore(DeployKnowledge):
         """Ask the module what a deploy needs, when the driver's knowledge is old (D15)."""
         if not self.port_open:
             return
-        event = yield self._send(p.encode_boot_count_query(), p.BootCount,
-                                 silence_ok=self.online)
+        event = yield self._request(p.encode_boot_count_query(), p.BootCount,
+                                    silence_ok=self.online)
         if isinstance(event, Timeout) and not self.online:
             return  # silent: offline it is
         if isinstance(event, (LinkDown, Busy)):
             return
-        event = yield self._send(p.encode_status_query(), p.Status, retries=1)
+        event = yield self._request(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Timeout):
             return
         reboots = self.reboots
-        event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
+        event = yield self._request(p.encode_armed_query(), p.ArmedState, retries=1)
         if not isinstance(event, Reply):
             return
         armed = event.message.armed
-        event = yield self._send(p.encode_triggered_query(), p.TriggeredState, retries=1)
+        event = yield self._request(p.encode_triggered_query(), p.TriggeredState, retries=1)
         if isinstance(event, Reply) and reboots == self.reboots:
             # (An armed state read before a reboot seen since is not this power-up's.)
             self._reread_done(armed)
 
     def _query_triggered(self) -> Generator[Request, Event, Optional[bool]]:
-        event = yield self._send(p.encode_triggered_query(), p.TriggeredState)
+        event = yield self._request(p.encode_triggered_query(), p.TriggeredState)
         self._query_end = event
         return event.message.triggered if isinstance(event, Reply) else None
 
@@ -183,7 +183,7 @@ class DeployCore(DeployKnowledge):
         """
         if boot is None or self.boot_count is None:
             return None
-        event = yield self._send(p.encode_trigger_records_query(), p.TriggerRecord)
+        event = yield self._request(p.encode_trigger_records_query(), p.TriggerRecord)
         if not isinstance(event, Reply):
             return None
         since = (self.boot_count - boot) % 256  # (the boot count wraps after 255)
@@ -195,18 +195,18 @@ class DeployCore(DeployKnowledge):
 
     def _arm(self) -> Generator[Request, Event, str]:
         """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
-        event = yield self._send(p.encode_arm(True), p.ArmReply, retries=1)
+        event = yield self._request(p.encode_arm(True), p.ArmReply, retries=1)
         if not isinstance(event, Reply):
             return f'arm not confirmed: {why(event)}'
         reply = event.message
         if not reply.armed:
             return f'module answered {reply.raw.hex(" ")} to arm: it stays locked'
         reboots = self.reboots
-        event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
+        event = yield self._request(p.encode_armed_query(), p.ArmedState, retries=1)
         if isinstance(event, Timeout):
             # The status frame tells armed too: a module silent to the armed query alone is
             # still verified.
-            event = yield self._send(p.encode_status_query(), p.Status, retries=1)
+            event = yield self._request(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Reply):
             return f'arm not confirmed: {why(event)}'
         armed = event.message.armed
@@ -345,7 +345,7 @@ class DeployCore(DeployKnowledge):
             self._sent_since_read += 1
             self._frame_at = self._now
             self._save(leaving=True)  # a respawned driver counts it too (P11)
-            event = yield self._send(DEPLOY_FRAME, p.DeployAck)
+            event = yield self._request(DEPLOY_FRAME, p.DeployAck)
             if isinstance(event, Busy):
                 self.failed -= 1
                 self.unacked -= 1
