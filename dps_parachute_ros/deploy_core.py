@@ -8,7 +8,7 @@ event carries its time (``now``, monotonic seconds), and `DeployCore.step` retur
 to carry out in order. ``uav_serial_common.core_runner`` carries them out over a link; the model
 test (test/test_parachute_model.py) over the device model, in virtual time.
 
-A deploy call is a generator that yields each `Send` (or `PassGate`) and gets back the event
+A deploy call is a generator that yields each `Request` (or `PassGate`) and gets back the event
 that ended the wait. One call runs at a time; a call while one runs is refused, nothing sent.
 
 The rules, each in one place: a deploy frame only on an armed state read since the last known
@@ -25,15 +25,15 @@ from typing import Any, Generator, List, Optional, Set, Tuple, Type, Union
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_events import (  # noqa: F401 (the core's vocabulary, re-exported)
-    Action, Answer, Busy, DeployCall, Event, GateDone, guard_text, LinkDown, LinkUp, Log,
-    MAX_FAILED_DEPLOYS, PassGate, Rebooted, Record, Reply, Report, REQUEST_TIMEOUT_S, SaveAttempts,
-    Send, Stored, Timeout, why)
+    Action, Busy, DeployAnswer, DeployCall, Event, GateDone, guard_text, LinkDown, LinkUp, Log,
+    MAX_FAILED_DEPLOYS, PassGate, Rebooted, Record, Reply, Report, Request, REQUEST_TIMEOUT_S,
+    SaveAttempts, Stored, SYNC_WAIT, Timeout, why)
 from dps_parachute_ros.deploy_knowledge import (  # noqa: F401 (re-exported)
-    _record, DeployKnowledge, POWER_UP_HEARTBEATS_S)
+    DeployKnowledge, POWER_UP_HEARTBEATS_S)
 
 DEPLOY_TOKEN = 'DEPLOY'
 DEPLOY_FRAME = p.encode_deploy()
-_Wait = Generator[Union[Send, PassGate], Event, None]
+_Wait = Generator[Union[Request, PassGate], Event, None]
 
 
 class DeployCore(DeployKnowledge):
@@ -103,10 +103,10 @@ class DeployCore(DeployKnowledge):
             return
         self._out.append(self._waiting)
 
-    def _send(self, frame: bytes, expect: Type, retries: int = 0,
-              silence_ok: bool = False) -> Send:
+    def _request(self, frame: bytes, expect: Type, retries: int = 0,
+                 silence_ok: bool = False) -> Request:
         deadline = self._now + self.timeout_s * (retries + 1)
-        return Send(frame, (expect,), deadline, retries, silence_ok)
+        return Request(frame, (expect,), deadline, retries, silence_ok)
 
     # -- the procedure -------------------------------------------------------------------------
 
@@ -118,12 +118,12 @@ class DeployCore(DeployKnowledge):
             # as "the parachute did not deploy" while an earlier frame's fate is not known.
             message += ('; an earlier deploy frame left without an acknowledgement: its outcome '
                         'is UNKNOWN (the parachute may have deployed) until the module answers')
-        self._out.append(_record('decision', True, what='deploy', outcome=outcome, success=ok,
-                                 reason=message, **extra))
+        self._out.append(Record.of('decision', SYNC_WAIT, what='deploy', outcome=outcome,
+                                   success=ok, reason=message, **extra))
         if log:
             self._out.append(Log('info' if ok else 'warn', message))
         latency = None if t0 is None or not ok else (self._now - t0) * 1000.0
-        self._out.append(Answer(outcome, ok, message, latency, counts))
+        self._out.append(DeployAnswer(outcome, ok, message, latency, counts))
 
     def _unknown(self, what: str, t0: float) -> None:
         seen = self._seen_triggered()
@@ -139,41 +139,41 @@ class DeployCore(DeployKnowledge):
         message = (f'deploy outcome UNKNOWN: {what}. The driver reads the triggered state as '
                    'soon as the module answers again and reports a deployment on '
                    '~/trigger_event')
-        self._out.append(_record('decision', True, what='deploy', outcome='unknown',
-                                 reason=message))
+        self._out.append(Record.of('decision', SYNC_WAIT, what='deploy', outcome='unknown',
+                                   reason=message))
         self._out.append(Log('error', message))
-        self._out.append(Answer('unknown', False, message))
+        self._out.append(DeployAnswer('unknown', False, message))
 
     def _reread(self) -> _Wait:
         """Ask the module what a deploy needs, when the driver's knowledge is old (D15)."""
         if not self.port_open:
             return
-        event = yield self._send(p.encode_boot_count_query(), p.BootCount,
-                                 silence_ok=self.online)
+        event = yield self._request(p.encode_boot_count_query(), p.BootCount,
+                                    silence_ok=self.online)
         if isinstance(event, Timeout) and not self.online:
             return  # silent: offline it is
         if isinstance(event, (LinkDown, Busy)):
             return
-        event = yield self._send(p.encode_status_query(), p.Status, retries=1)
+        event = yield self._request(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Timeout):
             return
         reboots = self.reboots
-        event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
+        event = yield self._request(p.encode_armed_query(), p.ArmedState, retries=1)
         if not isinstance(event, Reply):
             return
         armed = event.message.armed
-        event = yield self._send(p.encode_triggered_query(), p.TriggeredState, retries=1)
+        event = yield self._request(p.encode_triggered_query(), p.TriggeredState, retries=1)
         if isinstance(event, Reply) and reboots == self.reboots:
             # (An armed state read before a reboot seen since is not this power-up's.)
             self._reread_done(armed)
 
-    def _query_triggered(self) -> Generator[Send, Event, Optional[bool]]:
-        event = yield self._send(p.encode_triggered_query(), p.TriggeredState)
+    def _query_triggered(self) -> Generator[Request, Event, Optional[bool]]:
+        event = yield self._request(p.encode_triggered_query(), p.TriggeredState)
         self._query_end = event
         return event.message.triggered if isinstance(event, Reply) else None
 
     def _deployed_in(self, boot: Optional[int],
-                     known: Set[Optional[int]]) -> Generator[Send, Event, Optional[bool]]:
+                     known: Set[Optional[int]]) -> Generator[Request, Event, Optional[bool]]:
         """Read whether the trigger records show a deployment since power-up `boot`.
 
         Since: a reboot no heartbeat told may have come before the frame. By a serial frame
@@ -183,7 +183,7 @@ class DeployCore(DeployKnowledge):
         """
         if boot is None or self.boot_count is None:
             return None
-        event = yield self._send(p.encode_trigger_records_query(), p.TriggerRecord)
+        event = yield self._request(p.encode_trigger_records_query(), p.TriggerRecord)
         if not isinstance(event, Reply):
             return None
         since = (self.boot_count - boot) % 256  # (the boot count wraps after 255)
@@ -193,34 +193,35 @@ class DeployCore(DeployKnowledge):
         # No record of it in an answer cut short is no answer (P15): not "it did NOT deploy".
         return True if fired else (False if records.complete else None)
 
-    def _arm(self) -> Generator[Send, Event, str]:
+    def _arm(self) -> Generator[Request, Event, str]:
         """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
-        event = yield self._send(p.encode_arm(True), p.ArmReply, retries=1)
+        event = yield self._request(p.encode_arm(True), p.ArmReply, retries=1)
         if not isinstance(event, Reply):
             return f'arm not confirmed: {why(event)}'
         reply = event.message
         if not reply.armed:
             return f'module answered {reply.raw.hex(" ")} to arm: it stays locked'
         reboots = self.reboots
-        event = yield self._send(p.encode_armed_query(), p.ArmedState, retries=1)
+        event = yield self._request(p.encode_armed_query(), p.ArmedState, retries=1)
         if isinstance(event, Timeout):
             # The status frame tells armed too: a module silent to the armed query alone is
             # still verified.
-            event = yield self._send(p.encode_status_query(), p.Status, retries=1)
+            event = yield self._request(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Reply):
             return f'arm not confirmed: {why(event)}'
         armed = event.message.armed
         if reboots == self.reboots:
             self.armed = armed
-        self._out.append(_record('state', True, armed=armed, via='arm'))
+        self._out.append(Record.of('state', SYNC_WAIT, armed=armed, via='arm'))
         if not armed:
             return 'module acknowledged arm but the query says locked'
         return ''
 
     def _deploy(self, call: DeployCall) -> _Wait:
         t0 = call.now
-        self._out.append(_record('request', what='deploy', token_ok=call.token == DEPLOY_TOKEN,
-                                 arm_if_locked=call.arm_if_locked))
+        self._out.append(Record.of('request', what='deploy',
+                                   token_ok=call.token == DEPLOY_TOKEN,
+                                   arm_if_locked=call.arm_if_locked))
         if call.token != DEPLOY_TOKEN:
             self._answer('refused', f"deploy refused: confirm must be exactly '{DEPLOY_TOKEN}' "
                          f'(got {call.token!r}); nothing sent')
@@ -336,14 +337,15 @@ class DeployCore(DeployKnowledge):
             attempts += 1
             # The decision is on disk before the frame leaves: a crash between the two must
             # not leave a deployment the black box never heard of.
-            self._out.append(_record('decision', True, what='deploy: sending the deploy frame',
-                                     attempt=attempts))
+            self._out.append(Record.of('decision', SYNC_WAIT,
+                                       what='deploy: sending the deploy frame',
+                                       attempt=attempts))
             self.failed += 1
             self.unacked += 1
             self._sent_since_read += 1
             self._frame_at = self._now
             self._save(leaving=True)  # a respawned driver counts it too (P11)
-            event = yield self._send(DEPLOY_FRAME, p.DeployAck)
+            event = yield self._request(DEPLOY_FRAME, p.DeployAck)
             if isinstance(event, Busy):
                 self.failed -= 1
                 self.unacked -= 1
@@ -397,12 +399,12 @@ class DeployCore(DeployKnowledge):
         if ack.success:
             latency = (self._now - t0) * 1000.0
             # The acknowledgement is on disk before anyone hears of it (SIGKILL-safe).
-            self._out.append(_record('decision', True, what='deploy acknowledged', hex=hexed,
-                                     latency_ms=latency, attempts=attempts))
+            self._out.append(Record.of('decision', SYNC_WAIT, what='deploy acknowledged',
+                                       hex=hexed, latency_ms=latency, attempts=attempts))
             self._answer('deployed', f'deployed: acknowledged after {attempts} attempt(s), '
                          f'{latency:.1f} ms', ok=True, t0=t0, log=False)
             return
-        self._out.append(_record('decision', what='deploy refused by module', hex=hexed))
+        self._out.append(Record.of('decision', what='deploy refused by module', hex=hexed))
         # Never "did not deploy" while the module says it is triggered (D6).
         triggered = yield from self._query_triggered()
         if triggered:

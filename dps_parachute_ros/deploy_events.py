@@ -1,9 +1,23 @@
-"""The events a `DeployCore` takes and the actions it returns (``deploy_core``), and two texts."""
+"""The events a `DeployCore` takes and the actions it returns (``deploy_core``), and two texts.
+
+Those shared with other cores are ``uav_serial_common.core_events``'s (a request, its reply or
+why none came, the link, a reboot, a record, a log line) and ``release_gate``'s (`PassGate`,
+`GateDone`); they are imported here for the deploy core's modules.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Optional, Tuple, Type, Union
+from typing import Optional, Tuple, Union
+
+from dps_parachute_ros.release_gate import GateDone, PassGate
+from uav_serial_common.core_events import (Busy, LinkDown, LinkUp, Log, Rebooted, Record,
+                                           Reply, Request, SYNC_WAIT, Timeout)
+
+__all__ = ['Busy', 'DeployAnswer', 'DeployCall', 'GateDone', 'LinkDown', 'LinkUp', 'Log',
+           'PassGate', 'Rebooted', 'Record', 'Reply', 'Report', 'Request', 'SaveAttempts',
+           'Stored', 'SYNC_WAIT', 'Timeout', 'guard_text', 'why', 'MAX_FAILED_DEPLOYS',
+           'REQUEST_TIMEOUT_S', 'Event', 'Action']
 
 MAX_FAILED_DEPLOYS = 2
 """P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
@@ -11,7 +25,7 @@ REQUEST_TIMEOUT_S = 1.0
 """P12: a request unanswered this long makes the module offline."""
 
 
-# -- events ------------------------------------------------------------------------------------
+# -- events (and those of ``uav_serial_common.core_events``) ------------------------------------
 
 @dataclass(frozen=True)
 class DeployCall:
@@ -23,86 +37,10 @@ class DeployCall:
     gate: bool = False
 
 
-@dataclass(frozen=True)
-class Reply:
-    """A decoded frame from the module: the reply waited for, or one nobody asked for."""
-
-    now: float
-    message: Any
-
-
-@dataclass(frozen=True)
-class Timeout:
-    """The reply the last `Send` expects did not come by its deadline (all its tries)."""
-
-    now: float
-    reason: str = ''
-
-
-@dataclass(frozen=True)
-class LinkDown:
-    """The port closed (unplugged, a write failed). `frame_left`: the frame waited on left."""
-
-    now: float
-    reason: str = 'port closed'
-    frame_left: bool = True
-    shutting_down: bool = False
-
-
-@dataclass(frozen=True)
-class LinkUp:
-    """The port (re)opened: nothing is known of the module until it answers."""
-
-    now: float
-
-
-@dataclass(frozen=True)
-class Busy:
-    """The link could not send the last `Send` now (another request of its kind): not sent."""
-
-    now: float
-    reason: str
-
-
-@dataclass(frozen=True)
-class Rebooted:
-    """A reboot seen elsewhere (a boot count read by another path, None: a heartbeat)."""
-
-    now: float
-    boot_count: Optional[int] = None
-
-
-@dataclass(frozen=True)
-class GateDone:
-    """The release gate asked for by `PassGate` was passed."""
-
-    now: float
-
-
 Event = Union[DeployCall, Reply, Timeout, LinkDown, LinkUp, Busy, Rebooted, GateDone]
 
 
-# -- actions -----------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Send:
-    """Send `frame` (with `retries`), then feed back its reply (one of `expect`) or Timeout."""
-
-    frame: bytes
-    expect: Tuple[Type, ...]
-    deadline: float
-    retries: int = 0
-    silence_ok: bool = False
-
-
-@dataclass(frozen=True)
-class Record:
-    """A black-box record; `sync`: on disk before the next action is carried out."""
-
-    kind: str
-    fields: Tuple[Tuple[str, Any], ...]
-    sync: bool = False
-
+# -- actions (and those of ``uav_serial_common.core_events``) -----------------------------------
 
 @dataclass(frozen=True)
 class SaveAttempts:
@@ -116,15 +54,8 @@ class SaveAttempts:
 
 
 @dataclass(frozen=True)
-class PassGate:
-    """Pass the release gate (feed `GateDone` back); every refusal was decided before it."""
-
-    what: str = 'deploy'
-
-
-@dataclass(frozen=True)
-class Answer:
-    """The one answer to the call.
+class DeployAnswer:
+    """The one answer to a `DeployCall`.
 
     `outcome`: refused, deployed, already deployed, not deployed or unknown.
     """
@@ -135,14 +66,6 @@ class Answer:
     latency_ms: Optional[float] = None
     counts: Optional[Tuple[int, int]] = None
     """(failed, unacked) when the answer set them (a deployment seen without its ack)."""
-
-
-@dataclass(frozen=True)
-class Log:
-    """A log line."""
-
-    level: str
-    text: str
 
 
 @dataclass(frozen=True)
@@ -163,7 +86,7 @@ class Stored:
     since_read: int = 0
 
 
-Action = Union[Send, Record, SaveAttempts, PassGate, Answer, Log, Report]
+Action = Union[Request, Record, SaveAttempts, PassGate, DeployAnswer, Log, Report]
 
 
 def guard_text(failed: int, unacked: int) -> str:

@@ -14,15 +14,11 @@ from typing import Any, List, Optional, Set, Tuple, Union
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_events import (Action, Event, LinkDown, LinkUp, Log, PassGate,
-                                             Rebooted, Record, Report, REQUEST_TIMEOUT_S,
-                                             SaveAttempts, Send, Timeout)
+                                             Rebooted, Record, Report, Request,
+                                             REQUEST_TIMEOUT_S, SaveAttempts, SYNC_WAIT, Timeout)
 
 POWER_UP_HEARTBEATS_S = 0.2
 """Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
-
-
-def _record(kind: str, sync: bool = False, **fields: Any) -> Record:
-    return Record(kind, tuple(fields.items()), sync)
 
 
 class DeployKnowledge:
@@ -59,7 +55,7 @@ class DeployKnowledge:
         self._frame_at: Optional[float] = None
         self._reported: Set[Optional[int]] = set()
         self._out: List[Action] = []
-        self._waiting: Optional[Union[Send, PassGate]] = None
+        self._waiting: Optional[Union[Request, PassGate]] = None
         self._now = 0.0
 
     # -- what the driver knows ------------------------------------------------------------------
@@ -101,7 +97,7 @@ class DeployKnowledge:
             self._offline(event.reason)
         elif isinstance(event, Timeout):
             wait = self._waiting
-            if not (isinstance(wait, Send) and wait.silence_ok):
+            if not (isinstance(wait, Request) and wait.silence_ok):
                 self._offline(f'no reply within {self.timeout_s:.1f} s of a request')
         elif isinstance(event, Rebooted):
             if event.boot_count is None:
@@ -150,7 +146,7 @@ class DeployKnowledge:
             self.reboots += 1
             self.fresh, self.armed, self.triggered = False, None, None
             self._know(Log('warn', 'unsolicited heartbeat: the module has (re)booted'))
-            self._know(_record('state', event='module reboot (unsolicited heartbeat)'))
+            self._know(Record.of('state', event='module reboot (unsolicited heartbeat)'))
 
     def _boot_count(self, count: int) -> None:
         previous, self.boot_count = self.boot_count, count
@@ -161,9 +157,9 @@ class DeployKnowledge:
                 self._know(Log('warn', f'{stored.failed} deploy frame(s) without a successful '
                                f'acknowledgement in this power-up (boot {count}), sent by an '
                                'earlier run of the driver: they count (P11)'))
-                self._know(_record('state', event='deploy attempts of an earlier run',
-                                   boot_count=count, failed_deploys=stored.failed,
-                                   unacked_deploys=stored.unacked))
+                self._know(Record.of('state', event='deploy attempts of an earlier run',
+                                     boot_count=count, failed_deploys=stored.failed,
+                                     unacked_deploys=stored.unacked))
             else:
                 # Another power-up: the module forgot them (P19), but not those sent after the
                 # earlier run last read the boot count (they may have gone to this one).
@@ -191,7 +187,7 @@ class DeployKnowledge:
         changed = triggered != self.triggered
         self.triggered = triggered
         if changed:
-            self._know(_record('state', triggered=triggered, via=via))
+            self._know(Record.of('state', triggered=triggered, via=via))
             if triggered:
                 self._know(Log('error', f'the module reports TRIGGERED (via {via})'))
                 self._report(via)
@@ -206,7 +202,7 @@ class DeployKnowledge:
     def _resolve_unknown(self, triggered: bool, how: str) -> None:
         self.outcome_unknown = False
         outcome = 'deployed' if triggered else 'not deployed'
-        self._know(_record('decision', True, what='deploy', outcome=outcome, resolved=how))
+        self._know(Record.of('decision', SYNC_WAIT, what='deploy', outcome=outcome, resolved=how))
         self._know(Log('error' if triggered else 'warn', 'the earlier deploy whose outcome was '
                        f'unknown: {outcome} ({how})'))
 

@@ -9,10 +9,14 @@ release goes out: the outcome is logged and written to the black box. While no s
 ever been seen (``parachute_mavlink`` is not running), nothing is called, written or logged: the
 driver works exactly as before. One that was there and is gone is said (log, black box). Empty:
 no gate at all.
+
+A core without I/O asks for the gate with `PassGate` and is told with `GateDone` (the deploy and
+the trigger-request cores: one pair of names for both).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import time
 from typing import Callable, Optional, Tuple
 
@@ -24,6 +28,27 @@ GateCall = Callable[[float], Tuple[Optional[bool], str]]
 WINDOW_MARGIN_S = 0.25
 """A trigger request's confirmation leaves at the latest this long before the module's 1-s
 window closes, whatever the gate does (room for a loaded host and the wire)."""
+
+
+@dataclass(frozen=True)
+class PassGate:
+    """A core's action: pass the gate for the release by `what`, then feed back `GateDone`.
+
+    Every refusal was decided before it. `token` tells the gates of one core apart (0: it has
+    one at a time); `t_request`: a trigger request's arrival (``before_release``).
+    """
+
+    what: str
+    token: int = 0
+    t_request: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class GateDone:
+    """The event: the gate asked for by the `PassGate` of `token` was passed."""
+
+    now: float
+    token: int = 0
 
 
 class ReleaseGate:

@@ -73,6 +73,7 @@ from dps_parachute_ros.session_triggers import TriggerRequests
 from dps_parachute_ros.session_worker import _Jobs, STREAM_RETRY_S, Worker
 from dps_parachute_ros.state import (config_problems, Deployment, FLAG_SETTINGS, Listener, Result,
                                      SessionConfig, SETTINGS, Snapshot)
+from uav_serial_common.core_events import Log, Record, SYNC_ASK, SYNC_WAIT
 from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.logs import Throttle
 
@@ -282,6 +283,22 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
                 return
             text += note
         self.listener.on_log(level, text)
+
+    def _carry_log(self, action: Log) -> None:
+        """Carry out a core's `Log` (every core's: one handler)."""
+        self._log(action.level, action.text)
+
+    def _carry_record(self, action: Record) -> None:
+        """Carry out a core's `Record`, synced as it asks (``core_events``: two guarantees).
+
+        `SYNC_WAIT`: on disk before the next action (a bounded wait, `_safety_sync`);
+        `SYNC_ASK`: an fsync asked for, not waited on.
+        """
+        self.blackbox.record(action.kind, **dict(action.fields))
+        if action.sync == SYNC_WAIT:
+            self._safety_sync()
+        elif action.sync == SYNC_ASK:
+            self.blackbox.sync(None)
 
     def _update(self, **changes: Any) -> Snapshot:
         """Replace fields of the snapshot (caller holds _lock or takes it here)."""

@@ -31,12 +31,13 @@ from types import SimpleNamespace
 from typing import Any, List, Optional, Tuple
 
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.deploy_core import (Answer, Busy, DEPLOY_FRAME, DEPLOY_TOKEN, DeployCall,
-                                           DeployCore, Event, GateDone, Log, PassGate,
-                                           Record, Reply, Report, SaveAttempts, Send, Timeout)
-from dps_parachute_ros.deploy_core import LinkDown as CoreLinkDown
+from dps_parachute_ros.deploy_core import (DEPLOY_FRAME, DEPLOY_TOKEN, DeployAnswer, DeployCall,
+                                           DeployCore, Event, Report, SaveAttempts)
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
+from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.state import Outcome, Result, Snapshot
+from uav_serial_common.core_events import Busy, Log, Record, Reply, Request, Timeout
+from uav_serial_common.core_events import LinkDown as CoreLinkDown
 from uav_serial_common.core_runner import run_core
 
 REREAD_WAIT_S = 1.0
@@ -198,13 +199,8 @@ class DeployProcedure:
                           deployed_boots=set(self._reported_boots))
             return core.step(event)
 
-        def send(action: Send) -> List[Event]:
-            return self._deploy_send(action, armed_read)
-
-        def record(action: Record) -> None:
-            self.blackbox.record(action.kind, **dict(action.fields))
-            if action.sync:
-                self._safety_sync()
+        def request(action: Request) -> List[Event]:
+            return self._deploy_request(action, armed_read)
 
         def save(action: SaveAttempts) -> None:
             problem = self._attempts.save(action.boot_count, action.failed, action.unacked,
@@ -219,11 +215,11 @@ class DeployProcedure:
             return [GateDone(self.clock())]
 
         done = run_core(SimpleNamespace(step=step), [call], {
-            Send: send, Record: record, SaveAttempts: save, PassGate: gate,
-            Log: lambda action: self._log(action.level, action.text),
+            Request: request, Record: self._carry_record, SaveAttempts: save, PassGate: gate,
+            Log: self._carry_log,
             Report: lambda action: None,  # (mirror: the session reports its deployments)
-            Answer: lambda action: None})  # (taken from what run_core carried out)
-        answer = next(action for action in done if isinstance(action, Answer))
+            DeployAnswer: lambda action: None})  # (taken from what run_core carried out)
+        answer = next(action for action in done if isinstance(action, DeployAnswer))
         if answer.counts is not None:
             with self._lock:
                 self._snap = replace(self._snap, failed_deploys=answer.counts[0],
@@ -238,7 +234,7 @@ class DeployProcedure:
         kind = DEPLOY_OUTCOMES.get(answer.outcome, Outcome.DONE if answer.ok else Outcome.FAILED)
         return Result(kind, answer.message, latency_ms=answer.latency_ms)
 
-    def _deploy_send(self, send: Send, armed_read: List[Tuple[int, bool]]) -> List[Event]:
+    def _deploy_request(self, send: Request, armed_read: List[Tuple[int, bool]]) -> List[Event]:
         """Carry out one request of the deploy procedure; the event that ends its wait."""
         epoch = self._current_epoch()
         deploy = send.frame == DEPLOY_FRAME

@@ -29,13 +29,14 @@ from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
-from dps_parachute_ros.settings_core import (Answer, Busy, Drained, JudgeCall, Learned, Log,
-                                             Record, Reply, Send, SettingsCore, Timeout,
+from dps_parachute_ros.settings_core import (Drained, JudgeCall, Learned, SettingsCore,
                                              WriteCall, Written)
-from dps_parachute_ros.settings_core import LinkDown as CoreLinkDown
 from dps_parachute_ros.settings_rule import JUDGED_STEPS, Step, Trigger, would_deploy
 from dps_parachute_ros.state import (FLAG_SETTINGS, Outcome, Result, SessionConfig, SETTINGS,
                                      Snapshot)
+from uav_serial_common.core_events import (Answer, Busy, Log, Record, Reply, Request,
+                                           Timeout)
+from uav_serial_common.core_events import LinkDown as CoreLinkDown
 from uav_serial_common.core_runner import run_core
 
 FLAGS_QUERY_TIMEOUT_S = 0.3
@@ -253,9 +254,8 @@ class SettingsTransaction:
                 return core.step(event)
 
             handlers = {
-                Send: self._settings_send, Learned: self._settings_learned,
-                Record: lambda action: self.blackbox.record(action.kind, **dict(action.fields)),
-                Log: lambda action: self._log(action.level, action.text),
+                Request: self._settings_request, Learned: self._settings_learned,
+                Record: self._carry_record, Log: self._carry_log,
                 Answer: lambda action: None}  # (taken from what run_core carried out)
             done = run_core(SimpleNamespace(step=step), [call], handlers)
             for _ in range(DRAIN_ROUNDS):  # a reply it did not take (maybe a late one)
@@ -269,7 +269,7 @@ class SettingsTransaction:
         return answers[0] if answers else Result.failed('the settings core gave no answer',
                                                         cause='bug')
 
-    def _settings_send(self, send: Send) -> List[Any]:
+    def _settings_request(self, send: Request) -> List[Any]:
         """Carry out one request of the settings core; the event that ends its wait."""
         epoch = self._current_epoch()
         try:

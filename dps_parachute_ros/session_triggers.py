@@ -29,13 +29,13 @@ from types import SimpleNamespace
 from typing import Any, List, Optional
 
 from dps_parachute_ros.link import LinkDown
+from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.state import RequestDecision, Result
 from dps_parachute_ros.trigger_core import (
-    Answer, AnswerCall, Decide, Event, GateDone, Log, NotSent, PassGate, Pending, PolicyChanged,
-    Rebooted, Record, RequestReceived, Send, Sent, SetTimer, Stopped, Tick, TriggerCore)
+    AnswerCall, Decide, Event, NotSent, Pending, PolicyChanged, RequestReceived, ROUTE, Sent,
+    SetTimer, Stopped, Tick, TriggerCore, Write)
+from uav_serial_common.core_events import Answer, Log, Rebooted, Record
 from uav_serial_common.core_runner import run_core
-
-ROUTE = 'trigger request'
 
 
 class TriggerRequests:
@@ -64,9 +64,9 @@ class TriggerRequests:
 
         with self._trigger_lock:
             run_core(SimpleNamespace(step=step), [event], {
-                Send: self._trigger_send, Decide: self._trigger_decide,
-                Record: self._trigger_record, SetTimer: lambda _: self._monitor.wake(),
-                Log: lambda action: self._log(action.level, action.text),
+                Write: self._trigger_write, Decide: self._trigger_decide,
+                Record: self._carry_record, SetTimer: lambda _: self._monitor.wake(),
+                Log: self._carry_log,
                 Pending: self._trigger_pending, PassGate: gates.append,
                 Answer: lambda action: answers.append(action.result)})
         for gate in gates:
@@ -79,10 +79,10 @@ class TriggerRequests:
 
     def _pass_gate(self, gate: PassGate) -> Optional[Result]:
         if self.release_gate is not None:
-            self.release_gate.before_release(ROUTE, gate.t_request)  # (never raises)
+            self.release_gate.before_release(gate.what, gate.t_request)  # (never raises)
         return self._trigger(GateDone(self.clock(), gate.token))
 
-    def _trigger_send(self, action: Send) -> List[Event]:
+    def _trigger_write(self, action: Write) -> List[Event]:
         try:
             self.link.write(action.frame)
         except LinkDown as exc:
@@ -97,11 +97,6 @@ class TriggerRequests:
         self.listener.on_trigger_request(RequestDecision(action.decision, action.policy,
                                                          action.reason, action.latency_ms))
         self.listener.on_diagnostics()
-
-    def _trigger_record(self, action: Record) -> None:
-        self.blackbox.record(action.kind, **dict(action.fields))
-        if action.sync:
-            self.blackbox.sync(None)
 
     def _trigger_pending(self, action: Pending) -> None:
         with self._lock:

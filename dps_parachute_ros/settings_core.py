@@ -37,7 +37,7 @@ from typing import Any, Dict, Generator, List, Optional, Sequence, Tuple, Type
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.settings_events import (  # noqa: F401 (the core's vocabulary)
     Action, Answer, Busy, Drained, Event, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply,
-    REPLIES, REQUEST_TIMEOUT_S, Send, Timeout, WriteCall, Written)
+    REPLIES, Request, REQUEST_TIMEOUT_S, Timeout, WriteCall, Written)
 from dps_parachute_ros.settings_rule import (ATTITUDE_STEPS, FREEFALL_STEPS, JUDGED_STEPS, order,
                                              Step, Trigger, would_deploy)
 from dps_parachute_ros.state import SETTINGS
@@ -45,7 +45,7 @@ from uav_serial_common.result import Result
 
 _Wait = Generator[Any, Event, Any]
 _KEEP = object()
-"""Yielded by a call to wait on for the reply to the Send before, sending nothing."""
+"""Yielded by a call to wait on for the reply to the Request before, sending nothing."""
 PUT_BACK = 'putting back a refused parameter set'
 
 
@@ -88,7 +88,7 @@ class SettingsCore:
         self._now = 0.0
         self._out: List[Action] = []
         self._call: Optional[_Wait] = None
-        self._waiting: Optional[Send] = None
+        self._waiting: Optional[Request] = None
         self._late: Dict[Type, int] = {}  # reply type -> replies that may still come late
 
     def know(self, online: bool, offline_text: str = '',
@@ -140,7 +140,7 @@ class SettingsCore:
             self._waiting = None
             return
         if waiting is _KEEP:
-            return  # (still waiting for the reply to the Send before)
+            return  # (still waiting for the reply to the Request before)
         self._waiting = waiting
         self._out.append(waiting)
 
@@ -148,7 +148,7 @@ class SettingsCore:
         self._out.append(Answer(result))
 
     def _record(self, kind: str, **fields: Any) -> None:
-        self._out.append(Record(kind, tuple(fields.items())))
+        self._out.append(Record.of(kind, **fields))
 
     def _learn(self, name: str, value: Any) -> None:
         if name in FLAGS:
@@ -158,7 +158,7 @@ class SettingsCore:
         self._out.append(Learned(name, value))
 
     def _request(self, frame: bytes, expect: Type, retries: int = 0) -> _Wait:
-        """Send `frame`; return its reply, or raise Stop(silent) with why it did not come.
+        """Request `frame`; return its reply, or raise Stop(silent) with why it did not come.
 
         A reply of a kind whose earlier request timed out may be that one, late (a status from
         before the module was armed, a value from before a write): it is not taken, and the
@@ -183,8 +183,8 @@ class SettingsCore:
             f'no reply within {self.timeout_s * 1000:.0f} ms'
         raise Stop(f'no reply: {reason}', silent=True)
 
-    def _frame(self, frame: bytes, expect: Type, retries: int) -> Send:
-        return Send(frame, (expect,), self._now + self.timeout_s * (retries + 1), retries)
+    def _frame(self, frame: bytes, expect: Type, retries: int) -> Request:
+        return Request(frame, (expect,), self._now + self.timeout_s * (retries + 1), retries)
 
     # -- the rule ------------------------------------------------------------------------------
 

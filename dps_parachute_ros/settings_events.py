@@ -1,7 +1,7 @@
 """The events a `SettingsCore` takes and the actions it returns (``settings_core``).
 
-A reply, a timeout, the link down and a `Send` are the deploy core's (``deploy_events``): one
-vocabulary for the requests of the parachute's cores.
+A `Request`, its `Reply`, `Timeout` or `Busy`, the link down, a record, a log line and the one
+`Answer` are ``uav_serial_common.core_events``'s: one vocabulary for the parachute's cores.
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Tuple, Union
 
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.deploy_events import (  # noqa: F401 (the core's vocabulary)
-    Busy, LinkDown, Log, Record, Reply, REQUEST_TIMEOUT_S, Send, Timeout)
-from uav_serial_common.result import Result
+from dps_parachute_ros.deploy_events import REQUEST_TIMEOUT_S  # noqa: F401 (the core's)
+from uav_serial_common.core_events import (  # noqa: F401 (the core's vocabulary)
+    Answer, Busy, LinkDown, Log, Record, Reply, Request, Timeout)
 
 FLAGS = {'attitude_trigger': 'attitude', 'freefall_trigger': 'freefall'}
 """The auto-trigger flags by parameter name, and the rule's step name of each (D5)."""
@@ -82,13 +82,6 @@ class Learned:
     value: Any
 
 
-@dataclass(frozen=True)
-class Answer:
-    """The one answer to a `WriteCall`; its ``value`` is a `Written`."""
-
-    result: Result
-
-
 @dataclass
 class Written:
     """What a write did, step by step (the value of the answer)."""
@@ -103,4 +96,5 @@ class Written:
     """The parameter names whose write frame left (in order)."""
 
 
-Action = Union[Send, Record, Log, Learned, Answer]
+Action = Union[Request, Record, Log, Learned, Answer]
+"""The `Answer` to a `WriteCall` has a `Written` as its result's ``value``."""

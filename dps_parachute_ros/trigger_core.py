@@ -33,13 +33,18 @@ core asks for it (`PassGate`) and decides when it is passed (`GateDone`). (Issue
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple, Union
+from typing import Dict, List, Optional, Tuple, Union
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.state import MODULE_WINDOW_S
+from uav_serial_common.core_events import (Answer, LinkDown, LinkUp, Log, Rebooted, Record,
+                                           SYNC_ASK)
 from uav_serial_common.result import Result
 
 CONFIRM_FRAME = p.encode_trigger_confirm()
+ROUTE = 'trigger request'
+"""The release gate's name for a confirmation (``ReleaseGate.before_release``)."""
 
 
 # -- events ------------------------------------------------------------------------------------
@@ -72,13 +77,6 @@ class PolicyChanged:
 
 
 @dataclass(frozen=True)
-class Rebooted:
-    """The module rebooted (its heartbeat, or a changed boot count): its request is gone."""
-
-    now: float
-
-
-@dataclass(frozen=True)
 class Tick:
     """Time passed (the monitor, at a deadline the core gave with `SetTimer`)."""
 
@@ -86,16 +84,8 @@ class Tick:
 
 
 @dataclass(frozen=True)
-class GateDone:
-    """The release gate asked for by the `PassGate` of `token` was passed."""
-
-    now: float
-    token: int
-
-
-@dataclass(frozen=True)
 class Sent:
-    """The confirmation of `Send` `token` left."""
+    """The frame of `Write` `token` left."""
 
     now: float
     token: int
@@ -103,26 +93,11 @@ class Sent:
 
 @dataclass(frozen=True)
 class NotSent:
-    """The confirmation of `Send` `token` could not be written (the link is down)."""
+    """The frame of `Write` `token` could not be written (the link is down)."""
 
     now: float
     token: int
     reason: str
-
-
-@dataclass(frozen=True)
-class LinkDown:
-    """The port closed: the module is not online until it answers again."""
-
-    now: float
-    reason: str = 'port closed'
-
-
-@dataclass(frozen=True)
-class LinkUp:
-    """The port (re)opened: the module is online once a frame of it arrives."""
-
-    now: float
 
 
 @dataclass(frozen=True)
@@ -139,8 +114,12 @@ Event = Union[RequestReceived, AnswerCall, PolicyChanged, Rebooted, Tick, GateDo
 # -- actions -----------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class Send:
-    """Write the confirmation now, ahead of anything queued; feed back `Sent` or `NotSent`."""
+class Write:
+    """Write `frame` now, ahead of anything queued, expecting no reply (unlike a `Request`).
+
+    The runtime feeds back `Sent` or `NotSent` with its `token`: the module does not acknowledge
+    a confirmation.
+    """
 
     frame: bytes
     token: int
@@ -148,47 +127,17 @@ class Send:
 
 
 @dataclass(frozen=True)
-class PassGate:
-    """Pass the release gate (off the reader thread), then feed back `GateDone(token)`."""
-
-    token: int
-    t_request: float
-    what: str = 'trigger request'
-
-
-@dataclass(frozen=True)
 class Decide:
-    """The one decision on a request: black box (synced), ``~/trigger_request``, diagnostics."""
+    """The one decision on a request: black box, ``~/trigger_request``, diagnostics.
+
+    Its record is synced as `SYNC_ASK` says: an fsync asked for, never waited on.
+    """
 
     decision: str
     policy: str
     reason: str
     latency_ms: Optional[float]
     t_request: float
-
-
-@dataclass(frozen=True)
-class Answer:
-    """The one answer to an `AnswerCall`."""
-
-    result: Result
-
-
-@dataclass(frozen=True)
-class Record:
-    """Another black-box record; `sync`: ask for it on disk (without waiting)."""
-
-    kind: str
-    fields: Tuple[Tuple[str, Any], ...]
-    sync: bool = False
-
-
-@dataclass(frozen=True)
-class Log:
-    """A log line."""
-
-    level: str
-    text: str
 
 
 @dataclass(frozen=True)
@@ -205,7 +154,7 @@ class Pending:
     pending: bool
 
 
-Action = Union[Send, PassGate, Decide, Answer, Record, Log, SetTimer, Pending]
+Action = Union[Write, PassGate, Decide, Answer, Record, Log, SetTimer, Pending]
 
 
 # -- the core ----------------------------------------------------------------------------------
@@ -239,7 +188,7 @@ class TriggerCore:
         self._now = 0.0
         self._open: Optional[_Request] = None      # the newest request not decided
         self._gates: Dict[int, _Request] = {}      # PassGate out, by token
-        self._sending: Dict[int, _Request] = {}    # Send out, by token
+        self._sending: Dict[int, _Request] = {}    # Write out, by token
         self._tokens = 0
         self._out: List[Action] = []
 
@@ -319,7 +268,7 @@ class TriggerCore:
         if not changed:
             return
         policy = event.policy
-        self._out.append(Record('decision', (('what', 'policy'), ('policy', policy)), sync=True))
+        self._out.append(Record.of('decision', SYNC_ASK, what='policy', policy=policy))
         self._out.append(Log('info', f'trigger requests: {policy}'))
         req = self._open
         if req is None:
@@ -468,8 +417,8 @@ class TriggerCore:
     def _hold(self, req: _Request) -> None:
         req.held, req.deadline = True, req.t_rx + req.defer_s
         self._open = req
-        self._out.append(Record('decision', (('what', 'trigger request deferred'),
-                                             ('deadline_s', req.defer_s)), sync=True))
+        self._out.append(Record.of('decision', SYNC_ASK, what='trigger request deferred',
+                                   deadline_s=req.defer_s))
         self._out.append(Log('warn', 'trigger request from the module: answer '
                                      f'~/answer_trigger_request within {req.defer_s:.2f} s '
                                      '(else denied)'))
@@ -479,14 +428,14 @@ class TriggerCore:
         self._tokens += 1
         req.gate = self._tokens
         self._gates[req.gate] = req
-        self._out.append(PassGate(req.gate, req.t_rx))
+        self._out.append(PassGate(ROUTE, req.gate, req.t_rx))
 
     def _send(self, req: _Request) -> None:
         if self._open is req:
             self._open = None
         self._tokens += 1
         self._sending[self._tokens] = req
-        self._out.append(Send(CONFIRM_FRAME, self._tokens, req.t_rx))
+        self._out.append(Write(CONFIRM_FRAME, self._tokens, req.t_rx))
 
     def _decide(self, req: _Request, decision: str, reason: str, cause: str = '',
                 latency: Optional[float] = None) -> None:

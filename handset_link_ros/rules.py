@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import math
 from typing import Optional, Union
 
+from uav_serial_common.core_events import Log  # (every core's log line: one handler)
+
 ACTION_NONE = 'NONE'
 ACTION_RETURN_TO_HOME = 'RETURN_TO_HOME'
 BATTERY_CLEAR_MARGIN = 0.05
@@ -53,14 +55,6 @@ class Failsafe:
     battery_fraction: float
     stamp: float
     battery_stale: bool = False
-
-
-@dataclass(frozen=True)
-class Log:
-    """A log line: level ``DEBUG``, ``INFO``, ``WARN`` or ``ERROR``."""
-
-    level: str
-    text: str
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple
 
+from uav_serial_common.core_events import Log  # noqa: F401 (an action: every core's log line)
+
 # MAVLink numbers (common.xml), here so the core imports nothing heavy.
 MAV_TYPE_GCS = 6
 MAV_TYPE_PARACHUTE = 37
@@ -221,14 +223,6 @@ class AnswerGate:
     gate_id: int
     stopped: bool
     message: str
-
-
-@dataclass(frozen=True)
-class Log:
-    """One line for the node's log."""
-
-    level: str
-    text: str
 
 
 Action = Any

@@ -1,7 +1,7 @@
 """A `DeployCore` driven against the virtual parachute in virtual time, with wire faults.
 
 `ModelRig` carries out the core's actions with ``uav_serial_common.core_runner.run_core``: a
-`Send` goes to the device model (``dps_parachute_ros.simulation``) through a wire that applies
+`Request` goes to the device model (``dps_parachute_ros.simulation``) through a wire that applies
 the faults queued for it, the model's bytes are decoded by the protocol decoder and fed back as
 `Reply` events (or `Timeout` at the deadline, `LinkDown` when unplugged). It keeps what the
 invariants need: every action carried out, the deploy frames of each power-up without a
@@ -16,9 +16,12 @@ from typing import Any, Dict, List, Optional
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_core import (
-    Answer, DEPLOY_FRAME, DeployCall, DeployCore, GateDone, LinkDown, LinkUp, Log, PassGate,
-    POWER_UP_HEARTBEATS_S, Record, Reply, Report, SaveAttempts, Send, Stored, Timeout)
+    DEPLOY_FRAME, DeployAnswer, DeployCall, DeployCore, POWER_UP_HEARTBEATS_S, Report,
+    SaveAttempts, Stored)
+from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.simulation import VirtualParachute
+from uav_serial_common.core_events import (LinkDown, LinkUp, Log, Record, Reply, Request,
+                                           SYNC_WAIT, Timeout)
 from uav_serial_common.core_runner import run_core
 
 START = 1000.0
@@ -52,7 +55,7 @@ class Call:
 
     token: str
     arm_if_locked: bool
-    answers: List[Answer] = field(default_factory=list)
+    answers: List[DeployAnswer] = field(default_factory=list)
     deploy_frames: int = 0          # deploy frames that reached the module
     deploy_sends: int = 0           # deploy frames the core asked to send
     serial_deployments: int = 0     # deployments by this call's deploy frames
@@ -164,8 +167,8 @@ class ModelRig:
 
     def _run(self, events: List[Any]) -> None:
         run_core(self if self.mirror else self.core, events, {
-            Send: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
-            SaveAttempts: self._save, PassGate: self._gate, Answer: self._answer})
+            Request: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
+            SaveAttempts: self._save, PassGate: self._gate, DeployAnswer: self._answer})
 
     def step(self, event: Any) -> List[Any]:
         """Step a mirror core as the session does: its keeper takes the event in first."""
@@ -203,7 +206,7 @@ class ModelRig:
         self.actions.append(action)
         return [GateDone(self.t)]
 
-    def _answer(self, action: Answer) -> None:
+    def _answer(self, action: DeployAnswer) -> None:
         self.actions.append(action)
         if self.call is not None:
             self.call.answers.append(action)
@@ -216,7 +219,7 @@ class ModelRig:
             self.saved = SaveAttempts(keeper.boot_count, keeper.failed, keeper.unacked,
                                       keeper._sent_since_read)
 
-    def _send(self, send: Send) -> List[Any]:
+    def _send(self, send: Request) -> List[Any]:
         self.actions.append(send)
         if send.frame == DEPLOY_FRAME:
             self._check_before_deploy_frame()
@@ -340,7 +343,7 @@ class ModelRig:
         record = next((a for a in reversed(before) if isinstance(a, Record)), None)
         fields = dict(record.fields) if record else {}
         if record is None or fields.get('what') != 'deploy: sending the deploy frame' or \
-                not record.sync:
+                record.sync != SYNC_WAIT:
             self.order_problems.append(f'deploy frame without its synced decision: {record}')
         if not isinstance(before[-1], SaveAttempts) or before[-1].failed < 1:
             self.order_problems.append('deploy frame left before its attempt was kept')

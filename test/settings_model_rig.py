@@ -2,7 +2,7 @@
 
 `SettingsRig` plays the session's part (``session_settings``): it tells the core what is known of
 the module before each event (``known``: the settings as read, kept from the core's `Learned`),
-carries out the core's actions with ``uav_serial_common.core_runner.run_core`` (a `Send` goes to
+carries out the core's actions with ``uav_serial_common.core_runner.run_core`` (a `Request` goes to
 the device model through a wire that applies the faults queued for it; the model's bytes come
 back decoded as `Reply` events, or `Timeout` at the deadline, `LinkDown` when unplugged) and
 keeps what the invariants need: every call with its answers, the write frames that reached the
@@ -15,12 +15,13 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.settings_core import (
-    Answer, Drained, FLAGS, JudgeCall, Learned, LinkDown, Log, Record, Reply, Send, SettingsCore,
-    Timeout, WriteCall)
+from dps_parachute_ros.settings_core import (Drained, FLAGS, JudgeCall, Learned, SettingsCore,
+                                             WriteCall)
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import SETTINGS
 from parachute_model_rig import faulty_reply, REBOOT_S, REPLY_S
+from uav_serial_common.core_events import (Answer, LinkDown, Log, Record, Reply, Request,
+                                           Timeout)
 from uav_serial_common.core_runner import run_core
 
 START = 1000.0
@@ -116,7 +117,7 @@ class SettingsRig:
         self.calls.append(call)
         self.call = call
         self.core = SettingsCore()  # one per call, as the session makes it
-        handlers = {Send: self._send, Learned: self._learned, Record: self.actions.append,
+        handlers = {Request: self._send, Learned: self._learned, Record: self.actions.append,
                     Log: self.actions.append, Answer: self._answer}
         run_core(self, [call.event], handlers)
         for _ in range(8):  # a reply it did not take: the session says Drained too
@@ -177,7 +178,7 @@ class SettingsRig:
         self.actions.append(action)
         self.known[action.name] = action.value
 
-    def _send(self, send: Send) -> List[Any]:
+    def _send(self, send: Request) -> List[Any]:
         self.actions.append(send)
         if not self.plugged:
             return [LinkDown(self.t, 'unplugged', frame_left=False)]

@@ -233,7 +233,7 @@ ROS_FREE = {
                           'session_worker', 'session_init', 'session_triggers',
                           'session_settings', 'session_events', 'session_deploy',
                           'session_preflight', 'deploy_core', 'deploy_events', 'deploy_knowledge',
-                          'trigger_core', 'settings_core', 'settings_events',
+                          'trigger_core', 'settings_core', 'settings_events', 'release_gate',
                           'blackbox', 'simulation'],
     'parachute_blackbox': ['read', 'analysis', 'report'],
     'desheng_servo_ros': ['protocol', 'registers', 'link', 'units', 'core', 'simulation'],
@@ -242,6 +242,7 @@ ROS_FREE = {
                             'core_services', 'core_settings', 'core_bus_poll', 'simulation',
                             'simulation_parts', 'simulation_handlers'],
     'parachute_mavlink_ros': ['events', 'core'],
+    'uav_serial_common': ['core_events', 'core_runner'],  # (what every core may import)
 }
 
 
@@ -316,3 +317,50 @@ def test_the_core_tier_names_test_files_that_exist_and_start_no_process_or_pty()
         for marker in ('subprocess', 'VirtualSerialPort', 'create_runner', 'RosHarness',
                        'openpty', 'launch.start', 'rclpy.init('):
             assert marker not in source, (name, marker)
+
+
+# Issue 22 item 5, one name per concept: the events and actions every core shares are written
+# once (uav_serial_common.core_events; the release gate's pair in release_gate), so run_core
+# carries two cores' Log (or Record, LinkDown ...) with one handler. A class of one of these
+# names elsewhere is another concept, and says so here.
+SHARED_EVENTS = {'Log', 'Record', 'Request', 'Answer', 'LinkUp', 'LinkDown', 'Rebooted', 'Reply',
+                 'Timeout', 'Busy', 'PassGate', 'GateDone'}
+OTHER_CONCEPTS = {
+    ('uav_serial_common/core_events.py', name) for name in SHARED_EVENTS} | {
+    ('dps_parachute_ros/release_gate.py', 'PassGate'),
+    ('dps_parachute_ros/release_gate.py', 'GateDone'),
+    ('uav_serial_common/serial_errors.py', 'LinkDown'),       # an exception, not an event
+    ('desheng_servo_ros/protocol.py', 'Reply'),                # a decoded status frame
+    ('desheng_servo_ros/protocol.py', 'Request'),              # a decoded host frame
+    ('desheng_servo_ros/bus_schedule.py', 'Answer'),           # (token, ok, text): not a Result
+    ('parachute_mavlink_ros/events.py', 'Answer'),             # an event: a service answered
+}
+
+
+def test_round2_22_5_the_shared_events_and_actions_are_written_once():
+    found = set()
+    for module in MODULES:
+        for path in (ROOT / module).rglob('*.py'):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef) and node.name in SHARED_EVENTS:
+                    found.add((str(path.relative_to(ROOT)), node.name))
+    assert found - OTHER_CONCEPTS == set()
+
+
+def test_round2_22_5_every_core_takes_one_log_record_and_link_type():
+    from dps_parachute_ros import deploy_core, release_gate, settings_core, trigger_core
+    from handset_link_ros import rules
+    from parachute_mavlink_ros import events
+    from uav_serial_common import core_events as ce
+    for core in (deploy_core, settings_core, trigger_core):
+        assert core.Log is ce.Log and core.Record is ce.Record and core.LinkDown is ce.LinkDown
+    assert rules.Log is ce.Log and events.Log is ce.Log
+    assert deploy_core.Rebooted is trigger_core.Rebooted is ce.Rebooted
+    assert deploy_core.LinkUp is trigger_core.LinkUp is ce.LinkUp
+    assert deploy_core.Request is settings_core.Request is ce.Request
+    assert deploy_core.PassGate is trigger_core.PassGate is release_gate.PassGate
+    assert settings_core.Answer is trigger_core.Answer is ce.Answer
+    # Two guarantees kept apart: the deploy decision waits for the disk, a trigger decision not.
+    assert {ce.SYNC_WAIT, ce.SYNC_ASK, ce.NO_SYNC} == set(ce.SYNCS) and len(ce.SYNCS) == 3
+    with pytest.raises(ValueError):
+        ce.Record('decision', (), sync=True)  # the old bool meant either guarantee

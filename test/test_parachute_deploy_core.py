@@ -6,9 +6,11 @@ from __future__ import annotations
 import pytest
 
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.deploy_core import (
-    Answer, Busy, DEPLOY_FRAME, DeployCall, DeployCore, GateDone, LinkDown, LinkUp, Log, PassGate,
-    Record, Reply, Report, SaveAttempts, Send, Stored, Timeout)
+from dps_parachute_ros.deploy_core import (DEPLOY_FRAME, DeployAnswer, DeployCall, DeployCore,
+                                           Report, SaveAttempts, Stored)
+from dps_parachute_ros.release_gate import GateDone, PassGate
+from uav_serial_common.core_events import (Busy, LinkDown, LinkUp, Log, Record, Reply, Request,
+                                           SYNC_WAIT, Timeout)
 from uav_serial_common.core_runner import run_core
 
 T0 = 100.0
@@ -41,8 +43,8 @@ def kinds(actions) -> list:
     return [type(a).__name__ for a in actions]
 
 
-def answer_of(actions) -> Answer:
-    found = [a for a in actions if isinstance(a, Answer)]
+def answer_of(actions) -> DeployAnswer:
+    found = [a for a in actions if isinstance(a, DeployAnswer)]
     assert len(found) == 1, actions
     return found[0]
 
@@ -50,7 +52,7 @@ def answer_of(actions) -> Answer:
 def test_round2_22_1_a_bad_token_is_refused_at_once_and_nothing_is_sent():
     core = ready()
     actions = core.step(DeployCall(T0, 'deploy'))
-    assert kinds(actions)[0] == 'Record' and not any(isinstance(a, Send) for a in actions)
+    assert kinds(actions)[0] == 'Record' and not any(isinstance(a, Request) for a in actions)
     answer = answer_of(actions)
     assert answer.outcome == 'refused' and "confirm must be exactly 'DEPLOY'" in answer.message
     assert not core.busy
@@ -59,9 +61,10 @@ def test_round2_22_1_a_bad_token_is_refused_at_once_and_nothing_is_sent():
 def test_round2_22_1_the_decision_is_recorded_and_synced_before_the_deploy_frame_leaves():
     core = ready()
     actions = core.step(DeployCall(T0, 'DEPLOY'))
-    assert kinds(actions)[-3:] == ['Record', 'SaveAttempts', 'Send']
+    assert kinds(actions)[-3:] == ['Record', 'SaveAttempts', 'Request']
     record, save, send = actions[-3:]
-    assert record.sync and dict(record.fields)['what'] == 'deploy: sending the deploy frame'
+    assert record.sync == SYNC_WAIT  # on disk before the next action, not only asked for
+    assert dict(record.fields)['what'] == 'deploy: sending the deploy frame'
     assert save == SaveAttempts(5, 1, 1, 1)  # the frame counts before it can leave (P11)
     assert send.frame == DEPLOY_FRAME and send.expect == (p.DeployAck,)
     actions = core.step(Reply(T0 + 0.004, ACK))
@@ -75,7 +78,7 @@ def test_round2_22_1_the_decision_is_recorded_and_synced_before_the_deploy_frame
 def test_round2_22_1_the_release_gate_is_passed_after_every_refusal_and_before_the_frame():
     core = ready()
     actions = core.step(DeployCall(T0, 'DEPLOY', gate=True))
-    assert isinstance(actions[-1], PassGate) and not any(isinstance(a, Send) for a in actions)
+    assert isinstance(actions[-1], PassGate) and not any(isinstance(a, Request) for a in actions)
     actions = core.step(GateDone(T0 + 0.5))
     assert actions[-1].frame == DEPLOY_FRAME
     locked = DeployCore()
@@ -175,14 +178,14 @@ def test_round2_22_2_the_runner_carries_out_actions_in_order_and_feeds_replies_b
     core = ready()
     seen = []
 
-    def send(action: Send):
+    def send(action: Request):
         seen.append(action.frame)
         return [Reply(T0 + 0.004, ACK)]
 
     done = run_core(core, [DeployCall(T0, 'DEPLOY')], {
-        Send: send, Record: seen.append, SaveAttempts: seen.append, Answer: seen.append,
+        Request: send, Record: seen.append, SaveAttempts: seen.append, DeployAnswer: seen.append,
         Report: seen.append, Log: seen.append})
-    answers = [a for a in done if isinstance(a, Answer)]
+    answers = [a for a in done if isinstance(a, DeployAnswer)]
     assert [a.outcome for a in answers] == ['deployed'] and answers[0] in seen
     assert DEPLOY_FRAME in seen and seen.index(DEPLOY_FRAME) < seen.index(answers[0])
 

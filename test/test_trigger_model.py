@@ -40,11 +40,12 @@ import pytest
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import MODULE_WINDOW_S
+from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.trigger_core import (
-    Answer, AnswerCall, Decide, GateDone, LinkDown, LinkUp, Log, NotSent, PassGate, Pending,
-    PolicyChanged, Rebooted, Record, RequestReceived, Send, Sent, SetTimer, Stopped, Tick,
-    TriggerCore)
+    AnswerCall, Decide, NotSent, Pending, PolicyChanged, RequestReceived, Sent, SetTimer, Stopped,
+    Tick, TriggerCore, Write)
 from model_runs import EXAMPLES, search
+from uav_serial_common.core_events import Answer, LinkDown, LinkUp, Log, Rebooted, Record
 from uav_serial_common.core_runner import run_core
 from uav_serial_common.result import Outcome, Result
 
@@ -120,7 +121,7 @@ class TriggerRig:
         before, self.active = self.active, call
         try:
             run_core(self, [event], {
-                Send: self._send, PassGate: self._gate, Decide: self._decide,
+                Write: self._send, PassGate: self._gate, Decide: self._decide,
                 Answer: self._answer, Pending: self._pending, Record: lambda a: None,
                 Log: lambda a: None, SetTimer: lambda a: None})
         finally:
@@ -261,7 +262,7 @@ class TriggerRig:
 
     # -- carrying out the core's actions, checked -----------------------------------------------
 
-    def _send(self, send: Send) -> List[Any]:
+    def _send(self, send: Write) -> List[Any]:
         seen = self.seen.get(send.t_request)
         if seen is None:
             self.problems.append(f'a confirmation of a request never seen: {send}')
