@@ -11,7 +11,7 @@ import os
 import random
 
 from dps_parachute_ros import protocol as p
-from mavlink_rig import Hub, MavlinkRig, motor_stops, sent_motor_stops
+from mavlink_rig import GCS, Hub, MavlinkRig, motor_stops, sent_motor_stops
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -287,10 +287,29 @@ def test_round2_23_garbage_floods_and_a_second_autopilot_change_nothing(fresh):
         rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE, confirmation=n % 256)
         rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE, confirmation=n % 256,
                              source=(255, 191))
-    # A flood overflows a UDP socket's buffer: what was dropped is retransmitted, as a ground
-    # station does.
-    rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE, confirmation=200)
-    rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE, confirmation=200, source=(255, 191))
+    # A flood overflows a UDP socket's buffer, the node's, or the hub's (the node's 300
+    # IN_PROGRESS ACKs wait there while this process parses them, and a final ACK sent then is
+    # dropped): what was dropped is retransmitted, as a ground station does, with the next
+    # confirmation each time, until the final ACK came. A retransmission after the end is
+    # answered with the final result it lost (recent_s), never a second deploy.
+    stations = (GCS, (255, 191))
+
+    def final(to):
+        return rig.hub.since(mark, 'node', 'COMMAND_ACK', lambda m: (
+            m.command == mavlink.MAV_CMD_DO_PARACHUTE
+            and (m.target_system, m.target_component) == to
+            and m.result != mavlink.MAV_RESULT_IN_PROGRESS))
+    sent = []
+
+    def retransmitted_until_answered():
+        confirmation = 1 + (199 + len(sent)) % 255  # 200, 201, ... never 0 (a first send)
+        sent.append(confirmation)
+        for source in stations:
+            if not final(source):
+                rig.hub.do_parachute(mavlink.PARACHUTE_RELEASE, confirmation=confirmation,
+                                     source=source)
+        return all(final(source) for source in stations)
+    wait_for(retransmitted_until_answered, 15, interval=0.5, what='both final ACKs')
     assert rig.hub.final_ack(mark).result == mavlink.MAV_RESULT_ACCEPTED
     assert rig.hub.final_ack(mark, to=(255, 191)).result == mavlink.MAV_RESULT_ACCEPTED
     wait_for(lambda: rig.sim.triggered, 5)
