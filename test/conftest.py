@@ -99,10 +99,10 @@ def launch(request, tmp_path):
 
 
 @pytest.fixture
-def driver(request):
+def driver(request, tmp_path):
     """Start drivers' nodes in this process (`InprocDrivers.start`); all stop after the test."""
     from inproc import InprocDrivers
-    drivers = InprocDrivers()
+    drivers = InprocDrivers(tmp_path)
     try:
         yield drivers
     finally:

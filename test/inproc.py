@@ -3,8 +3,10 @@
 A driver started by `InprocDrivers.start` is what ``main()`` runs, minus the process: its node
 class in a Context of its own (a DDS participant of its own, as a process has; creating and
 shutting it down never touches the test's `ros` context), the test's parameters as overrides
-(the dict `launch.start(parameters=...)` takes), an optional node name and namespace (remapped
-as ``--ros-args -r`` does), spun by the drivers' `DriverExecutor` in a thread with the thread
+(the dict `launch.start(parameters=...)` takes, in the same YAML file as node arguments, so rcl
+types them as for a process: ``[]`` fits an integer-array parameter, where rclpy's `Parameter`
+would make it a byte array), an optional node name and namespace (remapped as ``--ros-args -r``
+does), spun by the drivers' `DriverExecutor` in a thread with the thread
 count of its ``main()``, and stopped by the shutdown of `run_node` (`NodeSpinner.shutdown`: stop
 spinning, ``on_shutdown()``, destroy the node) before its context is shut down. It saves a
 process start (Python, rclpy, a participant) per driver.
@@ -24,12 +26,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import importlib
+from pathlib import Path
 import sys
 from typing import Any, Dict, List, Optional
 
 import rclpy
 from rclpy.context import Context
-from rclpy.parameter import Parameter
 from rcl_interfaces.msg import Log
 from uav_serial_common.node_main import NodeSpinner
 from uav_serial_common.process import wait_for
@@ -103,7 +105,8 @@ class InprocDriver:
 class InprocDrivers:
     """Starts drivers' nodes in this process for one test and stops them all afterwards."""
 
-    def __init__(self) -> None:
+    def __init__(self, tmp_path: Path) -> None:
+        self.tmp_path = tmp_path
         self.drivers: List[InprocDriver] = []
         self._switch_interval: Optional[float] = None
         self._rosout: Dict[int, MessageLog] = {}
@@ -130,12 +133,16 @@ class InprocDrivers:
             cli_args += ['-r', f'__node:={node_name}']
         if namespace:
             cli_args += ['-r', f'__ns:={namespace}']
-        overrides = [Parameter(name, value=value) for name, value in (parameters or {}).items()]
+        if parameters:
+            import yaml  # only here, as in LaunchedProcesses.start
+            path = self.tmp_path / f'{executable}-inproc-{len(self.drivers)}.params.yaml'
+            path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+            cli_args += ['--params-file', str(path)]
         context = Context()
         rclpy.init(context=context)
         try:
             node = getattr(module, spec.node_class)(
-                context=context, cli_args=cli_args, parameter_overrides=overrides)
+                context=context, cli_args=cli_args)
         except Exception as exc:
             context.try_shutdown()
             # A process would print this as "fatal: ..." and exit 1.

@@ -92,7 +92,7 @@ class Rig:
         self.runner = create_runner(self.sim, str(tmp / 'vpara'), baud).start()
         self.wire = Wire(self.runner)
         self.ros = RosHarness()
-        self.procs = InprocDrivers() if inproc else LaunchedProcesses(tmp, 'parachute_node')
+        self.procs = InprocDrivers(tmp) if inproc else LaunchedProcesses(tmp, 'parachute_node')
         sub = self.ros.subscribe
         self.status = sub(ParachuteStatus, f'{NODE}/status')
         self.config = sub(ParachuteConfig, f'{NODE}/config', latched=True)
