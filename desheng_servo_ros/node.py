@@ -73,8 +73,8 @@ class StartupError(RuntimeError):
 class ServoBusNode(Node):
     """Driver of one bus of Desheng servos."""
 
-    def __init__(self, node_name: str = 'servo_bus') -> None:
-        super().__init__(node_name)
+    def __init__(self, node_name: str = 'servo_bus', **node_options: Any) -> None:
+        super().__init__(node_name, **node_options)
         values = declare_and_check(self, PARAMETERS)
         self.frame_id = values['frame_id']
         self._joints = messages.JointStatePacker(self.frame_id)

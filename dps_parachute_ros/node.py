@@ -101,8 +101,8 @@ THRESHOLD_FIELDS = (('attitude_threshold_deg', 'attitude_deg'),
 class ParachuteNode(Node, Listener):
     """The DPS-S parachute driver: a ROS face on a `ParachuteSession`."""
 
-    def __init__(self) -> None:
-        super().__init__('parachute')
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__('parachute', **node_options)
         values = declare_and_check(self, PARAMS)
         self.frame_id: str = values['frame_id']
         self._status = m.StatusPacker(self.frame_id)

@@ -75,8 +75,8 @@ SPECS = (
 class HandsetLinkNode(Node):
     """The handset link driver."""
 
-    def __init__(self) -> None:
-        super().__init__('handset_link')
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__('handset_link', **node_options)
         values = declare_and_check(self, SPECS)
         self.frame_id: str = values['frame_id']
         self._setpoint = messages.SetpointPacker(self.frame_id)

@@ -105,8 +105,8 @@ def _config(values: Dict[str, Any], base: OriginManConfig = OriginManConfig()) -
 class OriginManBoardNode(Node):
     """The OriginMan board driver: a ROS face on an :class:`OriginManCore`."""
 
-    def __init__(self) -> None:
-        super().__init__('originman_board')
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__('originman_board', **node_options)
         values = declare_and_check(self, PARAMS)
         self.frame_id: str = values['frame_id']
         self.imu_frame_id: str = values['imu_frame_id']

@@ -6,6 +6,8 @@
   with helpers to wait for messages and call services with timeouts.
 - `launch` starts an installed executable as a subprocess with parameters, waits for a topic or
   service of it, and stops it by PID at the end of the test (stderr goes into failure messages).
+- `driver` starts a driver's node in the test's own process instead (test/inproc.py): same
+  arguments, no process start; for tests that need no signal, exit code, stderr or kill.
 """
 
 from __future__ import annotations
@@ -94,6 +96,24 @@ def launch(request, tmp_path):
             for proc in processes.processes:
                 print(f'--- {proc.name} (pid {proc.pid}, exit {proc.popen.returncode}) ---')
                 print(proc.output())
+
+
+@pytest.fixture
+def driver(request, tmp_path):
+    """Start drivers' nodes in this process (`InprocDrivers.start`); all stop after the test."""
+    from inproc import InprocDrivers
+    drivers = InprocDrivers(tmp_path)
+    try:
+        yield drivers
+    finally:
+        try:
+            drivers.stop_all()
+        finally:
+            report = getattr(request.node, 'rep_call', None)
+            if report is not None and report.failed:
+                for node in drivers.drivers:
+                    print(f'--- {node.name} (in process) log ---')
+                    print(node.output())
 
 
 @pytest.hookimpl(hookwrapper=True)

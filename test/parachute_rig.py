@@ -11,6 +11,7 @@ from typing import List, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray
 from dps_parachute_ros import protocol as p
+from inproc import InprocDrivers
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.virtual_node import create_runner
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
@@ -80,15 +81,18 @@ def parameter_value(value) -> ParameterValue:
 
 
 class Rig:
-    """A virtual module in this process (its wire tapped) and parachute_node as a process."""
+    """A virtual module in this process (its wire tapped) and parachute_node as a process.
 
-    def __init__(self, tmp, baud: int = 115200, **parameters) -> None:
+    With `inproc`, the node runs in this process too (test/inproc.py): no `respawn` then.
+    """
+
+    def __init__(self, tmp, baud: int = 115200, inproc: bool = False, **parameters) -> None:
         self.tmp = tmp
         self.sim = VirtualParachute(now=time.monotonic())
         self.runner = create_runner(self.sim, str(tmp / 'vpara'), baud).start()
         self.wire = Wire(self.runner)
         self.ros = RosHarness()
-        self.procs = LaunchedProcesses(tmp, 'parachute_node')
+        self.procs = InprocDrivers(tmp) if inproc else LaunchedProcesses(tmp, 'parachute_node')
         sub = self.ros.subscribe
         self.status = sub(ParachuteStatus, f'{NODE}/status')
         self.config = sub(ParachuteConfig, f'{NODE}/config', latched=True)
@@ -107,6 +111,7 @@ class Rig:
 
     def respawn(self, **parameters):
         """Kill the node (a crash) and start it again, as a respawn would; return it."""
+        assert isinstance(self.procs, LaunchedProcesses), 'a respawn needs the node a process'
         self.proc.stop(signal.SIGKILL)
         self.params.update(parameters)
         self.proc = self.procs.start('parachute_node', parameters=self.params, ros=self.ros,

@@ -1,4 +1,8 @@
-"""handset_link_node and virtual_handset from the installed package, as two processes."""
+"""handset_link_node (in the test's process) and virtual_handset (a process), installed.
+
+The driver runs in the test's process (the `driver` fixture); the double-SIGINT test starts it
+as a process, the one that has signals.
+"""
 
 import math
 import signal
@@ -20,9 +24,12 @@ STICKS = {'yaw_deg', 'pitch_deg', 'roll_deg', 'altitude_m'}
 
 
 class Handset:
-    """A virtual handset and the driver on it, both processes, with their topics recorded."""
+    """A virtual handset (a process) and the driver on it, with their topics recorded.
 
-    def __init__(self, ros, launch, tmp_path, namespace='', **params):
+    The driver is started by `driver` (in this process) or, without it, by `launch`.
+    """
+
+    def __init__(self, ros, launch, tmp_path, namespace='', driver=None, **params):
         self.ros = ros
         self.ns = f'/{namespace}' if namespace else ''
         self.virtual = f'{self.ns}/virtual_handset'
@@ -35,9 +42,9 @@ class Handset:
         self.links = ros.subscribe(HandsetLink, f'{node}/link')
         self.failsafes = ros.subscribe(Failsafe, f'{node}/failsafe', latched=True)
         self.diags = ros.subscribe(DiagnosticArray, '/diagnostics')
-        self.driver = launch.start('handset_link_node', parameters={'port': link, **params},
-                                   namespace=self.ns or None, ros=ros,
-                                   wait_topic=f'{node}/failsafe')
+        self.driver = (driver or launch).start(
+            'handset_link_node', parameters={'port': link, **params},
+            namespace=self.ns or None, ros=ros, wait_topic=f'{node}/failsafe')
         self.node = node
         # Reported at start-up, and latched for late subscribers.
         self.failsafes.wait(lambda m: True, 10, what='the start-up failsafe')
@@ -85,9 +92,9 @@ class Handset:
         return wait_for(find, timeout, what=f'a {level} log line with {words}')
 
 
-def test_setpoints_arrive_per_frame_with_updated_and_auxiliary_is_latched(ros, launch,
+def test_setpoints_arrive_per_frame_with_updated_and_auxiliary_is_latched(ros, launch, driver,
                                                                           tmp_path):
-    h = Handset(ros, launch, tmp_path)
+    h = Handset(ros, launch, tmp_path, driver=driver)
     first = h.setpoints.wait(lambda m: m.updated, 10, what='a first setpoint')
     assert set(first.updated) <= STICKS and first.header.frame_id == 'handset'
     # Every stick is updated every tick (H7, H22), each frame in a message naming it (H16).
@@ -119,8 +126,8 @@ def test_setpoints_arrive_per_frame_with_updated_and_auxiliary_is_latched(ros, l
     assert h.failsafes.last.action == Failsafe.ACTION_NONE
 
 
-def test_encodings_switched_at_runtime_carry_what_each_can(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path)
+def test_encodings_switched_at_runtime_carry_what_each_can(ros, launch, driver, tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver)
     h.setpoints.wait(lambda m: m.updated, 10, what='a first setpoint')
     float32_tenth = struct.unpack('<f', struct.pack('<f', 0.1))[0]
     # Each value tells the encodings apart: int8 rounds and saturates, int16 rounds, float32
@@ -134,8 +141,8 @@ def test_encodings_switched_at_runtime_carry_what_each_can(ros, launch, tmp_path
     assert 'encoding must be one of json, int8, int16, float32' in h.refusal(encoding='bcd')
 
 
-def test_setpoint_in_drives_the_virtual_sticks(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path)
+def test_setpoint_in_drives_the_virtual_sticks(ros, launch, driver, tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver)
     h.setpoints.wait(lambda m: m.updated, 10, what='a first setpoint')
     pub = ros.publisher(HandsetSetpoint, f'{h.virtual}/setpoint_in')
     pub.publish(HandsetSetpoint(pitch_deg=-12.5, yaw_deg=99.0, updated=['pitch_deg']))
@@ -149,8 +156,8 @@ def test_setpoint_in_drives_the_virtual_sticks(ros, launch, tmp_path):
     assert h.setpoints.last.pitch_deg == -12.5
 
 
-def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path, link_timeout_s=60.0)
+def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, driver, tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver, link_timeout_s=60.0)
     h.setpoints.wait(lambda m: m.updated, 10, what='a first setpoint')
     h.radio(False)
     base = h.links.wait(lambda m: m.command_rate_hz == 0, 5, what='the handset silent',
@@ -193,8 +200,9 @@ def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, tmp_pa
     assert h.driver.alive()
 
 
-def test_radio_link_lost_requests_return_to_home_and_is_regained(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path, link_timeout_s=0.5)
+def test_radio_link_lost_requests_return_to_home_and_is_regained(ros, launch, driver,
+                                                                 tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver, link_timeout_s=0.5)
     h.failsafes.wait(lambda m: m.action == Failsafe.ACTION_NONE, 5, what='start-up failsafe')
     h.links.wait(lambda m: m.connected, 10, what='connected')
     start = len(h.failsafes)
@@ -214,8 +222,9 @@ def test_radio_link_lost_requests_return_to_home_and_is_regained(ros, launch, tm
     h.links.wait(lambda m: m.connected, 5, what='connected again')
 
 
-def test_low_battery_requests_return_to_home_and_clears_at_25_percent(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path)
+def test_low_battery_requests_return_to_home_and_clears_at_25_percent(ros, launch, driver,
+                                                                      tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver)
     pub = ros.publisher(BatteryState, '/battery')
 
     def battery(level, until, what):
@@ -263,9 +272,9 @@ def _diag_value(h, key):
     return next(kv.value for kv in status.values if kv.key == key)
 
 
-def test_modem_unplugged_and_replugged_the_setpoints_resume(ros, launch, tmp_path):
+def test_modem_unplugged_and_replugged_the_setpoints_resume(ros, launch, driver, tmp_path):
     # A long link timeout: the port closing is no failsafe of its own (H21).
-    h = Handset(ros, launch, tmp_path, link_timeout_s=30.0)
+    h = Handset(ros, launch, tmp_path, driver=driver, link_timeout_s=30.0)
     h.links.wait(lambda m: m.connected and m.port_open, 10, what='connected')
     assert h.call('disconnect', SetBool, SetBool.Request(data=True)).success
     h.links.wait(lambda m: not m.port_open, 5, what='port closed', start=len(h.links))
@@ -289,8 +298,8 @@ def test_double_sigint_exits_cleanly(ros, launch, tmp_path):
     assert 'Traceback' not in h.driver.output() + h.handset.output()
 
 
-def test_diagnostics_carry_the_node_name_and_the_rate_warning(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path)
+def test_diagnostics_carry_the_node_name_and_the_rate_warning(ros, launch, driver, tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver)
     ok = h.diagnostic('link', lambda s: s.level == DiagnosticStatus.OK, 'link OK')
     assert ok.name == '/handset_link: link' and ok.message.startswith('receiving')
     assert h.diagnostic('battery', lambda s: True, 'battery').name == '/handset_link: battery'
@@ -299,8 +308,8 @@ def test_diagnostics_carry_the_node_name_and_the_rate_warning(ros, launch, tmp_p
     assert warn.level == DiagnosticStatus.WARN and 'expected 50 Hz' in warn.message
 
 
-def test_under_a_namespace_names_carry_it(ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path, namespace='uav3')
+def test_under_a_namespace_names_carry_it(ros, launch, driver, tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver, namespace='uav3')
     status = h.diagnostic('link', lambda s: s.level == DiagnosticStatus.OK, 'link OK')
     assert status.name == '/uav3/handset_link: link'
     h.setpoints.wait(lambda m: m.updated, 10, what='a setpoint under /uav3')
@@ -310,8 +319,9 @@ def test_under_a_namespace_names_carry_it(ros, launch, tmp_path):
 
 
 def test_round2_8_node_auxiliary_frames_keep_no_link_and_a_silent_battery_is_unknown(
-        ros, launch, tmp_path):
-    h = Handset(ros, launch, tmp_path, link_timeout_s=1.0, battery_timeout_s=1.0)
+        ros, launch, driver, tmp_path):
+    h = Handset(ros, launch, tmp_path, driver=driver, link_timeout_s=1.0,
+                battery_timeout_s=1.0)
     h.links.wait(lambda m: m.connected, 10, what='the link up')
     # The radio carries lights only (send_raw goes out with the radio link down, H22).
     h.radio(False)

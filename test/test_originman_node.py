@@ -1,4 +1,8 @@
-"""originman_board_node against virtual_originman_board: two processes and a ROS client.
+"""originman_board_node against virtual_originman_board (a process) and a ROS client.
+
+The driver runs in the test's process (the `driver` fixture), except in the tests of what a
+process has (a double SIGINT) and of the motor watchdog against a keep-alive (a time-critical
+duty that must not share the GIL with this test's publisher).
 
 What the driver sends is read from the virtual board's ``~/state`` (JSON): its model (motors,
 servos, settings) and ``wire``, every command the board's parser read (counts by kind, the
@@ -36,9 +40,12 @@ BOARD = '/virtual_originman_board'
 
 
 class Rig:
-    """The virtual board and the driver as processes, with the client's subscriptions."""
+    """The virtual board (a process) and the driver, with the client's subscriptions.
 
-    def __init__(self, ros, launch, tmp_path, namespace='', board=None, **params):
+    The driver is started by `driver` (in this process) or, without it, by `launch`.
+    """
+
+    def __init__(self, ros, launch, tmp_path, namespace='', board=None, driver=None, **params):
         self.ros = ros
         self.launch = launch
         self.link = str(tmp_path / 'voriginman')
@@ -49,10 +56,9 @@ class Rig:
                                   parameters={'link': self.link, **(board or {})}, ros=ros,
                                   wait_service=f'{BOARD}/press_key')
         params.setdefault('bus_servo_ids', [1, 2, 3])
-        self.driver = launch.start('originman_board_node',
-                                   parameters={'port': self.link, **params},
-                                   namespace=self.ns or None, ros=ros,
-                                   wait_service=f'{self.driver_name}/stop_motors')
+        self.driver = (driver or launch).start(
+            'originman_board_node', parameters={'port': self.link, **params},
+            namespace=self.ns or None, ros=ros, wait_service=f'{self.driver_name}/stop_motors')
 
     @property
     def driver_name(self):
@@ -114,12 +120,13 @@ def model_key_events(key_id, kind):
 
 # ----- reports ---------------------------------------------------------------------------------
 
-def test_reports_are_published_in_si_units_with_the_keys_exact_events(ros, launch, tmp_path):
+def test_reports_are_published_in_si_units_with_the_keys_exact_events(ros, launch, driver,
+                                                                      tmp_path):
     imu = ros.subscribe(Imu, f'{DRIVER}/imu')
     battery = ros.subscribe(BatteryState, f'{DRIVER}/battery')
     buttons = ros.subscribe(ButtonEvent, f'{DRIVER}/button')
     sbus = ros.subscribe(SbusFrame, f'{DRIVER}/sbus')
-    rig = Rig(ros, launch, tmp_path)
+    rig = Rig(ros, launch, tmp_path, driver=driver)
     status, values = rig.online()
     assert status.hardware_id == rig.link
     first = imu.wait(lambda m: True, 10, 'an IMU message')
@@ -179,10 +186,11 @@ def test_reports_are_published_in_si_units_with_the_keys_exact_events(ros, launc
 
 # ----- bus servos, PWM servos, motors --------------------------------------------------------
 
-def test_a_servo_sweep_shows_in_joint_states_and_every_service_answers(ros, launch, tmp_path):
+def test_a_servo_sweep_shows_in_joint_states_and_every_service_answers(ros, launch, driver,
+                                                                       tmp_path):
     joints = ros.subscribe(JointState, '/joint_states')
     states = ros.subscribe(BusServoStateArray, f'{DRIVER}/bus_servo/states')
-    rig = Rig(ros, launch, tmp_path, motor_timeout_s=2.0)
+    rig = Rig(ros, launch, tmp_path, driver=driver, motor_timeout_s=2.0)
     rig.online()
     joints.wait(lambda m: m.name == ['bus_servo_1', 'bus_servo_2', 'bus_servo_3'], 10,
                 'joint_states of three servos')
@@ -371,9 +379,10 @@ BAD_SERVICES = [
 ]
 
 
-def test_bad_values_are_refused_with_nothing_on_the_wire_and_counted(ros, launch, tmp_path):
+def test_bad_values_are_refused_with_nothing_on_the_wire_and_counted(ros, launch, driver,
+                                                                     tmp_path):
     # No polling and no motor timeout: the driver sends nothing of its own.
-    rig = Rig(ros, launch, tmp_path, bus_servo_ids=[], motor_timeout_s=0.0)
+    rig = Rig(ros, launch, tmp_path, driver=driver, bus_servo_ids=[], motor_timeout_s=0.0)
     rig.online()
     before = rig.board_state(lambda s: True, 5, 'the wire before')['wire']
     assert before['frames'] == 0
@@ -407,14 +416,15 @@ def test_bad_values_are_refused_with_nothing_on_the_wire_and_counted(ros, launch
 # ----- settings, reconnects, shutdown ----------------------------------------------------------
 
 def test_desired_settings_are_written_at_connect_and_after_the_board_comes_back(
-        ros, launch, tmp_path):
+        ros, launch, driver, tmp_path):
     desired = {'battery_limit_mv': 7000, 'motor_type': 'JGB37'}
     offsets = {'1': 10, '2': -20, '3': 0, '4': 5}
 
     def applied(s):
         return all(s[k] == v for k, v in desired.items()) and \
             {i: v['offset_us'] for i, v in s['pwm_servos'].items()} == offsets
-    rig = Rig(ros, launch, tmp_path, bus_servo_ids=[], low_battery_mv=7000, motor_type='JGB37',
+    rig = Rig(ros, launch, tmp_path, driver=driver, bus_servo_ids=[], low_battery_mv=7000,
+              motor_type='JGB37',
               pwm_servo_offsets_us=[10, -20, 0, 5], offline_timeout_s=0.5)
     rig.board_state(lambda s: applied(s) and s['boots'] == 1, 10, 'the settings at connect')
     rig.diag('link', lambda s: s.level == b'\x00' and 'written' in values_of(s)['settings'],
@@ -460,10 +470,10 @@ def test_a_double_sigint_exits_0_and_the_last_motor_frame_is_a_stop(ros, launch,
     assert 'shutdown: every motor stopped' in rig.driver.output()
 
 
-def test_diagnostics_and_topics_follow_the_namespace(ros, launch, tmp_path):
+def test_diagnostics_and_topics_follow_the_namespace(ros, launch, driver, tmp_path):
     imu = ros.subscribe(Imu, '/uav1/originman_board/imu')
     joints = ros.subscribe(JointState, '/uav1/joint_states')
-    rig = Rig(ros, launch, tmp_path, namespace='uav1')
+    rig = Rig(ros, launch, tmp_path, driver=driver, namespace='uav1')
     status, _ = rig.online()
     assert status.name == '/uav1/originman_board: link'
     imu.wait(lambda m: True, 10, 'IMU under the namespace')

@@ -1,4 +1,4 @@
-"""parachute_node as a process against the virtual module on a pty (one node for the module).
+"""parachute_node in the test's process against the virtual module on a pty (one node for it).
 
 Tests that need a fresh module power-cycle it and wait for the node to re-initialize it; what
 reaches the wire is seen through a tap on the runner.
@@ -26,7 +26,7 @@ CONFIRM_FRAME = bytes.fromhex('42 61 39 a5 01 df')
 @pytest.fixture(scope='module')
 def rig(tmp_path_factory, request):
     failed_before = request.session.testsfailed
-    rig = Rig(tmp_path_factory.mktemp('parachute'))
+    rig = Rig(tmp_path_factory.mktemp('parachute'), inproc=True)
     try:
         rig.wait_ready()
         yield rig

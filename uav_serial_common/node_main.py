@@ -90,6 +90,62 @@ class _Signals:
                 pass
 
 
+class NodeSpinner:
+    """A node spun by a `DriverExecutor` in a thread, and the shutdown that always completes.
+
+    `run_node` runs one per process; the tests run drivers in their own process with it too
+    (test/inproc.py). The executor takes the node's context.
+    """
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.executor: Optional[DriverExecutor] = None
+        self.thread: Optional[threading.Thread] = None
+        self._stop = threading.Event()
+
+    def start(self, threads: int = 4, ended: Callable[[], None] = lambda: None) -> None:
+        """Spin the node in a thread; `ended` is called when spinning ends on its own."""
+        self.executor = DriverExecutor(num_threads=threads, context=self.node.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=_spin, args=(self.executor, self._stop, ended),
+                                       name='executor', daemon=True)
+        self.thread.start()
+
+    def spinning(self) -> bool:
+        """Return whether the executor still spins."""
+        return self.thread is not None and self.thread.is_alive() and not self._stop.is_set()
+
+    def shutdown(self) -> None:
+        """Stop spinning, run the node's shutdown hook, destroy the node (never raises)."""
+        self._stop.set()
+        executor, node = self.executor, self.node
+        if executor is not None:
+            try:
+                executor.stop_spinning()  # out of its wait now: it waits without a timeout
+            except Exception as exc:  # noqa: BLE001 - shutting down regardless
+                print(f'waking the executor failed: {exc!r}', file=sys.stderr)
+        if self.thread is not None:
+            # Out of its wait before anything is destroyed: rclpy's Executor.shutdown does not
+            # wait for the spin thread, and a node destroyed under a waiting executor can hang
+            # the exit, or abort it when the interpreter finalizes under that thread.
+            self.thread.join(_SPIN_EXIT_S)
+        if executor is not None:
+            try:
+                executor.shutdown(timeout_sec=1.0)
+            except Exception as exc:  # noqa: BLE001 - shutting down regardless
+                print(f'executor shutdown failed: {exc!r}', file=sys.stderr)
+        hook = getattr(node, 'on_shutdown', None)
+        if hook is not None:
+            try:
+                hook()
+            except Exception as exc:  # noqa: BLE001 - shutting down regardless
+                print(f'shutdown hook failed: {exc!r}', file=sys.stderr)
+        try:
+            node.destroy_node()
+        except Exception as exc:  # noqa: BLE001 - shutting down regardless
+            print(f'destroying the node failed: {exc!r}', file=sys.stderr)
+
+
 def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
              threads: int = 4, switch_interval_s: Optional[float] = None) -> int:
     """Create the node, spin it until SIGINT/SIGTERM, then shut down completely.
@@ -103,54 +159,22 @@ def run_node(factory: Callable[[], Node], args: Optional[List[str]] = None,
     if switch_interval_s is not None:
         sys.setswitchinterval(switch_interval_s)
     signals = _Signals()
-    stop = threading.Event()
-    node = None
-    executor = None
     spinner = None
     code = 0
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         if signals.requested:
             return 0
-        node = factory()
-        executor = DriverExecutor(num_threads=threads)
-        executor.add_node(node)
-        spinner = threading.Thread(target=_spin, args=(executor, stop, signals.wake),
-                                   name='executor', daemon=True)
-        spinner.start()
+        spinner = NodeSpinner(factory())
+        spinner.start(threads, ended=signals.wake)
         while not signals.wait(_WAIT_STEP_S):
             pass
     except Exception as exc:  # noqa: BLE001 - report a startup failure as one clear line
         print(f'fatal: {exc}', file=sys.stderr)
         code = 1
     finally:
-        stop.set()
-        if executor is not None:
-            try:
-                executor.stop_spinning()  # out of its wait now: it waits without a timeout
-            except Exception as exc:  # noqa: BLE001 - shutting down regardless
-                print(f'waking the executor failed: {exc!r}', file=sys.stderr)
         if spinner is not None:
-            # Out of its wait before anything is destroyed: rclpy's Executor.shutdown does not
-            # wait for the spin thread, and a node destroyed under a waiting executor can hang
-            # the exit, or abort it when the interpreter finalizes under that thread.
-            spinner.join(_SPIN_EXIT_S)
-        if executor is not None:
-            try:
-                executor.shutdown(timeout_sec=1.0)
-            except Exception as exc:  # noqa: BLE001 - shutting down regardless
-                print(f'executor shutdown failed: {exc!r}', file=sys.stderr)
-        if node is not None:
-            hook = getattr(node, 'on_shutdown', None)
-            if hook is not None:
-                try:
-                    hook()
-                except Exception as exc:  # noqa: BLE001 - shutting down regardless
-                    print(f'shutdown hook failed: {exc!r}', file=sys.stderr)
-            try:
-                node.destroy_node()
-            except Exception as exc:  # noqa: BLE001 - shutting down regardless
-                print(f'destroying the node failed: {exc!r}', file=sys.stderr)
+            spinner.shutdown()
         rclpy.try_shutdown()
         # The shutdown is complete. While the interpreter exits Python restores the default
         # action of the signals it handled, so a late Ctrl-C would still end the process as
