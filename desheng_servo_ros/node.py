@@ -66,6 +66,10 @@ PARAMETERS = (
 )
 
 
+EXECUTOR_THREADS = 4
+"""Threads of the executor's pool (``main()``; the tests' in-process driver reads it)."""
+
+
 class StartupError(RuntimeError):
     """A configuration the node cannot run with."""
 
@@ -208,7 +212,8 @@ def main(args: Optional[List[str]] = None) -> int:
     """Run ``servo_bus_node``."""
     # The hot path hands the GIL between the reader thread and the read loop on every reply;
     # the default 5 ms switch interval would add up to that much to each transaction.
-    return run_node(ServoBusNode, args, switch_interval_s=SWITCH_INTERVAL_S)
+    return run_node(ServoBusNode, args, threads=EXECUTOR_THREADS,
+                    switch_interval_s=SWITCH_INTERVAL_S)
 
 
 if __name__ == '__main__':

@@ -98,6 +98,10 @@ THRESHOLD_FIELDS = (('attitude_threshold_deg', 'attitude_deg'),
                     ('light_threshold_v', 'light_threshold_v'))
 
 
+EXECUTOR_THREADS = 12
+"""Threads of the executor's pool (``main()``; the tests' in-process driver reads it)."""
+
+
 class ParachuteNode(Node, Listener):
     """The DPS-S parachute driver: a ROS face on a `ParachuteSession`."""
 
@@ -392,7 +396,8 @@ def main(args: Optional[list] = None) -> int:
     # A deploy call waited ~6 ms for the GIL behind the driver's other threads at Python's 5 ms
     # switch interval (deploy latency p50 10.3 -> 5.5 ms with 1 ms), as the servo and OriginMan
     # drivers already found.
-    return run_node(ParachuteNode, args, threads=12, switch_interval_s=SWITCH_INTERVAL_S)
+    return run_node(ParachuteNode, args, threads=EXECUTOR_THREADS,
+                    switch_interval_s=SWITCH_INTERVAL_S)
 
 
 if __name__ == '__main__':

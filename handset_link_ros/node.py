@@ -72,6 +72,10 @@ SPECS = (
 )
 
 
+EXECUTOR_THREADS = 2
+"""Threads of the executor's pool (``main()``; the tests' in-process driver reads it)."""
+
+
 class HandsetLinkNode(Node):
     """The handset link driver."""
 
@@ -260,7 +264,7 @@ class HandsetLinkNode(Node):
 
 def main(args: Optional[list] = None) -> int:
     """Run ``handset_link_node`` until Ctrl-C."""
-    return run_node(HandsetLinkNode, args, threads=2)
+    return run_node(HandsetLinkNode, args, threads=EXECUTOR_THREADS)
 
 
 if __name__ == '__main__':

@@ -40,25 +40,23 @@ from uav_serial_common.ros_client import MessageLog
 
 @dataclass(frozen=True)
 class DriverMain:
-    """What an executable's ``main()`` hands to `run_node`: node class, threads, GIL interval."""
+    """The node class an executable's ``main()`` hands to `run_node`.
+
+    Its thread count and GIL switch interval are the node module's own ``EXECUTOR_THREADS``
+    and ``SWITCH_INTERVAL_S``, the constants its ``main()`` passes (one place for both).
+    """
 
     module: str
     node_class: str
-    threads: int = 4
-    switch_interval: Optional[str] = None
-    """Name of the module's constant passed as ``switch_interval_s``, if its main() sets one."""
 
 
 DRIVERS: Dict[str, DriverMain] = {
-    'handset_link_node': DriverMain('handset_link_ros.node', 'HandsetLinkNode', threads=2),
-    'parachute_node': DriverMain('dps_parachute_ros.node', 'ParachuteNode', threads=12,
-                                 switch_interval='SWITCH_INTERVAL_S'),
-    'servo_bus_node': DriverMain('desheng_servo_ros.node', 'ServoBusNode',
-                                 switch_interval='SWITCH_INTERVAL_S'),
-    'originman_board_node': DriverMain('originman_board_ros.node', 'OriginManBoardNode',
-                                       threads=6, switch_interval='SWITCH_INTERVAL_S'),
+    'handset_link_node': DriverMain('handset_link_ros.node', 'HandsetLinkNode'),
+    'parachute_node': DriverMain('dps_parachute_ros.node', 'ParachuteNode'),
+    'servo_bus_node': DriverMain('desheng_servo_ros.node', 'ServoBusNode'),
+    'originman_board_node': DriverMain('originman_board_ros.node', 'OriginManBoardNode'),
 }
-"""Each driver executable as its ``main()`` runs it (the ``run_node(...)`` call of its node.py)."""
+"""Each driver executable's node (the ``run_node(...)`` call of its node.py)."""
 
 _SEVERITY = {Log.DEBUG: 'DEBUG', Log.INFO: 'INFO', Log.WARN: 'WARN', Log.ERROR: 'ERROR',
              Log.FATAL: 'FATAL'}
@@ -122,8 +120,8 @@ class InprocDrivers:
         """
         spec = DRIVERS[executable]
         module = importlib.import_module(spec.module)
-        if spec.switch_interval is not None:
-            interval = getattr(module, spec.switch_interval)
+        interval = getattr(module, 'SWITCH_INTERVAL_S', None)
+        if interval is not None:
             if self._switch_interval is None:
                 self._switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(min(interval, sys.getswitchinterval()))
@@ -150,7 +148,7 @@ class InprocDrivers:
         spinner = NodeSpinner(node)
         driver = InprocDriver(executable, node, spinner, context, logs)
         self.drivers.append(driver)
-        spinner.start(spec.threads)
+        spinner.start(module.EXECUTOR_THREADS)
         if ros is not None and wait_service:
             wait_for(lambda: not driver.alive() or any(
                 n == wait_service for n, _ in ros.node.get_service_names_and_types()),
