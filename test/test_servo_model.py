@@ -460,3 +460,28 @@ def test_round2_22_found_an_emergency_stop_goes_before_a_service_retry() -> None
     actions = bus.poll(ask[0].deadline)
     sends = [a for a in actions if isinstance(a, Send)]
     assert sends and sends[0].frame == TORQUE_OFF_ALL, [s.kind for s in sends]
+
+
+def test_round2_22_servo_found_commands_beside_services_are_not_the_reads_loss() -> None:
+    # The 20,000-sequence search (UAV_MODEL_EXAMPLES=20000) found this: two of three servos
+    # silent, three ~/set_torque calls queued at once (18 transactions, most of them waiting
+    # out a 3.2 ms deadline), then a flood. A service goes before the read loop (next_on_bus),
+    # so no READ went during the flood; the command batches took the bus from the services, not
+    # from a READ, and counted as the reads' loss (29.95 ms of commands against 23.46 ms of
+    # READs). The commands kept their budget (15 batches of 2.0 ms in 73.5 ms: GCRA's third
+    # plus its burst of two).
+    state = ServoBusModel()
+    state.start(n=3, rate=200.0, retries=0, telemetry=0.05, extra=False, seed=0)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.disconnect_or_connect_a_servo(servo_id=2)
+    for _ in range(3):
+        state.set_torque(enable=False, ms=0.0)
+    state.flood(count=25, first=0, spacing_ms=3.0)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.one_transaction_at_a_time()
+    state.the_newest_target_reaches_the_wire_within_one_read_cycle()
+    state.reads_keep_at_least_half_their_rate()
+    state.set_id_never_makes_two_joints_share_an_id()
+    state.an_emergency_stop_is_the_next_frame()
+    state.torque_off_is_the_last_frame_of_a_shutdown()
+    state.teardown()
