@@ -19,7 +19,8 @@ cycles and a shutdown; after every step:
   reads keep their share and the target waits at most that spacing and the READ on the wire;
 - reads keep at least half their rate under any command load (command frames that went while a
   READ would have gone instead, not a service, hold the bus at most as long as READs over any
-  stretch, give or take three batches: the budget's burst and the batch on the wire);
+  stretch of a connection, give or take three batches: the budget's burst and the batch on the
+  wire);
 - ``~/set_id`` never makes two joints share an id;
 - an emergency stop is the next frame on the wire;
 - torque off is the last frame of a shutdown, and nothing follows it.
@@ -198,6 +199,7 @@ class ServoBusModel(RuleBasedStateMachine):
         # now that makes it largest (Lindley's recursion), and the worst one seen.
         self.debt = 0.0
         self.worst_debt = 0.0
+        self.stretch_starts: set = set()  # log indexes where the port had closed
         self._counted = 0
         self.wire.run_until(START + 0.01)
 
@@ -310,6 +312,9 @@ class ServoBusModel(RuleBasedStateMachine):
         self.wire.outstanding = None
         self.wire.busy_until = self.wire.now
         self.wire.cut = len(self.wire.log)
+        # The time the port is closed is neither the READs' nor the commands' (the budget counts
+        # it as time, and its burst is back at the reconnect): the stretch starts over.
+        self.stretch_starts.add(len(self.wire.log))
         self.wire.do(self.bus.link(self.wire.now, False))
         self.newest.clear()  # nothing reaches a bus that is not there
         self._step(down_ms)
@@ -354,6 +359,8 @@ class ServoBusModel(RuleBasedStateMachine):
         log = self.wire.log
         for k in range(self._counted, len(log)):
             send = log[k]
+            if k in self.stretch_starts:
+                self.debt = 0.0
             if send.kind in ('command', 'write_positions') and \
                     send.frame[4] == proto.Instruction.SYNC_WRITE:
                 _, _, items = proto.parse_sync_write(send.frame[5:-1])
@@ -507,4 +514,26 @@ def test_round2_22_servo_found_commands_beside_services_are_not_the_reads_loss()
     state.set_id_never_makes_two_joints_share_an_id()
     state.an_emergency_stop_is_the_next_frame()
     state.torque_off_is_the_last_frame_of_a_shutdown()
+    state.teardown()
+
+
+def test_round2_22_servo_found_the_port_closed_is_no_stretch_of_the_reads() -> None:
+    # The search (20,000 sequences) found this once the reads' share was counted over any
+    # stretch: floods between unplugs of 2 ms. The budget counts the closed port's time as
+    # time, so four batches of 2.0 ms went within 10 ms (its third plus its burst of two) around
+    # two unplugs; the READs could not use the 4 ms the port was closed, and a stretch across
+    # them showed commands 6.42 ms ahead of READs (allowance 5.99 ms). A stretch now ends where
+    # the port closed.
+    state = ServoBusModel()
+    state.start(n=3, rate=1000.0, retries=0, telemetry=0.05, extra=False, seed=0)
+    for _ in range(5):
+        state.unplug(down_ms=0.0)
+    state.flood(count=5, first=0, spacing_ms=0.5)
+    state.unplug(down_ms=2.0)
+    state.flood(count=5, first=0, spacing_ms=1.0)
+    state.unplug(down_ms=2.0)
+    state.unplug(down_ms=0.0)
+    state.one_transaction_at_a_time()
+    state.the_newest_target_reaches_the_wire_within_one_read_cycle()
+    state.reads_keep_at_least_half_their_rate()
     state.teardown()
