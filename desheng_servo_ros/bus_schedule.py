@@ -218,9 +218,16 @@ class BusSchedule:
     # -- decisions ------------------------------------------------------------------------------
 
     def read_wanted(self, now: float) -> bool:
-        """Whether the read loop has a READ to send at `now` (it wants the bus)."""
+        """Whether a READ would take the bus at `now` if no command were pending.
+
+        The read loop has a READ to send and no caller of higher priority (an emergency stop, a
+        service) waits: a command batch that goes then takes the bus from a READ; one that goes
+        ahead of a service takes it from the service (next_on_bus).
+        """
         reads = self.reads
         if not (self._reading() and self.port_open) or self.closed:
+            return False
+        if self.urgent or self.services or self.service is not None:
             return False
         if reads.in_cycle or self._retry is not None:
             return True
