@@ -451,11 +451,16 @@ def test_reboots_are_shown_when_they_happened(deployment_report, bench):
         assert done <= seen <= done + 2.0
     assert summary.facts['Module boot count'].endswith('(2 changes)')
     assert len(events_of(summary, 'module', 'module rebooted')) == 2
-    # Armed and triggered are trusted again only once read afresh (D15).
-    rereads = events_of(summary, 'module', 'read afresh after the reboot')
-    assert len(rereads) == 2
-    for (seconds, *_), reboot in zip(rereads, summary.reboots):
-        assert reboot < seconds < reboot + 2.0
+    # Armed and triggered are trusted again only once read afresh (D15): after each reboot, a
+    # re-read of the new power-up. Not counted by its label: when the driver's reader stalls
+    # beside a busy loop, the power-up's second heartbeat (P5, 50 ms after the first) is
+    # decoded more than 0.2 s later and the driver reads the module afresh once more (on the
+    # safe side), and that re-read may be the one the report names "after the reboot".
+    rereads = events_of(summary, 'module', 'module read afresh')
+    for reboot in summary.reboots:
+        assert any(reboot < seconds < reboot + 2.0 for seconds, *_ in rereads), \
+            (reboot, rereads)
+    assert events_of(summary, 'module', 'read afresh after the reboot')
 
 
 def test_round2_11b_a_reboot_recorded_late_by_a_loaded_driver_is_counted_once(tmp_path):
