@@ -34,7 +34,7 @@ import rclpy
 from rclpy.context import Context
 from rcl_interfaces.msg import Log
 from uav_serial_common.node_main import NodeSpinner
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import ros_args, wait_for
 from uav_serial_common.ros_client import MessageLog
 
 
@@ -126,16 +126,9 @@ class InprocDrivers:
                 self._switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(min(interval, sys.getswitchinterval()))
         logs = self._rosout_of(ros)
-        cli_args = ['--ros-args']
-        if node_name:
-            cli_args += ['-r', f'__node:={node_name}']
-        if namespace:
-            cli_args += ['-r', f'__ns:={namespace}']
-        if parameters:
-            import yaml  # only here, as in LaunchedProcesses.start
-            path = self.tmp_path / f'{executable}-inproc-{len(self.drivers)}.params.yaml'
-            path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
-            cli_args += ['--params-file', str(path)]
+        cli_args = ros_args(
+            self.tmp_path / f'{executable}-inproc-{len(self.drivers)}.params.yaml', parameters,
+            node_name, namespace)
         context = Context()
         rclpy.init(context=context)
         try:

@@ -156,6 +156,25 @@ class LaunchedProcess:
         return self.popen.returncode
 
 
+def ros_args(params_path: Path, parameters: Optional[Dict[str, Any]] = None,
+             node_name: Optional[str] = None, namespace: Optional[str] = None) -> List[str]:
+    """Return the ``--ros-args`` of a node: remaps, and `parameters` in a file at `params_path`.
+
+    The file is what ``--params-file`` takes, so rcl types the values as for ``ros2 run``
+    (a process, or a node in the test's process, ``test/inproc.py``).
+    """
+    import yaml  # only here: the drivers themselves never need it
+    args = ['--ros-args']
+    if node_name:
+        args += ['-r', f'__node:={node_name}']
+    if namespace:
+        args += ['-r', f'__ns:={namespace}']
+    if parameters:
+        params_path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+        args += ['--params-file', str(params_path)]
+    return args
+
+
 class LaunchedProcesses:
     """Starts installed executables for one test and stops them all afterwards."""
 
@@ -173,17 +192,9 @@ class LaunchedProcesses:
 
         `ros` is anything with an rclpy ``node`` (a `uav_serial_common.ros_client.RosHarness`).
         """
-        import yaml  # only here: the drivers themselves never need it
         index = len(self.processes)
-        args = [executable_path(executable), '--ros-args']
-        if node_name:
-            args += ['-r', f'__node:={node_name}']
-        if namespace:
-            args += ['-r', f'__ns:={namespace}']
-        if parameters:
-            params_file = self.tmp_path / f'{executable}-{index}.params.yaml'
-            params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
-            args += ['--params-file', str(params_file)]
+        args = [executable_path(executable)] + ros_args(
+            self.tmp_path / f'{executable}-{index}.params.yaml', parameters, node_name, namespace)
         stdout_path = self.tmp_path / f'{executable}-{index}.stdout'
         stderr_path = self.tmp_path / f'{executable}-{index}.stderr'
         env = dict(os.environ)
