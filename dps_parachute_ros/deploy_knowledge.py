@@ -20,6 +20,61 @@ from dps_parachute_ros.deploy_events import (Action, Event, LinkDown, LinkUp, Lo
 POWER_UP_HEARTBEATS_S = 0.2
 """Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
 
+LATE_HEARTBEAT_S = 2.0
+"""A power-up's second heartbeat taken up to this long after its first, but beyond
+`POWER_UP_HEARTBEATS_S` (a reader that stalled between the two), may still be that power-up's."""
+
+SAME_POWER_UP, REBOOT, MAYBE_REBOOT = 'same power-up', 'reboot', 'maybe reboot'
+"""What `PowerUpHeartbeats.take` makes of an unsolicited heartbeat."""
+
+
+class PowerUpHeartbeats:
+    """Which unsolicited heartbeats tell a reboot (P5, D3): one rule for the session and the core.
+
+    A power-up sends two heartbeats 50 ms apart. The second of a pair taken more than
+    `POWER_UP_HEARTBEATS_S` after the first (the reader stalled in between) cannot be told from
+    another reboot: it is a `MAYBE_REBOOT`, which the driver handles as a reboot (the armed state
+    unknown, the module read afresh) but does not record as one: the boot count read next tells.
+    """
+
+    def __init__(self) -> None:
+        """Start with no heartbeat seen."""
+        self._last = -1e9
+        self._in_pair = 0  # heartbeats of the newest power-up taken so far
+
+    def take(self, now: float) -> str:
+        """Take a heartbeat at `now`; return `SAME_POWER_UP`, `REBOOT` or `MAYBE_REBOOT`."""
+        gap = now - self._last
+        self._last = now
+        if gap <= POWER_UP_HEARTBEATS_S:
+            self._in_pair += 1
+            return SAME_POWER_UP
+        if self._in_pair == 1 and gap <= LATE_HEARTBEAT_S:
+            self._in_pair = 2
+            return MAYBE_REBOOT
+        self._in_pair = 1
+        return REBOOT
+
+    def handled(self, now: float) -> None:
+        """Run the window from `now`: handling the first heartbeat took until then."""
+        self._last = max(self._last, now)
+
+
+LATE_HEARTBEAT_EVENT = 'unsolicited heartbeat late: the power-up\'s second, or another reboot'
+"""The black-box ``state`` event of a `MAYBE_REBOOT` (not counted as a reboot: the boot count
+read after it is)."""
+
+
+def heartbeat_actions(verdict: str) -> List[Action]:
+    """Return the log line and black-box record of a `REBOOT` or `MAYBE_REBOOT` heartbeat."""
+    if verdict == REBOOT:
+        return [Log('warn', 'unsolicited heartbeat: the module has (re)booted'),
+                Record.of('state', event='module reboot (unsolicited heartbeat)')]
+    return [Log('warn', f'unsolicited heartbeat more than {POWER_UP_HEARTBEATS_S:g} s after the '
+                        'first of its power-up: its late second, or another reboot; the module '
+                        'is read afresh and its boot count tells'),
+            Record.of('state', event=LATE_HEARTBEAT_EVENT)]
+
 
 class DeployKnowledge:
     """What the deploy procedure knows of the module, and how each event changes it."""
@@ -50,7 +105,7 @@ class DeployKnowledge:
         self._boot_read_reboots = -1      # reboots seen when the boot count was last read
         self._sent_since_read = 0         # deploy frames since the boot count was last read
         self._told_boot_current = False
-        self._last_heartbeat = -1e9
+        self._power_ups = PowerUpHeartbeats()
         self._triggered_seen: Optional[Tuple[float, str]] = None
         self._frame_at: Optional[float] = None
         self._reported: Set[Optional[int]] = set()
@@ -139,14 +194,14 @@ class DeployKnowledge:
             self._deploy_reply(msg, late=True)
 
     def _heartbeat(self) -> None:
-        first = self._now - self._last_heartbeat > POWER_UP_HEARTBEATS_S
-        self._last_heartbeat = self._now
-        if first:
-            # P5: nobody asked, so it has just (re)booted: its armed state is unknown (D15).
-            self.reboots += 1
-            self.fresh, self.armed, self.triggered = False, None, None
-            self._know(Log('warn', 'unsolicited heartbeat: the module has (re)booted'))
-            self._know(Record.of('state', event='module reboot (unsolicited heartbeat)'))
+        verdict = self._power_ups.take(self._now)
+        if verdict == SAME_POWER_UP:
+            return
+        # P5: nobody asked, so it may have just (re)booted: its armed state is unknown (D15).
+        self.reboots += 1
+        self.fresh, self.armed, self.triggered = False, None, None
+        for action in heartbeat_actions(verdict):
+            self._know(action)
 
     def _boot_count(self, count: int) -> None:
         previous, self.boot_count = self.boot_count, count

@@ -58,6 +58,7 @@ from typing import Any, Callable, Dict, Optional, Set, Tuple
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.attempts import AttemptsFile
 from dps_parachute_ros.blackbox import BlackBox
+from dps_parachute_ros.deploy_knowledge import PowerUpHeartbeats
 from dps_parachute_ros.link import LinkError, LinkTimeout, ParachuteLink
 from dps_parachute_ros.online_rule import OnlineRule
 from dps_parachute_ros.session_deploy import DeployProcedure
@@ -153,7 +154,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._records_from_boot: Optional[int] = None  # boot count of the first records read
         self._deploy_frame_left = False
         self._unknown_boot: Optional[int] = None  # boot count when a deploy became unknown
-        self._last_boot_heartbeat = -1e9
+        self._power_ups = PowerUpHeartbeats()  # which heartbeats tell a reboot
         self._last_status_time = -1e9
         self._last_stream_time = -1e9       # last unsolicited status frame (the stream's)
         self._stream_on_at = -1e9           # when the module last acknowledged stream on/off

@@ -5,14 +5,15 @@ lock are described there). Threads:
 
 - worker: ``_initialize`` (the ``init`` job) reads the module afresh after the port opens, the
   module comes back online, or it rebooted.
-- serial reader: ``_on_heartbeat``: an unsolicited heartbeat is a reboot (P5).
+- serial reader: ``_on_heartbeat``: an unsolicited heartbeat is a reboot (P5; which ones:
+  ``deploy_knowledge.PowerUpHeartbeats``).
 - any thread that reads the boot count (the worker, a deploy or arm, preflight):
   ``_note_boot_count``: a changed count is a reboot.
 
 Owns, guarded by ``_lock``: ``_epoch`` (+1 whenever the module may have changed unseen: here on
 a reboot, and by ``_on_connection``; every thread reads it), ``_reboots`` (reboots seen),
 ``_boot_read_reboots`` and ``_sent_since_boot_read`` (``_on_tx`` counts up: P11 after a reboot
-found late), ``_last_boot_heartbeat``, ``_initialized_at``, ``_init_retry_at``; the
+found late), ``_power_ups``, ``_initialized_at``, ``_init_retry_at``; the
 ``boot_count`` and ``initialized`` fields of the snapshot.
 """
 
@@ -21,10 +22,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_knowledge import heartbeat_actions, SAME_POWER_UP
 from dps_parachute_ros.link import LinkError
-
-POWER_UP_HEARTBEATS_S = 0.2
-"""Unsolicited heartbeats closer together than this belong to one power-up (P5, D3)."""
+from uav_serial_common.core_events import Log
 
 
 class Initialization:
@@ -35,17 +35,19 @@ class Initialization:
         # reboot (D3). Until it is re-read its armed state is unknown (D15).
         now = self.clock()
         with self._lock:
-            first = now - self._last_boot_heartbeat > POWER_UP_HEARTBEATS_S
-            self._last_boot_heartbeat = now
-            if first:
+            verdict = self._power_ups.take(now)
+            if verdict != SAME_POWER_UP:
                 self._epoch += 1
                 self._reboots += 1
                 self._snap = replace(self._snap, streaming=False, armed=None, triggered=None,
                                      fresh=False, initialized=False)
-        if not first:
+        if verdict == SAME_POWER_UP:
             return
-        self._log('warn', 'unsolicited heartbeat: the module has (re)booted')
-        self.blackbox.record('state', event='module reboot (unsolicited heartbeat)')
+        for action in heartbeat_actions(verdict):
+            if isinstance(action, Log):
+                self._carry_log(action)
+            else:
+                self._carry_record(action)
         self._void_pending('the module rebooted while the request was pending')
         self._schedule('init', force=True)
         self._emit_status()
@@ -53,7 +55,7 @@ class Initialization:
         with self._lock:
             # The second heartbeat of this power-up may have waited (in the port) for all of
             # this to finish, long on a loaded host: the 0.2 s run from here, not from before.
-            self._last_boot_heartbeat = max(self._last_boot_heartbeat, self.clock())
+            self._power_ups.handled(self.clock())
 
     def _initialize(self) -> None:
         """Read the module afresh and bring it to the desired settings (D2)."""

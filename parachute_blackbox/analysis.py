@@ -97,6 +97,9 @@ class FlightAnalysis:
         # A boot count read between a power-up heartbeat and the driver's record of that reboot
         # (its reader can be slow to write it) already counts that reboot as seen.
         self._reboot_counted_early = False
+        # Where that early count would leave a reboot unseen if the record says "late heartbeat,
+        # not a reboot" instead: (when, previous, count) of the boot count read.
+        self._early_doubt: Optional[Tuple[float, int, int]] = None
         self._last_heartbeat: Optional[float] = None  # the last unsolicited heartbeat frame
 
     # -- input ------------------------------------------------------------------------------
@@ -355,6 +358,23 @@ class FlightAnalysis:
         if early:
             self._reboots_unread -= 1  # the boot count read before this record took it in
 
+    def driver_doubted_reboot(self, t: float) -> None:
+        """Take the driver's record of a late power-up heartbeat (``MAYBE_REBOOT``).
+
+        It is a reboot only if the boot count says so.
+        """
+        self._heartbeat_at = None
+        early, self._reboot_counted_early = self._reboot_counted_early, False
+        doubt, self._early_doubt = self._early_doubt, None
+        self.event(t, 'module', 'info', 'unsolicited heartbeat late (the power-up\'s second, or '
+                   'another reboot: the boot count tells); the module read afresh')
+        if early and doubt is not None:
+            # The boot count read before this record counted its heartbeat as a reboot seen.
+            when, previous, count = doubt
+            self.note_reboot(when, f'1 reboot(s) not seen as they happened: boot count '
+                             f'{previous} → {count}')
+            self._reboots_unread -= 1  # that boot count read took it in
+
     def note_reboot(self, t: float, evidence: str, level: str = 'warn',
                     at: Optional[float] = None) -> None:
         """Note a module reboot (the driver's record of one, or a boot count beyond those seen).
@@ -396,6 +416,8 @@ class FlightAnalysis:
             self._reboot_counted_early = True
         # Each power-up adds one (wrapping after 255); reboots nobody saw are added here.
         unseen = ((count - previous) & 0xFF) - seen
+        self._early_doubt = (t, previous, count) if self._reboot_counted_early \
+            and unseen >= 0 else None
         if unseen > 0:
             self.note_reboot(t, f'{unseen} reboot(s) not seen as they happened: boot count '
                              f'{previous} → {count}')

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any, Callable, Dict, Optional, Tuple, TYPE_CHECKING
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_knowledge import LATE_HEARTBEAT_EVENT
 from parachute_blackbox.decisions import decision_other, DECISIONS, finite
 from parachute_blackbox.names import (BANDS, COMMON_FIELDS, DEPLOYMENT_WINDOW_S, describe_fields,
                                       LINK_COUNTERS, record_text, REPLY_TIMEOUT_S,
@@ -108,6 +109,10 @@ def _state_reboot(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     a.driver_saw_reboot(t)
 
 
+def _state_late_heartbeat(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
+    a.driver_doubted_reboot(t)
+
+
 def _state_zeroed(a: FlightAnalysis, record: Dict[str, Any], t: float) -> None:
     ok = record.get('success') is not False
     a.event(t, 'calls', 'ok' if ok else 'bad', 'attitude sensor zeroed at the present mounting '
@@ -122,6 +127,7 @@ def _state_shut_down(a: FlightAnalysis, record: Dict[str, Any], t: float) -> Non
 STATE_EVENTS: Dict[str, Callable[[FlightAnalysis, Dict[str, Any], float], None]] = {
     'initialized': _state_initialized,
     'module reboot (unsolicited heartbeat)': _state_reboot,
+    LATE_HEARTBEAT_EVENT: _state_late_heartbeat,
     'sensor zeroed': _state_zeroed,
     'module shut down by request': _state_shut_down,
 }

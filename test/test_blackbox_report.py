@@ -29,8 +29,9 @@ from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
-from dps_parachute_ros import protocol as p
+from dps_parachute_ros import protocol as p, simulation
 from dps_parachute_ros.blackbox import BlackBox
+from dps_parachute_ros.deploy_knowledge import LATE_HEARTBEAT_EVENT
 from dps_parachute_ros.session import ParachuteSession
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
@@ -598,6 +599,128 @@ def test_round2_11b_the_driver_records_one_reboot_per_power_up_however_slow_its_
     analysis, _ = analyse([str(path) for path in directory.glob('parachute-*.jsonl')],
                           progress=False)
     assert analysis.counts['reboots'] == 1
+
+
+def test_round2_22_a_late_second_power_up_heartbeat_is_no_second_reboot(tmp_path, monkeypatch):
+    # Found beside a busy loop (issue 22, ten runs): the reader stalled 0.34 s after handling
+    # the first power-up heartbeat and before taking the second, which the driver then took for
+    # another reboot: a false reboot record, and the report counted three reboots for two. The
+    # simulated module sends its second heartbeat 2 s late (real time), so the test moves the
+    # driver's clock 0.5 s between the two: the stall, made certain.
+    monkeypatch.setattr(simulation, 'POWER_UP_HEARTBEAT_GAP_S', 2.0)
+    sim = VirtualParachute(now=time.monotonic() - 1.0)
+    sim.step(time.monotonic())
+    runner = create_runner(sim, str(tmp_path / 'vpara'), baud=0).start()
+    clock = FakeClock()
+    directory = tmp_path / 'bb'
+    session = ParachuteSession(SessionConfig(port=runner.path, blackbox_dir=str(directory),
+                                             request_timeout_s=0.3), Listener(), clock)
+    heartbeat = p.encode_module_heartbeat().hex(' ')
+
+    def records():
+        assert session.blackbox.sync(5.0)
+        return [json.loads(line) for line in Path(session.blackbox.status().path)
+                .read_text().splitlines()]
+
+    def events(text):
+        return [r for r in records() if r['kind'] == 'state' and r.get('event') == text]
+
+    try:
+        session.start()
+        wait_for(lambda: session.snapshot.initialized and session.snapshot.boot_count == 1, 10,
+                 what='the session initialized')
+        clock.advance(1.0)
+        with runner.locked():
+            sim.power_cycle()
+        wait_for(lambda: events('module reboot (unsolicited heartbeat)'), 10,
+                 what='the reboot recorded')
+        assert sum(r.get('hex') == heartbeat for r in records()) == 1, \
+            'the second heartbeat came before the stall: the premise of this test failed'
+        clock.advance(0.5)
+        wait_for(lambda: sum(r.get('hex') == heartbeat for r in records()) == 2, 10,
+                 what='the second power-up heartbeat in the black box')
+        session.preflight_check()  # through the same reader: the second heartbeat was handled
+        wait_for(lambda: session.snapshot.initialized and session.snapshot.boot_count == 2, 10,
+                 what='the session initialized after the reboot')
+        # On the safe side, the late heartbeat still made the driver read the module afresh.
+        assert len(events(LATE_HEARTBEAT_EVENT)) == 1
+        assert len(events('module reboot (unsolicited heartbeat)')) == 1
+    finally:
+        session.stop()
+        runner.stop()
+    analysis, _ = analyse([str(path) for path in directory.glob('parachute-*.jsonl')],
+                          progress=False)
+    assert analysis.counts['reboots'] == 1
+
+
+def test_round2_22_a_second_reboot_within_the_late_window_is_counted_by_its_boot_count(
+        tmp_path):
+    # The other reading of a late heartbeat: a power-up whose second heartbeat was lost, then
+    # another reboot 1 s later. The driver records the second as "late" (not a reboot); the
+    # boot count read after it (two more than before) makes the report count both.
+    heartbeat = p.encode_module_heartbeat().hex(' ')
+    query = p.encode_boot_count_query().hex(' ')
+
+    def boot(n):
+        return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
+
+    _jsonl(tmp_path / 'twice.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
+        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        ('state', 0.2, {'event': 'initialized', 'boot_count': 5, 'mismatch': []}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 10.001, {'event': 'module reboot (unsolicited heartbeat)'}),
+        ('frame', 11.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 11.001, {'event': LATE_HEARTBEAT_EVENT}),
+        ('frame', 11.05, {'dir': 'rx', 'hex': heartbeat}),
+        ('request', 11.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 11.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 11.11, {'dir': 'rx', 'hex': boot(7)}),
+        ('state', 11.2, {'event': 'initialized', 'boot_count': 7, 'mismatch': []}),
+        ('stop', 20.0, {}),
+    ])
+    summary, _ = report(tmp_path, tmp_path / 'twice.jsonl')
+    assert summary.counts['reboots'] == 2, summary.reboots
+    assert [round(t, 2) for t in summary.reboots] == [10.0, 11.11]
+    # The same when another thread read the boot count before the "late" record was written.
+    _jsonl(tmp_path / 'early.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
+        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 10.001, {'event': 'module reboot (unsolicited heartbeat)'}),
+        ('frame', 11.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('request', 11.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 11.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 11.11, {'dir': 'rx', 'hex': boot(7)}),
+        ('state', 11.3, {'event': LATE_HEARTBEAT_EVENT}),
+        ('stop', 20.0, {}),
+    ])
+    summary, _ = report(tmp_path, tmp_path / 'early.jsonl')
+    assert summary.counts['reboots'] == 2, summary.reboots
+    # And a late second heartbeat of one power-up, the boot count read after it: one reboot.
+    _jsonl(tmp_path / 'one.jsonl', 1_790_000_000.0, [
+        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
+        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
+        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 10.001, {'event': 'module reboot (unsolicited heartbeat)'}),
+        ('frame', 10.4, {'dir': 'rx', 'hex': heartbeat}),
+        ('state', 10.401, {'event': LATE_HEARTBEAT_EVENT}),
+        ('request', 10.5, {'hex': query, 'expect': 'BootCount'}),
+        ('frame', 10.5, {'dir': 'tx', 'hex': query}),
+        ('frame', 10.51, {'dir': 'rx', 'hex': boot(6)}),
+        ('stop', 20.0, {}),
+    ])
+    summary, _ = report(tmp_path, tmp_path / 'one.jsonl')
+    assert summary.counts['reboots'] == 1, summary.reboots
 
 
 def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_path):

@@ -8,9 +8,12 @@ import pytest
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_core import (DEPLOY_FRAME, DeployAnswer, DeployCall, DeployCore,
                                            Report, SaveAttempts, Stored)
+from dps_parachute_ros.deploy_knowledge import (LATE_HEARTBEAT_EVENT, LATE_HEARTBEAT_S,
+                                                MAYBE_REBOOT, PowerUpHeartbeats, REBOOT,
+                                                SAME_POWER_UP)
 from dps_parachute_ros.release_gate import GateDone, PassGate
-from uav_serial_common.core_events import (Busy, LinkDown, LinkUp, Log, Record, Reply, Request,
-                                           SYNC_WAIT, Timeout)
+from uav_serial_common.core_events import (Busy, LinkDown, LinkUp, Log, Rebooted, Record, Reply,
+                                           Request, SYNC_WAIT, Timeout)
 from uav_serial_common.core_runner import run_core
 
 T0 = 100.0
@@ -21,6 +24,7 @@ def msg(raw: bytes):
 
 
 BOOT = msg(p.module_frame(p.CMD_BOOT_COUNT, 5))
+BOOT_6 = msg(p.module_frame(p.CMD_BOOT_COUNT, 6))
 ARMED = msg(p.encode_status_frame(0, 10, triggered=False, armed=True))
 LOCKED = msg(p.encode_status_frame(0, 10, triggered=False, armed=False))
 TRIGGERED = msg(p.encode_status_frame(0, 10, triggered=True, armed=False))
@@ -193,3 +197,37 @@ def test_round2_22_2_the_runner_carries_out_actions_in_order_and_feeds_replies_b
 def test_round2_22_2_the_runner_never_drops_an_action_it_has_no_handler_for():
     with pytest.raises(TypeError, match='no handler'):
         run_core(ready(), [DeployCall(T0, 'DEPLOY')], {Record: lambda a: None})
+
+
+def test_round2_22_which_unsolicited_heartbeats_tell_a_reboot():
+    # P5/D3: a power-up sends two heartbeats 50 ms apart. A second one taken late (a stalled
+    # reader) may be that pair's or another reboot: handled as a reboot, recorded as neither.
+    beats = PowerUpHeartbeats()
+    assert beats.take(10.0) == REBOOT
+    assert beats.take(10.05) == SAME_POWER_UP
+    assert beats.take(20.0) == REBOOT
+    assert beats.take(20.4) == MAYBE_REBOOT    # the pair's second, 0.4 s late
+    assert beats.take(20.45) == SAME_POWER_UP
+    assert beats.take(20.9) == REBOOT          # a third: the pair was complete
+    assert beats.take(30.0) == REBOOT
+    assert beats.take(30.0 + LATE_HEARTBEAT_S + 0.1) == REBOOT  # too late to be the second
+    # The window runs from when the first was handled, not from when it was taken.
+    assert beats.take(40.0) == REBOOT
+    beats.handled(40.5)
+    assert beats.take(40.6) == SAME_POWER_UP
+
+
+def test_round2_22_the_core_handles_a_late_heartbeat_as_a_reboot_but_records_none():
+    core = ready()
+    actions = core.step(Rebooted(T0 + 1.0))
+    assert not core.fresh and core.armed is None and not core.boot_current
+    assert [a for a in actions if isinstance(a, Record)] == [
+        Record.of('state', event='module reboot (unsolicited heartbeat)')]
+    core.step(Reply(T0 + 1.1, BOOT_6))
+    assert core.boot_current
+    actions = core.step(Rebooted(T0 + 1.5))  # the power-up's second, late
+    assert not core.fresh and core.armed is None and not core.boot_current
+    assert [a for a in actions if isinstance(a, Record)] == [
+        Record.of('state', event=LATE_HEARTBEAT_EVENT)]
+    actions = core.step(Reply(T0 + 1.6, BOOT_6))  # the same power-up: no reboot
+    assert core.boot_current and not any(isinstance(a, Log) for a in actions)
