@@ -6,8 +6,11 @@ blocks in the pool, a publisher and a client in the test's `ros` harness.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 import gc
 import threading
+from types import SimpleNamespace
+from typing import Iterator
 
 import pytest
 import rclpy
@@ -120,6 +123,40 @@ def test_an_exception_in_an_inline_callback_ends_spinning_as_rclpys_executors_do
     assert 'callback failed on 3' in str(driver.errors[0])
 
 
+@contextmanager
+def _pool_held(name: str) -> Iterator[SimpleNamespace]:
+    """A `DriverExecutor` of one pool thread, held by a timer's callback until ``release``.
+
+    A second timer's callback (``ran`` gets 'queued' when it runs) is taken while the pool is
+    held. Leaving shuts the executor down, destroys the node and shuts its context down.
+    """
+    context = Context()
+    rclpy.init(context=context)
+    node = Node(name, context=context)
+    held = SimpleNamespace(holding=threading.Event(), release=threading.Event(), ran=[])
+
+    def hold() -> None:
+        held.ran.append('hold')
+        if not held.holding.is_set():
+            held.holding.set()
+            held.release.wait(10.0)
+
+    node.create_timer(0.01, hold, callback_group=MutuallyExclusiveCallbackGroup())
+    node.create_timer(0.01, lambda: held.ran.append('queued'),
+                      callback_group=MutuallyExclusiveCallbackGroup())
+    held.executor = DriverExecutor(num_threads=1, context=context)
+    held.executor.add_node(node)
+    try:
+        while not held.holding.is_set():
+            held.executor.spin_once(timeout_sec=1.0)
+        yield held
+    finally:
+        held.release.set()
+        held.executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
 @pytest.mark.filterwarnings("error::RuntimeWarning")
 def test_round2_9_a_callback_queued_for_the_pool_at_shutdown_prints_nothing(capfd):
     """Issue 21 item 9: "exception was never retrieved" on a clean exit, made deterministic.
@@ -129,36 +166,14 @@ def test_round2_9_a_callback_queued_for_the_pool_at_shutdown_prints_nothing(capf
     guard condition at once; the queued handler then ran and failed on it, and its task's
     exception was printed when the task was collected.
     """
-    context = Context()
-    rclpy.init(context=context)
-    node = Node('shutdown_under_test', context=context)
-    holding = threading.Event()
-    release = threading.Event()
-    ran = []
-
-    def hold() -> None:
-        ran.append('hold')
-        holding.set()
-        release.wait(10.0)
-
-    node.create_timer(0.01, hold, callback_group=MutuallyExclusiveCallbackGroup())
-    node.create_timer(0.01, lambda: ran.append('queued'),
-                      callback_group=MutuallyExclusiveCallbackGroup())
-    executor = DriverExecutor(num_threads=1, context=context)
-    executor.add_node(node)
-    try:
-        while not holding.is_set():
-            executor.spin_once(timeout_sec=1.0)
+    with _pool_held('shutdown_under_test') as held:
         # The other timer is taken now and queued behind the held pool thread.
-        executor.spin_once(timeout_sec=5.0)
-        executor.shutdown(timeout_sec=0)
-        release.set()
-        executor._workers.shutdown(wait=True)  # whatever was queued has run (or was dropped)
-    finally:
-        release.set()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-    del executor, node
+        held.executor.spin_once(timeout_sec=5.0)
+        held.executor.shutdown(timeout_sec=0)
+        held.release.set()
+        held.executor._workers.shutdown(wait=True)  # whatever was queued has run (or dropped)
+    ran = held.ran
+    del held
     gc.collect()
     err = capfd.readouterr().err
     assert 'never retrieved' not in err, err
@@ -216,26 +231,8 @@ def test_issue22_a_handler_waiting_for_a_pool_thread_is_submitted_once():
     the pool again: a timer queued behind a busy pool became hundreds of submissions, and the
     spin thread turned hot doing it (the handset driver's CPU +50 %). It is submitted once, and
     runs once the pool thread is free."""
-    context = Context()
-    rclpy.init(context=context)
-    node = Node('resubmit_under_test', context=context)
-    holding = threading.Event()
-    release = threading.Event()
-    ran = []
-
-    def hold() -> None:
-        if not holding.is_set():
-            holding.set()
-            release.wait(10.0)
-
-    node.create_timer(0.01, hold, callback_group=MutuallyExclusiveCallbackGroup())
-    node.create_timer(0.01, lambda: ran.append('queued'),
-                      callback_group=MutuallyExclusiveCallbackGroup())
-    executor = DriverExecutor(num_threads=1, context=context)
-    executor.add_node(node)
-    try:
-        while not holding.is_set():
-            executor.spin_once(timeout_sec=1.0)
+    with _pool_held('resubmit_under_test') as held:
+        executor = held.executor
         # The other timer's handler is taken and queued behind the held pool thread; rclpy
         # yields it again on each of these turns.
         for _ in range(50):
@@ -244,12 +241,7 @@ def test_issue22_a_handler_waiting_for_a_pool_thread_is_submitted_once():
             submitted = [id(task) for task, _ in executor._pool_tasks]
         assert len(submitted) == len(set(submitted)) == 2, \
             f'{len(submitted)} pool submissions of {len(set(submitted))} handlers'
-        release.set()
-        wait_for(lambda: ran, 5, what='the queued timer ran')
+        held.release.set()
+        wait_for(lambda: 'queued' in held.ran, 5, what='the queued timer ran')
         for _ in range(3):
             executor.spin_once(timeout_sec=0.05)
-    finally:
-        release.set()
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
