@@ -12,7 +12,9 @@ Threads, and what each one owns:
   completed it (H7). Frames of one read may share one setpoint update (``updated`` names them).
 - The core's timer thread (``start()``) sleeps until the next deadline (link loss when a stick
   setpoint is ``link_timeout_s`` old, H8; a stale battery reading; a partial frame's 0.1 s, H3)
-  and calls ``poll()``.
+  and calls ``poll()``. An event that sets a deadline (bytes of a partial frame read, a frame,
+  a battery reading, a new setting) wakes it by then (``DeadlineTimer.wake(by=...)``), so no
+  deadline waits for the timer's longest sleep.
 - The owner's threads (a node's executor) call ``on_battery()`` and the snapshot getters.
 
 State lives under ``_lock``, held briefly and never during a callback. Every change runs, with
@@ -50,8 +52,9 @@ REJECTION_LOG_PERIOD_S = 1.0
 """Rejected frames are logged at most once per type per second (H6)."""
 BITS_PER_BYTE = 10
 MAX_TIMER_SLEEP_S = 0.5
-"""The timer thread sleeps until its next deadline, at most this long (a wake-up costs CPU; the
-reader settles a quiet partial frame itself, SerialLink's idle flush)."""
+"""The timer thread sleeps until its next deadline, at most this long (a wake-up costs CPU).
+Every deadline an event sets wakes it by then: this bound is a backstop, never a deadline's
+lateness."""
 
 STICK_FIELDS: dict[int, str] = {
     p.CommandType.SET_YAW: 'yaw_deg',
@@ -207,7 +210,7 @@ class HandsetCore:
 
         self.link = ModemLink(config.port, config.baud, self._on_received,
                               on_connection=self._on_connection, clock=clock,
-                              logger=_LogAdapter(self._log))
+                              logger=_LogAdapter(self._log), on_held=self._due_by)
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -262,7 +265,9 @@ class HandsetCore:
             with self._lock:
                 now = self._clock()
                 self._carry(self._rules.battery_reading(percentage, now), now, emits)
+                due = self._rules.next_deadline()
             self._emit(emits)
+        self._due_by(due)
 
     @property
     def battery_out_of_range(self) -> int:
@@ -287,7 +292,9 @@ class HandsetCore:
                 self._carry(self._rules.reconfigure(
                     now, **{k: v for k, v in changes.items() if k != 'expected_rate_hz'}),
                     now, emits)
+                due = self._rules.next_deadline()
             self._emit(emits)
+        self._due_by(due)  # a shorter timeout is due sooner
 
     # -- snapshots ------------------------------------------------------------------------------
 
@@ -330,7 +337,9 @@ class HandsetCore:
                 self._flush_setpoint(emits)
                 self._flush_aux(emits)
                 self._prune(batch.time)
+                due = self._rules.next_deadline()
             self._emit(emits)
+        self._due_by(due)  # the first stick frame after a loss sets the link's deadline
 
     def _on_connection(self, up: bool, reason: str) -> None:
         # Reported, but no failsafe of its own: the H8 timer decides (H21), so a modem that
@@ -459,6 +468,11 @@ class HandsetCore:
         """Poll now, return when ``poll()`` is next due (the timer thread's duty)."""
         self.poll()
         return self.next_deadline()
+
+    def _due_by(self, due: Optional[float]) -> None:
+        """Have the timer poll by `due`, a deadline an event set (None: nothing due)."""
+        if due is not None:
+            self._timer.wake(by=due)
 
     def _timer_failed(self, exc: BaseException) -> None:
         self._log('ERROR', f'handset timer failed:\n{traceback.format_exc()}')
