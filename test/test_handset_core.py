@@ -656,3 +656,43 @@ def test_round2_2_pty_a_partial_frame_is_settled_by_the_timer_the_reader_woke(
         assert core.link_state().frames_malformed == 1
     finally:
         core.stop()
+
+
+def _core_with_a_long_timer_sleep(monkeypatch, seen: Recorder, **config) -> HandsetCore:
+    """A started core whose timer's longest sleep is far longer than any wait of the test.
+
+    Only a wake by the deadline an event set can then have the timer act within the wait
+    (before, the timer acted at its next wake-up, up to MAX_TIMER_SLEEP_S = 0.5 s late).
+    """
+    from handset_link_ros import core as core_module
+    monkeypatch.setattr(core_module, 'MAX_TIMER_SLEEP_S', 600.0)
+    core = HandsetCore(HandsetConfig(port='loop://', **config), **seen.callbacks())
+    core.start()
+    core.feed(STICKS)  # as the reader would: the link is up
+    wait_for(lambda: core.link_state().connected, 5, what='the link up')
+    return core
+
+
+def test_round2_2_a_battery_reading_wakes_the_timer_by_its_staleness_deadline(monkeypatch):
+    seen = Recorder()
+    core = _core_with_a_long_timer_sleep(monkeypatch, seen, link_timeout_s=600.0,
+                                         battery_timeout_s=0.3)
+    try:
+        core.on_battery(0.5)
+        wait_for(lambda: core.failsafe().battery_stale, 20, what='the battery reading stale')
+        assert seen.failsafes[-1].battery_stale
+        assert not core.failsafe().link_lost
+    finally:
+        core.stop()
+
+
+def test_round2_2_a_shorter_link_timeout_wakes_the_timer_by_the_new_deadline(monkeypatch):
+    seen = Recorder()
+    core = _core_with_a_long_timer_sleep(monkeypatch, seen, link_timeout_s=600.0)
+    try:
+        core.reconfigure(link_timeout_s=0.3)  # H25: due 0.3 s after the sticks, not in 600 s
+        wait_for(lambda: core.failsafe().link_lost, 20, what='the link lost at the new timeout')
+        assert seen.failsafes[-1].link_lost
+        assert seen.failsafes[-1].action == ACTION_RETURN_TO_HOME
+    finally:
+        core.stop()
