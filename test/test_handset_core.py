@@ -696,3 +696,36 @@ def test_round2_2_a_shorter_link_timeout_wakes_the_timer_by_the_new_deadline(mon
         assert seen.failsafes[-1].action == ACTION_RETURN_TO_HOME
     finally:
         core.stop()
+
+
+def test_round2_2_the_rules_are_a_core_run_core_steps_each_step_ending_with_its_deadline():
+    from handset_link_ros.rules import (BatteryReading, FailsafeChanged, HandsetRules,
+                                        LinkChanged, Log, Reconfigured, Started, StickFrame)
+    from uav_serial_common.core_events import SetTimer, Tick
+    from uav_serial_common.core_runner import run_core
+    rules = HandsetRules(link_timeout_s=5.0, low_battery_fraction=0.2, battery_timeout_s=10.0,
+                         now=0.0)
+    handlers = {kind: (lambda action: None)
+                for kind in (Log, FailsafeChanged, LinkChanged, SetTimer)}
+
+    def step(event) -> list:
+        return run_core(rules, [event], handlers)
+
+    assert step(Started(0.0)) == [SetTimer(5.0)]  # H15/H8: lost 5 s after start-up
+    assert step(StickFrame(1.0, 'yaw_deg')) == [SetTimer(5.0)]  # three sticks never heard
+    for name in ('pitch_deg', 'roll_deg'):
+        step(StickFrame(1.0, name))
+    done = step(StickFrame(1.0, 'altitude_m'))
+    assert [type(a) for a in done] == [Log, LinkChanged, SetTimer]  # the link up
+    assert done[-1] == SetTimer(6.0)
+    assert step(BatteryReading(2.0, 0.5))[-1] == SetTimer(6.0)  # stale at 12 s: later
+    assert step(Tick(5.99)) == [SetTimer(6.0)]
+    done = step(Tick(6.0))
+    assert [type(a) for a in done] == [Log, FailsafeChanged, LinkChanged, SetTimer]
+    assert done[1].failsafe.action == ACTION_RETURN_TO_HOME
+    assert done[-1] == SetTimer(12.0)  # the link lost: only the battery is due
+    done = step(Reconfigured(7.0, battery_timeout_s=4.0))  # H25: stale at once
+    assert [type(a) for a in done] == [Log, FailsafeChanged]  # nothing left to be due
+    assert done[1].failsafe.battery_stale
+    with pytest.raises(TypeError):
+        rules.step(object())

@@ -361,8 +361,8 @@ def test_round2_22_5_every_core_takes_one_log_record_and_link_type():
     assert deploy_core.Request is settings_core.Request is ce.Request
     assert deploy_core.PassGate is trigger_core.PassGate is release_gate.PassGate
     assert settings_core.Answer is trigger_core.Answer is ce.Answer
-    assert trigger_core.SetTimer is ce.SetTimer
-    assert trigger_core.Tick is ce.Tick
+    assert trigger_core.SetTimer is rules.SetTimer is ce.SetTimer
+    assert trigger_core.Tick is rules.Tick is ce.Tick
     # Two guarantees kept apart: the deploy decision waits for the disk, a trigger decision not.
     assert {ce.SYNC_WAIT, ce.SYNC_ASK, ce.NO_SYNC} == set(ce.SYNCS) and len(ce.SYNCS) == 3
     with pytest.raises(ValueError):
