@@ -39,7 +39,7 @@ from dps_parachute_ros import protocol as p
 from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.state import MODULE_WINDOW_S
 from uav_serial_common.core_events import (Answer, LinkDown, LinkUp, Log, Rebooted, Record,
-                                           SYNC_ASK)
+                                           SetTimer, SYNC_ASK, Tick)
 from uav_serial_common.result import Result
 
 CONFIRM_FRAME = p.encode_trigger_confirm()
@@ -74,13 +74,6 @@ class PolicyChanged:
     policy: str
     defer_timeout_s: float
     gate: bool = False
-
-
-@dataclass(frozen=True)
-class Tick:
-    """Time passed (the monitor, at a deadline the core gave with `SetTimer`)."""
-
-    now: float
 
 
 @dataclass(frozen=True)
@@ -138,13 +131,6 @@ class Decide:
     reason: str
     latency_ms: Optional[float]
     t_request: float
-
-
-@dataclass(frozen=True)
-class SetTimer:
-    """Step `Tick` at `at` (the defer deadline of a request held for an answer)."""
-
-    at: float
 
 
 @dataclass(frozen=True)

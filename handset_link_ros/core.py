@@ -12,7 +12,9 @@ Threads, and what each one owns:
   completed it (H7). Frames of one read may share one setpoint update (``updated`` names them).
 - The core's timer thread (``start()``) sleeps until the next deadline (link loss when a stick
   setpoint is ``link_timeout_s`` old, H8; a stale battery reading; a partial frame's 0.1 s, H3)
-  and calls ``poll()``.
+  and calls ``poll()``. An event that sets a deadline (bytes of a partial frame read, a frame,
+  a battery reading, a new setting) wakes it by then (``DeadlineTimer.wake(by=...)``), so no
+  deadline waits for the timer's longest sleep.
 - The owner's threads (a node's executor) call ``on_battery()`` and the snapshot getters.
 
 State lives under ``_lock``, held briefly and never during a callback. Every change runs, with
@@ -22,8 +24,9 @@ propagated. With ``start(run_threads=False)`` nothing runs on its own: the calle
 ``feed()`` and ``poll()`` with its own (fake) clock.
 
 The failsafe decisions (link loss by the sticks, battery hysteresis and staleness) are
-``rules.HandsetRules``: pure, fed here with each event and its time; this class decodes, keeps
-the setpoints and counters, and carries the rules' outputs out as callbacks.
+``rules.HandsetRules``: pure, stepped here (``core_runner.run_core``) with each event and its
+time; this class decodes, keeps the setpoints and counters, and carries the rules' actions out:
+log lines and changes as callbacks, ``SetTimer`` as a wake of the timer by its deadline.
 """
 
 from __future__ import annotations
@@ -40,8 +43,11 @@ from typing import Any, Callable, Deque, Optional
 from handset_link_ros import protocol as p
 from handset_link_ros.link import ModemLink, Received
 from handset_link_ros.rules import (ACTION_NONE, ACTION_RETURN_TO_HOME,  # noqa: F401 (API)
-                                    BATTERY_CLEAR_MARGIN, Failsafe, FailsafeChanged,
-                                    HandsetRules, LinkChanged, Log, Output)
+                                    BATTERY_CLEAR_MARGIN, BatteryReading, Event, Failsafe,
+                                    FailsafeChanged, HandsetRules, LinkChanged, Log,
+                                    Reconfigured, Started, StickFrame)
+from uav_serial_common.core_events import SetTimer, Tick
+from uav_serial_common.core_runner import run_core
 from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.logs import Throttle
 from uav_serial_common.records import evolve
@@ -50,8 +56,9 @@ REJECTION_LOG_PERIOD_S = 1.0
 """Rejected frames are logged at most once per type per second (H6)."""
 BITS_PER_BYTE = 10
 MAX_TIMER_SLEEP_S = 0.5
-"""The timer thread sleeps until its next deadline, at most this long (a wake-up costs CPU; the
-reader settles a quiet partial frame itself, SerialLink's idle flush)."""
+"""The timer thread sleeps until its next deadline, at most this long (a wake-up costs CPU).
+Every deadline an event sets wakes it by then: this bound is a backstop, never a deadline's
+lateness."""
 
 STICK_FIELDS: dict[int, str] = {
     p.CommandType.SET_YAW: 'yaw_deg',
@@ -207,7 +214,7 @@ class HandsetCore:
 
         self.link = ModemLink(config.port, config.baud, self._on_received,
                               on_connection=self._on_connection, clock=clock,
-                              logger=_LogAdapter(self._log))
+                              logger=_LogAdapter(self._log), on_held=self._due_by)
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -220,7 +227,7 @@ class HandsetCore:
         with self._emit_lock:
             with self._lock:
                 now = self._clock()
-                self._rules.start(now)
+                self._step(Started(now), now, [])
                 # H15: not connected before the first valid frame, not lost before the timeout.
                 emits = [(self._on_link, self._link_state(now)),
                          (self._on_failsafe, self._rules.failsafe(now))]
@@ -247,7 +254,7 @@ class HandsetCore:
             with self._lock:
                 emits: list = []
                 now = self._clock()
-                self._carry(self._rules.tick(now), now, emits)
+                self._step(Tick(now), now, emits)
             self._emit(emits)
 
     def on_battery(self, percentage: float) -> None:
@@ -261,7 +268,7 @@ class HandsetCore:
             emits: list = []
             with self._lock:
                 now = self._clock()
-                self._carry(self._rules.battery_reading(percentage, now), now, emits)
+                self._step(BatteryReading(now, percentage), now, emits)
             self._emit(emits)
 
     @property
@@ -284,9 +291,9 @@ class HandsetCore:
             with self._lock:
                 self.config = replace(self.config, **changes)
                 now = self._clock()
-                self._carry(self._rules.reconfigure(
+                self._step(Reconfigured(
                     now, **{k: v for k, v in changes.items() if k != 'expected_rate_hz'}),
-                    now, emits)
+                    now, emits)  # (a shorter timeout is due sooner: SetTimer)
             self._emit(emits)
 
     # -- snapshots ------------------------------------------------------------------------------
@@ -375,7 +382,7 @@ class HandsetCore:
         name = STICK_FIELDS.get(cmd.type)
         if name is not None:
             # Only a stick frame keeps the link (issue 21 item 8): auxiliary ones never do.
-            self._carry(self._rules.stick(name, now), now, emits)
+            self._step(StickFrame(now, name), now, emits)
             pending = self._sp_pending
             if name in pending.values:
                 self._flush_setpoint(emits)  # the same field twice: one update per frame
@@ -421,15 +428,17 @@ class HandsetCore:
 
     # -- rules ----------------------------------------------------------------------------------
 
-    def _carry(self, outputs: list[Output], now: float, emits: list) -> None:
-        """Turn the rules' outputs into log lines and callbacks, in their order."""
-        for output in outputs:
-            if isinstance(output, Log):
-                emits.append((output.level, output.text))
-            elif isinstance(output, FailsafeChanged):
-                emits.append((self._on_failsafe, output.failsafe))
-            elif isinstance(output, LinkChanged):
-                emits.append((self._on_link, self._link_state(now)))
+    def _step(self, event: Event, now: float, emits: list) -> None:
+        """Step the rules with `event` (``_lock`` held); carry out their actions in order.
+
+        Log lines and changes become callbacks run after the lock is let go (``emits``); a
+        deadline wakes the timer by then (its condition only, never a driver's lock).
+        """
+        run_core(self._rules, [event], {
+            Log: lambda action: emits.append((action.level, action.text)),
+            FailsafeChanged: lambda action: emits.append((self._on_failsafe, action.failsafe)),
+            LinkChanged: lambda action: emits.append((self._on_link, self._link_state(now))),
+            SetTimer: lambda action: self._due_by(action.at)})
 
     def _prune(self, now: float) -> None:
         """Forget frame times older than the rate window (bounded memory under any input)."""
@@ -459,6 +468,11 @@ class HandsetCore:
         """Poll now, return when ``poll()`` is next due (the timer thread's duty)."""
         self.poll()
         return self.next_deadline()
+
+    def _due_by(self, due: Optional[float]) -> None:
+        """Have the timer poll by `due`, a deadline an event set (None: nothing due)."""
+        if due is not None:
+            self._timer.wake(by=due)
 
     def _timer_failed(self, exc: BaseException) -> None:
         self._log('ERROR', f'handset timer failed:\n{traceback.format_exc()}')

@@ -4,7 +4,9 @@ SerialLink's reader thread reads the port, decodes at once and hands each read's
 ``on_received`` as one ``Received`` batch, so frames that arrived together can be delivered
 together and nothing waits for a timer (H7). A partial frame is settled as malformed after 0.1 s
 of silence (H3): SerialLink calls the decoder's ``flush()`` once the line has been idle that long,
-and ``poll()`` does the same for an owner that keeps its own clock. The port vanishing and
+and ``poll()`` does the same for an owner that keeps its own clock; ``on_held(deadline)`` tells
+that owner, after each read that leaves a partial frame held, when to poll (its timer sleeps
+until then, whatever reads the port). The port vanishing and
 coming back is SerialLink's business. Nothing is ever written. No ROS here.
 """
 
@@ -60,9 +62,11 @@ class ModemLink:
                  on_connection: Optional[Callable[[bool, str], None]] = None,
                  clock: Callable[[], float] = time.monotonic,
                  logger: Optional[Any] = None,
-                 idle_timeout_s: float = p.IDLE_TIMEOUT_S) -> None:
+                 idle_timeout_s: float = p.IDLE_TIMEOUT_S,
+                 on_held: Optional[Callable[[float], None]] = None) -> None:
         self.decoder = p.StreamDecoder(idle_timeout_s)
         self._on_received = on_received
+        self._on_held = on_held
         self._clock = clock
         self._lock = threading.Lock()  # the decoder: reader thread, poll() and tests
         self.serial = SerialLink(
@@ -106,6 +110,9 @@ class ModemLink:
         with self._lock:
             now = self._clock()
             results = self.decoder.feed(data, now)
+            held = self.decoder.idle_deadline()
+        if held is not None and self._on_held is not None:
+            self._on_held(held)  # before the results are handed on: they may take a while
         return [Received(tuple(results), now)] if results else []
 
     def _settle(self, now: Optional[float]) -> list:

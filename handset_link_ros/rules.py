@@ -1,9 +1,11 @@
 """The handset's failsafe rules as a pure state machine: events with their time in, outputs out.
 
-No clock, thread, lock or port here (issue 22 item 1): ``HandsetCore`` feeds it the accepted
-stick frames, the battery readings and the passing of time, each with its monotonic time, and
-carries out what each call returns, in order: ``Log(level, text)``, ``FailsafeChanged(failsafe)``
-and ``LinkChanged()``. A test drives it (or the core around it) in virtual time.
+No clock, thread, lock or port here (issue 22 item 1): ``HandsetCore`` steps it
+(``core_runner.run_core``) with the events ``Started``, ``StickFrame``, ``BatteryReading``,
+``Reconfigured`` and ``Tick`` (time passed), each with its monotonic time, and carries out what
+each step returns, in order: ``Log(level, text)``, ``FailsafeChanged(failsafe)``,
+``LinkChanged()`` and, last, ``SetTimer(at)``: the next deadline of a rule (the runtime's timer
+ticks by then). A test drives it (or the core around it) in virtual time.
 
 The link is judged by the sticks (H8, issue 21 item 8). The aircraft flies by the four stick
 setpoints together (SET_YAW, SET_PITCH, SET_ROLL, SET_ALTITUDE; each ``~/setpoint`` carries all
@@ -29,7 +31,7 @@ from dataclasses import dataclass
 import math
 from typing import Optional, Union
 
-from uav_serial_common.core_events import Log  # (every core's log line: one handler)
+from uav_serial_common.core_events import Log, SetTimer, Tick  # (every core's: one handler)
 
 ACTION_NONE = 'NONE'
 ACTION_RETURN_TO_HOME = 'RETURN_TO_HOME'
@@ -69,7 +71,41 @@ class LinkChanged:
     """``connected`` changed."""
 
 
-Output = Union[Log, FailsafeChanged, LinkChanged]
+@dataclass(frozen=True)
+class Started:
+    """The link starts: a stick never received counts from ``now`` (H15)."""
+
+    now: float
+
+
+@dataclass(frozen=True)
+class StickFrame:
+    """An accepted stick frame (``name`` one of ``STICKS``) read at ``now``."""
+
+    now: float
+    name: str
+
+
+@dataclass(frozen=True)
+class BatteryReading:
+    """The aircraft's battery charge, 0..1 (NaN or outside 0..1 says nothing, H9)."""
+
+    now: float
+    percentage: float
+
+
+@dataclass(frozen=True)
+class Reconfigured:
+    """New settings (None: unchanged), checked by the caller; applied at once (H25)."""
+
+    now: float
+    link_timeout_s: Optional[float] = None
+    low_battery_fraction: Optional[float] = None
+    battery_timeout_s: Optional[float] = None
+
+
+Event = Union[Started, StickFrame, BatteryReading, Reconfigured, Tick]
+Output = Union[Log, FailsafeChanged, LinkChanged, SetTimer]
 
 
 class HandsetRules:
@@ -94,6 +130,26 @@ class HandsetRules:
         """Battery percentages outside 0..1 received (ignored, H9)."""
 
     # -- events ---------------------------------------------------------------------------------
+
+    def step(self, event: Event) -> list[Output]:
+        """Take one event; return its outputs in order, then ``SetTimer`` when a rule is due."""
+        if isinstance(event, StickFrame):
+            out = self.stick(event.name, event.now)
+        elif isinstance(event, Tick):
+            out = self.tick(event.now)
+        elif isinstance(event, BatteryReading):
+            out = self.battery_reading(event.percentage, event.now)
+        elif isinstance(event, Reconfigured):
+            out = self.reconfigure(event.now, event.link_timeout_s, event.low_battery_fraction,
+                                   event.battery_timeout_s)
+        elif isinstance(event, Started):
+            out = self.start(event.now)
+        else:
+            raise TypeError(f'the handset rules take no {type(event).__name__}')
+        due = self.next_deadline()
+        if due is not None:
+            out.append(SetTimer(due))
+        return out
 
     def start(self, now: float) -> list[Output]:
         """Start counting from ``now`` (H15: not lost before the timeout)."""

@@ -100,6 +100,59 @@ def test_round2_2_timer_keeps_a_wake_that_comes_while_the_duty_runs() -> None:
         assert timer.stop(BOUND_S)
 
 
+def test_round2_2_timer_wake_by_a_deadline_runs_the_duty_then_not_at_once() -> None:
+    duty = Duty(lambda index: None)  # nothing due: the timer sleeps FAR_S
+    timer = make(duty)
+    timer.start()
+    try:
+        assert duty.wait_runs(1)
+        by = time.monotonic() + 0.2
+        timer.wake(by=by)  # as a reader that read half a frame would
+        assert duty.wait_runs(2), 'the deadline of the wake was not kept'
+        assert duty.runs[1] >= by - 0.001, 'the duty ran before the deadline of the wake'
+    finally:
+        assert timer.stop(BOUND_S)
+
+
+def test_round2_2_timer_wake_by_a_later_deadline_changes_nothing() -> None:
+    dues: List[float] = []
+
+    def plan(index: int) -> Optional[float]:
+        dues.append(time.monotonic() + 0.2)
+        return dues[-1]
+
+    duty = Duty(plan)
+    timer = make(duty)
+    timer.start()
+    try:
+        assert duty.wait_runs(1)
+        timer.wake(by=time.monotonic() + FAR_S)  # due later than the timer's own deadline
+        assert duty.wait_runs(2)
+        assert duty.runs[1] >= dues[0] - 0.001, 'a later deadline ran the duty at once'
+    finally:
+        assert timer.stop(BOUND_S)
+
+
+def test_round2_2_timer_keeps_a_deadline_woken_while_the_duty_runs() -> None:
+    timer: Optional[DeadlineTimer] = None
+    bys: List[float] = []
+
+    def plan(index: int) -> Optional[float]:
+        if index == 0:
+            bys.append(time.monotonic() + 0.1)
+            timer.wake(by=bys[0])  # after the duty read the state the reader changed
+        return time.monotonic() + FAR_S
+
+    duty = Duty(plan)
+    timer = make(duty)
+    timer.start()
+    try:
+        assert duty.wait_runs(2), 'the deadline woken during the duty was lost'
+        assert duty.runs[1] >= bys[0] - 0.001
+    finally:
+        assert timer.stop(BOUND_S)
+
+
 def fail_first(index: int) -> Optional[float]:
     if index == 0:
         raise ValueError('a bug in the rules')

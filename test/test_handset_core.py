@@ -571,3 +571,161 @@ def test_round2_8_a_battery_reading_that_stops_is_unknown_after_battery_timeout_
     assert math.isnan(state.battery_fraction)
     rig.core.on_battery(0.3)
     assert not rig.core.failsafe().battery_low
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 22 item 2: the H3 gap is a deadline of the core, and the reader wakes the timer by it
+# ---------------------------------------------------------------------------------------------
+
+STICKS = p.encode_set_yaw(1.0) + p.encode_set_pitch(1.0) + p.encode_set_roll(1.0) + \
+    p.encode_set_altitude(3.0)
+
+
+def test_round2_2_the_core_is_due_at_a_partial_frames_gap_counted_from_its_last_byte():
+    rig = Rig(link_timeout_s=60.0)
+    rig.feed(STICKS)
+    link_due = rig.core.next_deadline()
+    assert link_due == pytest.approx(START + 60.0)
+    frame = p.encode_set_yaw(90)
+    rig.wait(0.5)
+    rig.feed(frame[:3])
+    first = rig.clock.t
+    assert rig.core.next_deadline() == pytest.approx(first + p.IDLE_TIMEOUT_S)
+    rig.clock.t = first + 0.05
+    rig.feed(frame[3:6])  # more of the same frame: the gap is counted from the last byte
+    due = rig.core.next_deadline()
+    assert due == pytest.approx(first + 0.05 + p.IDLE_TIMEOUT_S)
+    rig.clock.t = first + p.IDLE_TIMEOUT_S  # the first bytes' gap: not quiet that long
+    rig.core.poll()
+    assert rig.core.link_state().frames_malformed == 0
+    rig.clock.t = due  # the core's own deadline: a poll then settles it (H3)
+    rig.core.poll()
+    assert rig.core.link_state().frames_malformed == 1
+    assert 'silence' in rig.seen.logs_at('WARN')[-1]
+    assert rig.core.next_deadline() == pytest.approx(link_due)
+    assert rig.core.link_state().frames_accepted == 4
+
+
+def test_round2_2_each_read_that_holds_a_partial_frame_tells_when_it_is_due():
+    """The reader's side of the wake, in virtual time: ``on_held`` gets the gap's deadline."""
+    from handset_link_ros.link import ModemLink
+    clock = FakeClock(START)
+    held: list = []
+    link = ModemLink('loop://', 115200, lambda batch: None, clock=clock, on_held=held.append)
+    frame = p.encode_set_yaw(90)
+    link.feed(frame[:3])
+    assert held == [pytest.approx(START + p.IDLE_TIMEOUT_S)]
+    clock.t += 0.05
+    link.feed(frame[3:6])
+    assert held[-1] == pytest.approx(START + 0.05 + p.IDLE_TIMEOUT_S)
+    link.feed(frame[6:] + STICKS)  # whole frames hold nothing: no deadline to keep
+    assert len(held) == 2
+
+
+def test_round2_2_pty_a_partial_frame_is_settled_by_the_timer_the_reader_woke(
+        pty_rig, monkeypatch):
+    """The timer settles a partial frame at its gap because the read woke it, not by chance.
+
+    The port is a pyserial URL (``spy://``, as a modem behind ``socket://`` or ``rfc2217://``
+    would be): SerialLink reads it with pyserial's blocking read, which cannot wake at the
+    gap, so only the core's timer settles the partial frame on time. The two backstops that
+    would settle it eventually (the timer's longest sleep and the reader's read timeout, 0.5 s
+    each) are made far longer than the wait: before the reader woke the timer, the partial was
+    settled by whichever backstop came first, and here by none within the wait.
+    """
+    from handset_link_ros import core as core_module
+    from handset_link_ros import link as link_module
+    monkeypatch.setattr(core_module, 'MAX_TIMER_SLEEP_S', 600.0)
+    monkeypatch.setattr(link_module, 'READ_TIMEOUT_S', 600.0)
+    sim, runner, seen, _ = pty_rig
+    with runner.locked():
+        sim.set_radio_link(False)
+    core = HandsetCore(HandsetConfig(port=f'spy://{runner.path}?file=/dev/null',
+                                     link_timeout_s=600.0), **seen.callbacks())
+    try:
+        core.start()
+        wait_for(lambda: core.link.port_open, 5, what='the port open')
+        with runner.locked():
+            sim.send_raw(p.encode_set_yaw(90)[:9])
+        wait_for(lambda: core.link_state().frames_malformed == 1, 20,
+                 what='the partial frame settled by the timer at its gap')
+        assert 'silence' in seen.logs_at('WARN')[-1]
+        with runner.locked():
+            sim.send_raw(p.encode_set_yaw(90))
+        wait_for(lambda: core.setpoint().yaw_deg == 90.0, 5, what='the next frame whole')
+        assert core.link_state().frames_malformed == 1
+    finally:
+        core.stop()
+
+
+def _core_with_a_long_timer_sleep(monkeypatch, seen: Recorder, **config) -> HandsetCore:
+    """A started core whose timer's longest sleep is far longer than any wait of the test.
+
+    Only a wake by the deadline an event set can then have the timer act within the wait
+    (before, the timer acted at its next wake-up, up to MAX_TIMER_SLEEP_S = 0.5 s late).
+    """
+    from handset_link_ros import core as core_module
+    monkeypatch.setattr(core_module, 'MAX_TIMER_SLEEP_S', 600.0)
+    core = HandsetCore(HandsetConfig(port='loop://', **config), **seen.callbacks())
+    core.start()
+    core.feed(STICKS)  # as the reader would: the link is up
+    wait_for(lambda: core.link_state().connected, 5, what='the link up')
+    return core
+
+
+def test_round2_2_a_battery_reading_wakes_the_timer_by_its_staleness_deadline(monkeypatch):
+    seen = Recorder()
+    core = _core_with_a_long_timer_sleep(monkeypatch, seen, link_timeout_s=600.0,
+                                         battery_timeout_s=0.3)
+    try:
+        core.on_battery(0.5)
+        wait_for(lambda: core.failsafe().battery_stale, 20, what='the battery reading stale')
+        assert seen.failsafes[-1].battery_stale
+        assert not core.failsafe().link_lost
+    finally:
+        core.stop()
+
+
+def test_round2_2_a_shorter_link_timeout_wakes_the_timer_by_the_new_deadline(monkeypatch):
+    seen = Recorder()
+    core = _core_with_a_long_timer_sleep(monkeypatch, seen, link_timeout_s=600.0)
+    try:
+        core.reconfigure(link_timeout_s=0.3)  # H25: due 0.3 s after the sticks, not in 600 s
+        wait_for(lambda: core.failsafe().link_lost, 20, what='the link lost at the new timeout')
+        assert seen.failsafes[-1].link_lost
+        assert seen.failsafes[-1].action == ACTION_RETURN_TO_HOME
+    finally:
+        core.stop()
+
+
+def test_round2_2_the_rules_are_a_core_run_core_steps_each_step_ending_with_its_deadline():
+    from handset_link_ros.rules import (BatteryReading, FailsafeChanged, HandsetRules,
+                                        LinkChanged, Log, Reconfigured, Started, StickFrame)
+    from uav_serial_common.core_events import SetTimer, Tick
+    from uav_serial_common.core_runner import run_core
+    rules = HandsetRules(link_timeout_s=5.0, low_battery_fraction=0.2, battery_timeout_s=10.0,
+                         now=0.0)
+    handlers = {kind: (lambda action: None)
+                for kind in (Log, FailsafeChanged, LinkChanged, SetTimer)}
+
+    def step(event) -> list:
+        return run_core(rules, [event], handlers)
+
+    assert step(Started(0.0)) == [SetTimer(5.0)]  # H15/H8: lost 5 s after start-up
+    assert step(StickFrame(1.0, 'yaw_deg')) == [SetTimer(5.0)]  # three sticks never heard
+    for name in ('pitch_deg', 'roll_deg'):
+        step(StickFrame(1.0, name))
+    done = step(StickFrame(1.0, 'altitude_m'))
+    assert [type(a) for a in done] == [Log, LinkChanged, SetTimer]  # the link up
+    assert done[-1] == SetTimer(6.0)
+    assert step(BatteryReading(2.0, 0.5))[-1] == SetTimer(6.0)  # stale at 12 s: later
+    assert step(Tick(5.99)) == [SetTimer(6.0)]
+    done = step(Tick(6.0))
+    assert [type(a) for a in done] == [Log, FailsafeChanged, LinkChanged, SetTimer]
+    assert done[1].failsafe.action == ACTION_RETURN_TO_HOME
+    assert done[-1] == SetTimer(12.0)  # the link lost: only the battery is due
+    done = step(Reconfigured(7.0, battery_timeout_s=4.0))  # H25: stale at once
+    assert [type(a) for a in done] == [Log, FailsafeChanged]  # nothing left to be due
+    assert done[1].failsafe.battery_stale
+    with pytest.raises(TypeError):
+        rules.step(object())

@@ -324,12 +324,13 @@ def test_the_core_tier_names_test_files_that_exist_and_start_no_process_or_pty()
 # carries two cores' Log (or Record, LinkDown ...) with one handler. A class of one of these
 # names elsewhere is another concept, and says so here.
 SHARED_EVENTS = {'Log', 'Record', 'Request', 'Answer', 'LinkUp', 'LinkDown', 'Rebooted', 'Reply',
-                 'Timeout', 'Busy', 'PassGate', 'GateDone'}
+                 'Timeout', 'Busy', 'PassGate', 'GateDone', 'SetTimer', 'Tick'}
 OTHER_CONCEPTS = {
     ('uav_serial_common/core_events.py', name) for name in SHARED_EVENTS} | {
     ('dps_parachute_ros/release_gate.py', 'PassGate'),
     ('dps_parachute_ros/release_gate.py', 'GateDone'),
     ('uav_serial_common/serial_errors.py', 'LinkDown'),       # an exception, not an event
+    ('parachute_mavlink_ros/events.py', 'Tick'),               # its core takes `now` apart
     ('desheng_servo_ros/protocol.py', 'Reply'),                # a decoded status frame
     ('desheng_servo_ros/protocol.py', 'Request'),              # a decoded host frame
     ('desheng_servo_ros/bus_schedule.py', 'Answer'),           # (token, ok, text): not a Result
@@ -360,6 +361,8 @@ def test_round2_22_5_every_core_takes_one_log_record_and_link_type():
     assert deploy_core.Request is settings_core.Request is ce.Request
     assert deploy_core.PassGate is trigger_core.PassGate is release_gate.PassGate
     assert settings_core.Answer is trigger_core.Answer is ce.Answer
+    assert trigger_core.SetTimer is rules.SetTimer is ce.SetTimer
+    assert trigger_core.Tick is rules.Tick is ce.Tick
     # Two guarantees kept apart: the deploy decision waits for the disk, a trigger decision not.
     assert {ce.SYNC_WAIT, ce.SYNC_ASK, ce.NO_SYNC} == set(ce.SYNCS) and len(ce.SYNCS) == 3
     with pytest.raises(ValueError):

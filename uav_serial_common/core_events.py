@@ -21,6 +21,8 @@ Actions:
   `Busy` or `LinkDown`. Parachute deploy and settings cores.
 - `Answer` ``(result)``: the one answer to a call, a ``result.Result``. Parachute trigger and
   settings cores (the deploy core answers a ``DeployAnswer``: five outcomes and P11 counts).
+- `SetTimer` ``(at)``: step `Tick` no later than `at` (a deadline the event set or moved); the
+  runtime's ``DeadlineTimer.wake(by=at)``. Parachute trigger core, the handset rules.
 
 Events:
 
@@ -33,13 +35,14 @@ Events:
 - `Reply` ``(now, message)``: a decoded frame: the reply a `Request` waits for, or one unasked.
 - `Timeout` ``(now, reason)``: the reply a `Request` expects did not come by its deadline.
 - `Busy` ``(now, reason)``: the link could not send the `Request` now; nothing was sent.
+- `Tick` ``(now)``: time passed (the runtime's timer, at a deadline a `SetTimer` gave, or
+  sooner).
 
 Kept apart on purpose: a `Request` waits for a reply with a deadline; the trigger core's
 ``Write`` (``dps_parachute_ros.trigger_core``) is a frame written at once, ahead of anything
 queued, that expects no reply: its runtime feeds back ``Sent``/``NotSent`` with its token. The
 servo bus's ``bus_schedule.Send`` owns bus time (when the frame goes and until when the
 half-duplex bus is taken) and matches its reply by servo id: a bus transaction, not a `Request`.
-Timers (``Tick``/``SetTimer``) have one user so far (the trigger core) and live there.
 """
 
 from __future__ import annotations
@@ -109,6 +112,13 @@ class Answer:
     result: Result
 
 
+@dataclass(frozen=True)
+class SetTimer:
+    """Step `Tick` no later than `at` (a deadline on the core's clock)."""
+
+    at: float
+
+
 # -- events ------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -161,3 +171,10 @@ class Busy:
 
     now: float
     reason: str
+
+
+@dataclass(frozen=True)
+class Tick:
+    """Time passed (the runtime's timer, at a deadline a `SetTimer` gave, or sooner)."""
+
+    now: float

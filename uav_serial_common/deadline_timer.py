@@ -13,8 +13,11 @@ seen within it). A driver whose deadlines run on another clock converts them in 
 
 `wake()` says "something changed: run the duty now" (a deadline moved earlier). The flag is
 cleared before the duty runs, so a wake that comes while it runs (even from the duty itself)
-makes the next sleep end at once; none is lost. The timer holds only its own condition, never a
-driver's lock, and never while the duty runs.
+makes the next sleep end at once; none is lost. `wake(by=deadline)` says "an event set this
+deadline": the timer runs the duty by then, and only a sleep that would end later is cut
+short (to the deadline, not to now), so an event that moves nothing earlier costs nothing; one
+that comes while the duty runs bounds the sleep that follows. The timer holds only its own
+condition, never a driver's lock, and never while the duty runs.
 """
 
 from __future__ import annotations
@@ -46,6 +49,10 @@ class DeadlineTimer:
         self._clock = clock
         self._cond = threading.Condition()
         self._woken = False
+        self._sleep_until: Optional[float] = None
+        """When the current sleep ends (clock time); None while the duty runs."""
+        self._wake_by: Optional[float] = None
+        """The earliest deadline `wake(by=...)` asked for since the duty last ran."""
         # A run's token: a thread ends when the current token is no longer its own, so a stop
         # that timed out followed by a start never leaves two threads running duties.
         self._token: Optional[object] = None
@@ -61,10 +68,19 @@ class DeadlineTimer:
                                             daemon=True)
         self._thread.start()
 
-    def wake(self) -> None:
-        """Something changed: run the duty now (it recomputes the deadline)."""
+    def wake(self, by: Optional[float] = None) -> None:
+        """Something changed: run the duty now (it recomputes the deadline).
+
+        With ``by`` (a time on the timer's clock: a deadline an event set), run it no later
+        than then: a sleep that ends later ends then, one that ends earlier is left alone.
+        """
         with self._cond:
-            self._woken = True
+            if by is None:
+                self._woken = True
+            elif self._sleep_until is None or by < self._sleep_until:
+                self._wake_by = by if self._wake_by is None else min(self._wake_by, by)
+            else:
+                return
             self._cond.notify()
 
     def stop(self, timeout: Optional[float] = 2.0) -> bool:
@@ -93,6 +109,7 @@ class DeadlineTimer:
                 if self._token is not token:
                     return
                 self._woken = False  # before the duty: a wake during it is kept
+                self._sleep_until = self._wake_by = None
             try:
                 due = self._duty()
                 wait = self._idle_s if due is None else due - self._clock()
@@ -104,5 +121,13 @@ class DeadlineTimer:
                     pass
                 wait = self._retry_s
             with self._cond:
-                if not self._woken and self._token is token:
-                    self._cond.wait(wait)
+                until = self._clock() + wait
+                while not self._woken and self._token is token:
+                    if self._wake_by is not None:
+                        until, self._wake_by = min(until, self._wake_by), None
+                    self._sleep_until = until
+                    left = until - self._clock()
+                    # A timeout ends the sleep whatever a test's fake clock says; only a wake
+                    # with a deadline sleeps again, to the earlier end.
+                    if left <= 0 or not self._cond.wait(left):
+                        break
