@@ -20,7 +20,15 @@ import pytest
 sys.path.insert(0, os.path.dirname(__file__))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from hypothesis import HealthCheck, settings  # noqa: E402
+
 from uav_serial_common.process import claim_domain_id  # noqa: E402
+
+# No property here is about speed, and a loaded host (the suite beside a busy loop) made an
+# example take over hypothesis's default 200-ms deadline: timing goals belong to bench/.
+settings.register_profile('uav', deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile('uav')
 
 
 def pytest_configure(config: pytest.Config) -> None:
