@@ -30,10 +30,11 @@ LISTEN_ROUNDS = 10
 
 @dataclass
 class _Window:
-    """One PING of the sweep that got garbage: its place and the last place answered before."""
+    """A stretch of the sweep in which bytes were thrown away (garbage): whose it may be."""
 
-    index: int
-    anchor: int  # index of the last id whose reply had come when the PING went out (-1: none)
+    index: int    # the PING whose window it was (the last one: after the sweep)
+    anchor: int   # index of the last id whose reply had come before it (-1: none)
+    began: float  # when it began (monotonic): the garbage came after
 
 
 def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
@@ -47,6 +48,7 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
     answered: Set[int] = set()
     suspects: Set[int] = set()
     late: Dict[int, float] = {}
+    sent: List[float] = []
     garbage: List[_Window] = []
     replied_at = -1  # index of the last id whose reply has come (in time or late)
     position = {servo_id: k for k, servo_id in enumerate(ids)}
@@ -54,10 +56,10 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
     link._late_sink = late
     try:
         for index, servo_id in enumerate(ids):
-            for late_id in late:
-                replied_at = max(replied_at, position.get(late_id, -1))
+            replied_at = max([replied_at] + [position.get(i, -1) for i in late])
             anchor = replied_at
             mark = (stats.bytes_in, stats.frames_in, decoder.bytes_discarded)
+            sent.append(time.monotonic())
             try:
                 link.transact(proto.encode_ping(servo_id), servo_id, 0, priority,
                               retries=0, flush=False)
@@ -67,9 +69,10 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
                 pass
             # Bytes thrown away, or bytes and no frame at all: someone answered garbled, in
             # this window or late from an earlier one (the frame in it may be another's).
+            if decoder.bytes_discarded > mark[2]:
+                garbage.append(_Window(index, anchor, sent[index]))
             if decoder.bytes_discarded > mark[2] or (stats.bytes_in > mark[0]
                                                      and stats.frames_in == mark[1]):
-                garbage.append(_Window(index, anchor))
                 suspects.add(servo_id)
                 if index:
                     suspects.add(ids[index - 1])
@@ -86,16 +89,20 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
         if outcome == 'garbled':
             garbled.add(servo_id)
     asked = (set(late) | suspects) & wanted
+    # How late a reply came in this sweep: garbage is looked for no further back than that.
+    lateness = max([0.0] + [at - sent[position[i]] for i, at in late.items() if i in position])
     for window in garbage:
-        pair = set(ids[max(0, window.index - 1):window.index + 1])
-        if pair & garbled:
+        if set(ids[max(0, window.index - 1):window.index + 1]) & garbled:
             continue
         # Nobody near that window answers garbled: the bytes were late from further back.
-        for servo_id in ids[window.anchor + 1:window.index + 1]:
-            if servo_id not in answered and servo_id not in asked:
-                asked.add(servo_id)
-                if confirm(link, servo_id, priority):
-                    answered.add(servo_id)
+        reach = LATE_REPLY_WINDOW_S + lateness + link.margin_s
+        for k in range(window.anchor + 1, window.index + 1):
+            servo_id = ids[k]
+            if servo_id in answered or servo_id in asked or window.began - sent[k] > reach:
+                continue
+            asked.add(servo_id)
+            if confirm(link, servo_id, priority):
+                answered.add(servo_id)
     return [i for i in ids if i in answered]
 
 
@@ -107,11 +114,11 @@ def _listen(link: Any, garbage: List[_Window], last: int, anchor: int) -> None:
     """
     stats, decoder = link.link.stats, link.decoder
     for _ in range(LISTEN_ROUNDS):
-        mark = (stats.bytes_in, stats.frames_in, decoder.bytes_discarded)
+        mark = (stats.bytes_in, decoder.bytes_discarded)
+        began = time.monotonic()
         time.sleep(LATE_REPLY_WINDOW_S)
-        if decoder.bytes_discarded > mark[2] or (stats.bytes_in > mark[0]
-                                                 and stats.frames_in == mark[1]):
-            garbage.append(_Window(last, anchor))
+        if decoder.bytes_discarded > mark[1]:
+            garbage.append(_Window(last, anchor, began))
         if stats.bytes_in == mark[0] and not link.link.unread_input():
             return
 
