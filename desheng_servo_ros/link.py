@@ -104,6 +104,7 @@ class ServoBusLink:
         self.unexpected_frames = 0
         self.requests_by_id = [0] * 256
         self.replies_by_id = [0] * 256
+        self._unsolicited: Dict[Tuple[int, int], int] = {}
         # Requests of an id answered by bytes that made no frame: a garbled reply, the sign of
         # two servos answering at once (S24) when it keeps happening to one id. garble_level is
         # a moving average of garbled (1) and clean (0) replies per id.
@@ -522,6 +523,8 @@ class ServoBusLink:
         servo_id = frame.servo_id
         self.unexpected_frames += 1
         self.replies_by_id[servo_id] += 1
+        kind = (servo_id, len(frame.params))
+        self._unsolicited[kind] = self._unsolicited.get(kind, 0) + 1
         if self.sent_at[servo_id]:
             needed = self._reply_margin(servo_id, len(frame.raw))
             if needed > self.margin_for(servo_id):
@@ -538,6 +541,10 @@ class ServoBusLink:
                 self.requests_by_id[servo_id] += 1
                 self.sent_at[servo_id] = time.monotonic()
                 self.sent_len[servo_id] = len(data)
+
+    def unsolicited_replies(self, servo_id: int, nparams: int) -> int:
+        """Return the replies of `servo_id` with `nparams` params that no request waited for."""
+        return self._unsolicited.get((servo_id, nparams), 0)
 
     def surplus_replies(self, servo_id: int) -> int:
         """Return replies minus requests of ``servo_id`` so far; growing means a duplicate id.
