@@ -23,12 +23,13 @@ from contextlib import contextmanager
 import threading
 import time
 from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, Optional, Sequence,
-                    Set, Tuple)
+                    Tuple)
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_chain import (  # noqa: F401 - re-exported
     _PriorityLock, _ReadChain, BusBusy, Posted, PRIORITY_LOOP, PRIORITY_SERVICE,
     PRIORITY_URGENT, ReadItem, ReadPlan)
+from desheng_servo_ros.bus_scan import sweep
 from desheng_servo_ros.protocol import Reply, StreamDecoder
 from desheng_servo_ros.schedule import (IDLE_GUARD_S, next_on_bus, REPLY_OVERHEAD,
                                         sync_write_frames, YIELD)
@@ -51,9 +52,6 @@ DERIVED_MARGIN_S = 0.034
 LEARN_FACTOR = 1.5
 MAX_LEARNED_MARGIN_S = 0.1
 FORGET_AFTER_REPLIES = 20
-# How long a scan listens for late replies after its last PING, and waits for a reply when it
-# confirms an id that answered late (or garbled).
-LATE_REPLY_WINDOW_S = 0.1
 BUS_LOCK_TIMEOUT_S = 2.0
 # Weight of the newest outcome in an id's garbled-reply level (GARBLE_WEIGHT of a garbled reply
 # raises it, a clean one lowers it): four garbled replies in a row take it past one half, which
@@ -106,6 +104,7 @@ class ServoBusLink:
         self.unexpected_frames = 0
         self.requests_by_id = [0] * 256
         self.replies_by_id = [0] * 256
+        self._unsolicited: Dict[Tuple[int, int], int] = {}
         # Requests of an id answered by bytes that made no frame: a garbled reply, the sign of
         # two servos answering at once (S24) when it keeps happening to one id. garble_level is
         # a moving average of garbled (1) and clean (0) replies per id.
@@ -496,63 +495,19 @@ class ServoBusLink:
         return frames
 
     def scan(self, ids: Iterable[int], priority: int = PRIORITY_SERVICE) -> List[int]:
-        """PING each id once; return the ids that answered (cleanly or garbled), in order.
+        """PING each id once; return the ids that answered (cleanly, late or garbled), in order.
 
-        The PINGs use the normal margin, so an absent id costs a few ms. A reply that comes
-        after its PING's timeout still names its id (it is collected while the next ids are
-        PINGed, and for LATE_REPLY_WINDOW_S after the last); a PING answered by bytes that make
-        no frame (two servos at one id, S24, or a late reply that collided with a PING on a
-        half-duplex wire) makes that id and the one before it suspects. Late and suspect ids
-        are then PINGed again, one at a time with a wait of LATE_REPLY_WINDOW_S, and count as
-        found when they answer; a late servo keeps a margin of its own (docs/protocols.md).
+        The PINGs use the normal margin, so an absent id costs a few ms; late replies are
+        collected by id while the sweep goes on, garbled ones make suspects, and both are
+        confirmed with a long wait (`bus_scan.sweep`; docs/protocols.md, "Scan").
         """
-        ids = list(ids)
-        wanted = set(ids)
-        answered: Set[int] = set()
-        suspects: Set[int] = set()
-        late: Dict[int, float] = {}
-        previous: Optional[int] = None
-        self._late_sink = late
-        try:
-            for servo_id in ids:
-                garbled = self.garbled_by_id[servo_id]
-                try:
-                    self.transact(proto.encode_ping(servo_id), servo_id, 0, priority,
-                                  retries=0, flush=False)
-                    answered.add(servo_id)
-                except LinkTimeout:
-                    if self.garbled_by_id[servo_id] != garbled:
-                        suspects.add(servo_id)
-                        if previous is not None:
-                            suspects.add(previous)
-                previous = servo_id
-            if ids:
-                time.sleep(LATE_REPLY_WINDOW_S)
-        finally:
-            self._late_sink = None
-        for servo_id in sorted((set(late) | suspects) & wanted - answered):
-            if self._confirm(servo_id, priority):
-                answered.add(servo_id)
-        return [i for i in ids if i in answered]
+        return sweep(self, ids, priority)
 
-    def _confirm(self, servo_id: int, priority: int) -> bool:
-        """PING up to twice with a long wait; True if anything answers (learns its margin)."""
-        frame = proto.encode_ping(servo_id)
-        wire = wire_time(len(frame) + REPLY_OVERHEAD, self.baud)
-        for _ in range(2):
-            garbled = self.garbled_by_id[servo_id]
-            try:
-                reply = self.transact(frame, servo_id, 0, priority, retries=0,
-                                      timeout=wire + LATE_REPLY_WINDOW_S)
-            except LinkTimeout:
-                if self.garbled_by_id[servo_id] != garbled:
-                    return True
-                continue
-            needed = self._reply_margin(servo_id, len(reply.raw))
-            if needed > self._margin:
-                self._learn(servo_id, needed)
-            return True
-        return False
+    def learn_from(self, servo_id: int, reply: Reply) -> None:
+        """Give `servo_id` a margin of its own if `reply` came later than the bus's margin."""
+        needed = self._reply_margin(servo_id, len(reply.raw))
+        if needed > self._margin:
+            self._learn(servo_id, needed)
 
     # -- counters -------------------------------------------------------------------------------
 
@@ -568,6 +523,8 @@ class ServoBusLink:
         servo_id = frame.servo_id
         self.unexpected_frames += 1
         self.replies_by_id[servo_id] += 1
+        kind = (servo_id, len(frame.params))
+        self._unsolicited[kind] = self._unsolicited.get(kind, 0) + 1
         if self.sent_at[servo_id]:
             needed = self._reply_margin(servo_id, len(frame.raw))
             if needed > self.margin_for(servo_id):
@@ -584,6 +541,10 @@ class ServoBusLink:
                 self.requests_by_id[servo_id] += 1
                 self.sent_at[servo_id] = time.monotonic()
                 self.sent_len[servo_id] = len(data)
+
+    def unsolicited_replies(self, servo_id: int, nparams: int) -> int:
+        """Return the replies of `servo_id` with `nparams` params that no request waited for."""
+        return self._unsolicited.get((servo_id, nparams), 0)
 
     def surplus_replies(self, servo_id: int) -> int:
         """Return replies minus requests of ``servo_id`` so far; growing means a duplicate id.

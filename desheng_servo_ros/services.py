@@ -254,7 +254,9 @@ class ServoServices:
         replies apart, answer twice; their positions also rarely agree (`values_differ`: count
         that as a sign too, at the price of a moving servo looking like two).
         """
-        surplus = self.bus.surplus_replies(servo_id)
+        # Replies that no READ waited for, of the READs' size only: a late reply to an earlier
+        # request (a PING of the scan when the device stalled) is one reply to one request.
+        unsolicited = self.bus.unsolicited_replies(servo_id, POSITION.size)
         frame = proto.encode_read(servo_id, POSITION.address, POSITION.size)
         # A second whole reply follows the first at once; give it time to arrive before the
         # next request flushes the input.
@@ -267,7 +269,10 @@ class ServoServices:
                 time.sleep(quiet)
             elif mangled:
                 garbled += 1
-        extra = self.bus.surplus_replies(servo_id) - surplus
+        # Each READ without a reply of its own may be answered late, once: beyond those, more
+        # than one servo answers.
+        extra = (self.bus.unsolicited_replies(servo_id, POSITION.size) - unsolicited
+                 - (PROBE_READS - len(values)))
         if garbled:
             return 'several', f'{garbled} of {PROBE_READS} replies garbled (colliding replies)'
         if extra > 0:

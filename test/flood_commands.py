@@ -3,7 +3,8 @@
 Run by test_servo_safety.py (so the flood does not take the GIL from the virtual bus in the test
 process). Usage: ``python flood_commands.py RATE_HZ SECONDS [IDS]`` (IDS: comma-separated servo
 ids, default 1,2; an unknown id makes every command a refusal); prints one JSON line: commands
-sent, the last positions, and the times (monotonic and wall) of the first and last publication.
+sent, the last positions, the times (monotonic and wall) of the first and last publication, and
+whether the driver acknowledged every sample before the publisher left.
 """
 
 import json
@@ -11,8 +12,12 @@ import sys
 import time
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.node import Node
 from uav_serial_drivers.msg import ServoCommand
+
+# How long the publisher waits for the driver to acknowledge its last samples.
+ACK_TIMEOUT_S = 30.0
 
 
 def main() -> None:
@@ -37,10 +42,15 @@ def main() -> None:
         last = [x, -x]
         pub.publish(ServoCommand(ids=ids, positions=last, move_time_ms=0))
         t_last, t_last_wall = time.monotonic(), time.time()
+    # The publisher is reliable: wait until the driver has acknowledged every sample it still
+    # holds (the newest above all) before it goes away. A fixed pause was not enough: beside a
+    # busy loop the driver's process did not run for a while, the last samples had not reached
+    # it, and a publisher gone 0.5 s after them never sent them again (the newest command was
+    # then never on the wire). `acked` says whether that came within the wait.
+    acked = pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
     print(json.dumps({'sent': count, 'last': last, 't_start': start, 't_last': t_last,
-                      't_start_wall': start_wall, 't_last_wall': t_last_wall}), flush=True)
-    # Give DDS time to deliver the last ones before the publisher goes away.
-    time.sleep(0.5)
+                      't_start_wall': start_wall, 't_last_wall': t_last_wall,
+                      'acked': acked}), flush=True)
     node.destroy_node()
     rclpy.shutdown()
 

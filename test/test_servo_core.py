@@ -503,6 +503,62 @@ def test_scan_names_ids_more_than_one_servo_answers_to(rig):
     assert 'more than one servo answers to id(s) 3' in result.message
 
 
+@pytest.mark.parametrize('stall_s', [0.03, 0.06, 0.12])
+@pytest.mark.parametrize('seed', [0, 2])
+def test_round2_22_6_a_scan_names_a_duplicate_id_whose_garbled_reply_comes_windows_late(
+        tmp_path, stall_s, seed):
+    # The device stalls once, on the PING of the shared id (a loaded host does that to a
+    # virtual bus): the collided bytes (S24, no frame in them) come one or more PING windows
+    # later, in the window of an id that answers or after the last PING. The scan must still
+    # find id 2 and say that more than one servo answers there. Seeds 0 and 2 make that PING's
+    # collision garbled (the other seeds come through clean, and a clean late reply names its
+    # id anyway). A stall longer than the rest of the sweep and 0.1 s of quiet after it is
+    # beyond any scan: those bytes come after it ended.
+    rig = Rig(tmp_path, response_timeout_ms=25.0)
+    try:
+        rig.sim._rng.seed(seed)
+        ping = proto.encode_ping(2)
+        stalled = []
+
+        def stall_once(direction, data, t):
+            if direction == 'rx':
+                late = ping in data and not stalled
+                if late:
+                    stalled.append(t)
+                rig.dev.runner.faults.reply_delay_s = stall_s if late else 0.0
+        with rig.dev.runner.locked():
+            rig.sim.add_servo(2, allow_duplicate=True)
+        rig.dev.runner.add_tap(stall_once)
+        result = rig.core.scan(1, 5)
+        assert stalled
+        assert result.ok and result.value['ids'] == [1, 2, 3], result.message
+        assert 'more than one servo answers to id(s) 2' in result.message
+    finally:
+        rig.stop()
+
+
+def test_round2_22_6_a_late_reply_from_before_the_check_is_no_second_servo(rig):
+    # A PING of id 1 is answered after its wait (the device stalled): its reply comes while the
+    # five READs that judge "more than one servo" run. That is one reply to one request, late,
+    # not a second servo (S24 would otherwise be reported for a bus with one servo at id 1).
+    rig.dev.runner.faults.reply_delay_s = 0.06
+    reply, garbled = rig.core.bus.probe(proto.encode_ping(1), 1, 0)
+    assert reply is None and not garbled
+    rig.dev.runner.faults.reply_delay_s = 0.0
+    assert rig.core._how_many_answer(1, values_differ=False) == ('one', '')
+
+
+def test_scan_names_an_id_whose_two_servos_answer_one_after_the_other(rig):
+    # A bus that keeps their replies apart (no collision): a second whole reply to each READ.
+    with rig.dev.runner.locked():
+        rig.sim.collisions = False
+        rig.sim.add_servo(3, allow_duplicate=True)
+    assert rig.core._how_many_answer(3, values_differ=False)[0] == 'several'
+    result = rig.core.scan(1, 5)
+    assert result.ok and result.value['ids'] == [1, 2, 3], result.message
+    assert 'more than one servo answers to id(s) 3' in result.message
+
+
 # -- health -------------------------------------------------------------------------------------
 
 def test_a_servo_bus_at_another_baud_is_silent_and_the_health_says_check_the_baud(tmp_path):

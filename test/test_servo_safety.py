@@ -6,7 +6,9 @@ Each test is named after its item (issue 10). The rules behind them are tested i
 
 import json
 import math
+import os
 import random
+import signal
 import subprocess
 import sys
 import time
@@ -165,9 +167,10 @@ def flood(rig, rate_hz, seconds, ids='1,2'):
     over the flood (its first second left out), from the driver's own publication stamps."""
     start = len(rig.joints)
     done = subprocess.run([sys.executable, str(HERE / 'flood_commands.py'), str(rate_hz),
-                           str(seconds), ids], capture_output=True, text=True, timeout=60)
+                           str(seconds), ids], capture_output=True, text=True, timeout=90)
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report['acked'], 'the driver did not take the last commands within 30 s'
     lo, hi = report['t_start_wall'] + 1.0, report['t_last_wall']
     during = [m for m in rig.joints.messages[start:]
               if lo <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 <= hi]
@@ -224,6 +227,42 @@ def test_safety_17_a_command_flood_keeps_the_reads_going_and_the_newest_command_
     assert_alive_and_reading(rig, 'the command flood')
 
 
+def test_round2_22_6_the_newest_command_of_a_flood_arrives_when_the_driver_stalls_at_its_end(
+        rig):
+    """The driver's process does not run for 2 s while the flood ends (a loaded host does that):
+    the last commands reach it afterwards and the newest is on the wire. The flood's publisher
+    used to leave 0.5 s after its last message, and the samples the driver had not taken by then
+    were never sent again (test_safety_17 saw an older command last, beside a busy loop)."""
+    mark = rig.wire.mark()
+    flood = subprocess.Popen([sys.executable, str(HERE / 'flood_commands.py'), '1000', '3'],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: any(r.instruction == Instruction.SYNC_WRITE
+                             for r in rig.wire.commands(mark)), 15, what='the flood on the wire')
+        time.sleep(2.5)
+        os.kill(rig.node.pid, signal.SIGSTOP)
+        try:
+            time.sleep(2.0)
+        finally:
+            os.kill(rig.node.pid, signal.SIGCONT)
+        out, err = flood.communicate(timeout=90)
+    finally:
+        if flood.poll() is None:
+            flood.kill()
+            flood.wait()
+    assert flood.returncode == 0, err
+    report = json.loads(out.strip().splitlines()[-1])
+    assert report['acked'], 'the driver did not take the last commands within 30 s'
+    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in report['last']]
+    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
+
+    def last_command():
+        syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
+        return syncs[-1].raw if syncs else None
+    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    assert_alive_and_reading(rig, 'a stall at the end of a command flood')
+
+
 def test_safety_14_17_a_command_flood_through_unplug_cycles(rig):
     """Items 14 and 17 at once: 500 commands a second while the cable comes and goes. The node
     lives, the reads come back after every replug, and the newest command reaches the wire."""
@@ -237,13 +276,14 @@ def test_safety_14_17_a_command_flood_through_unplug_cycles(rig):
         unplug_cycles(rig, 8, random.Random(1417), unplugged_s=(0.01, 0.15),
                       plugged_s=(0.0, 0.15))
         replugged = rig.wire.mark()
-        out, err = flood.communicate(timeout=60)
+        out, err = flood.communicate(timeout=90)
     finally:
         if flood.poll() is None:
             flood.kill()
             flood.wait()
     assert flood.returncode == 0, err
     report = json.loads(out.strip().splitlines()[-1])
+    assert report['acked'], 'the driver did not take the last commands within 30 s'
     ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in report['last']]
     wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
 
