@@ -60,6 +60,35 @@ def test_garbage_goes_out_before_the_next_output(device):
     assert read_n(driver, 3) == b'\x00\xff\x13'
 
 
+def test_round2_22_6_output_goes_at_the_speed_the_driver_set_as_it_goes(tmp_path):
+    # Found beside a busy loop: the device read the line's speed at the start of a tick, the
+    # driver opened the port (setting its speed) and garbage was injected before the tick sent
+    # it, and the device sent it reframed at the pty's default speed: 3 bytes reached the
+    # driver as 1. Here the driver opens during the tick, in the model's own tick callback.
+    opened = []
+    go = threading.Event()
+
+    def on_tick(now):
+        if go.is_set() and not opened:
+            opened.append(serial.serial_for_url(runner.path, baudrate=115200, timeout=0.2))
+            runner.inject_garbage(b'\x00\xff\x13')
+        return None
+
+    runner = VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, on_tick=on_tick,
+                                 baud=115200).start()
+    try:
+        wait_for(lambda: runner.driver_baud is not None, 5, what="the device's first tick")
+        assert runner.driver_baud != 115200  # nobody set the speed yet
+        go.set()
+        wait_for(lambda: opened, 5, what='the driver opened in a tick')
+        assert read_n(opened[0], 3) == b'\x00\xff\x13'
+        assert runner.garbled_chunks == 0
+    finally:
+        for driver in opened:
+            driver.close()
+        runner.stop()
+
+
 def test_a_reply_comes_no_sooner_than_request_and_reply_take_on_the_wire(tmp_path):
     with VirtualDeviceRunner(str(tmp_path / 'dev'), echo_model, baud=9600) as runner:
         with serial.serial_for_url(runner.path, baudrate=9600, timeout=0.5) as driver:

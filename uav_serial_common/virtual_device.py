@@ -285,6 +285,9 @@ class VirtualDeviceRunner:
 
     def _write(self, data: bytes, start: Optional[float] = None) -> Optional[float]:
         """Pace `data` out from `start`; return when its last byte arrived (None: unplugged)."""
+        # The driver's speed as the bytes go out, not as of the last tick: a driver that opened
+        # the port (and set its speed) since then reads them at its new speed.
+        self._check_line()
         receiver = self.driver_baud
         try:
             if receiver is None or self.baud <= 0 or receiver == self.baud:
