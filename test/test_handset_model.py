@@ -195,7 +195,7 @@ class HandsetLinkModel(RuleBasedStateMachine):
 
 
 def test_round2_8_handset_failsafe_invariants_hold_over_random_sequences():
-    search(HandsetLinkModel, 'handset', steps=30)
+    search(HandsetLinkModel, 'handset', steps=50)
 
 
 def test_model_example_a_false_start_with_a_chance_checksum_does_not_swallow_a_stick_frame():

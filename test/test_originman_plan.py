@@ -368,4 +368,4 @@ class BoardPlanMachine(RuleBasedStateMachine):
 
 
 def test_round2_6_7_11a_board_plan_invariants_hold_over_random_sequences():
-    search(BoardPlanMachine, 'originman', steps=40)
+    search(BoardPlanMachine, 'originman', steps=50)

@@ -373,11 +373,11 @@ class ParachuteSessionDeployModel(ParachuteDeployModel):
 
 
 def test_round2_22_3_parachute_deploy_invariants_hold_over_random_sequences():
-    search(ParachuteDeployModel, 'parachute', steps=30)
+    search(ParachuteDeployModel, 'parachute', steps=50)
 
 
 def test_round2_22_3_the_sessions_deploy_core_keeps_the_invariants_too():
-    search(ParachuteSessionDeployModel, 'parachute_session', steps=30)
+    search(ParachuteSessionDeployModel, 'parachute_session', steps=50)
 
 
 def test_round2_22_8_a_record_answer_cut_short_never_says_did_not_deploy():

@@ -187,7 +187,7 @@ class OnlineModel(RuleBasedStateMachine):
 
 
 def test_round2_22_11_parachute_online_judgement_holds_over_random_sequences():
-    search(OnlineModel, 'parachute_online', steps=40)
+    search(OnlineModel, 'parachute_online', steps=50)
 
 
 def test_round2_22_11_a_request_that_gave_up_still_counts_until_a_frame():

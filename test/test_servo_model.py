@@ -42,10 +42,10 @@ from desheng_servo_ros.units import Joint
 from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import (initialize, invariant, precondition, rule,
                                  RuleBasedStateMachine, run_state_machine_as_test)
-from model_runs import EXAMPLES, PHASES
+from model_runs import EXAMPLES, MIN_MEAN_STEPS, PHASES
 from uav_serial_common.pty_port import wire_time
 
-STEPS = 40
+STEPS = 50
 START = 100.0
 BAUD = 115200
 EPS = 1e-9
@@ -439,7 +439,7 @@ def test_round2_22_servo_bus_safety_invariants_hold_in_every_sequence() -> None:
         phases=PHASES))
     sequences = ServoBusModel.sequences
     assert sequences >= EXAMPLES
-    assert ServoBusModel.steps >= 30 * sequences
+    assert ServoBusModel.steps >= MIN_MEAN_STEPS * sequences
     print(f'model_sequences_servo={sequences} model_steps_servo={ServoBusModel.steps} '
           'model_violations=0')
 

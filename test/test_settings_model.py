@@ -152,7 +152,7 @@ class SettingsMachine(RuleBasedStateMachine):
 
 def test_round2_22_12_settings_invariants_hold_over_random_sequences() -> None:
     """Issue 22 item 3: the settings transaction's invariants, searched (bench: 20,000)."""
-    search(SettingsMachine, 'parachute_settings_core', steps=30)
+    search(SettingsMachine, 'parachute_settings_core', steps=50)
 
 
 # -- what the search found, kept -----------------------------------------------------------------
