@@ -4,7 +4,8 @@ Run by test_servo_safety.py (so the flood does not take the GIL from the virtual
 process). Usage: ``python flood_commands.py RATE_HZ SECONDS [IDS]`` (IDS: comma-separated servo
 ids, default 1,2; an unknown id makes every command a refusal); prints one JSON line: commands
 sent, the last positions, the times (monotonic and wall) of the first and last publication, and
-whether the driver acknowledged every sample before the publisher left.
+whether (and by when: ``t_acked``) the driver acknowledged every sample before the publisher
+left.
 """
 
 import json
@@ -48,9 +49,13 @@ def main() -> None:
     # it, and a publisher gone 0.5 s after them never sent them again (the newest command was
     # then never on the wire). `acked` says whether that came within the wait.
     acked = pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
+    # By then the driver's middleware held every sample: when the newest one reached the driver
+    # is between t_last and t_acked (a sample lost in a full socket buffer is repaired only at
+    # the writer's next heartbeat, seconds later beside a busy loop).
+    t_acked = time.monotonic()
     print(json.dumps({'sent': count, 'last': last, 't_start': start, 't_last': t_last,
-                      't_start_wall': start_wall, 't_last_wall': t_last_wall,
-                      'acked': acked}), flush=True)
+                      't_acked': t_acked, 't_start_wall': start_wall,
+                      't_last_wall': t_last_wall, 'acked': acked}), flush=True)
     node.destroy_node()
     rclpy.shutdown()
 

@@ -202,12 +202,17 @@ def test_safety_17_a_command_flood_keeps_the_reads_going_and_the_newest_command_
     wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
     syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
     assert len(syncs) < report['sent']
-    # The newest command reached the wire within a read cycle or so of its publication:
-    # count the read loop's READs between the two (3 servos per cycle), not seconds.
+    # The newest command reached the wire within a read cycle or so of the driver having it:
+    # count the read loop's READs between the two (3 servos per cycle), not seconds. When the
+    # driver had it is not seen from here; by the time the publisher's last sample was
+    # acknowledged, it had (beside a busy loop a sample the flood lost was repaired 2.7 s after
+    # its publication, while the reads went on: the middleware's delay, not the driver's).
     arrived = next(t for t, data in reversed(times) if wanted in data)
+    print(f'the newest command on the wire {arrived - report["t_last"]:.3f} s after its '
+          f'publication, {arrived - report["t_acked"]:.3f} s after its acknowledgement')
     reads = []
     for t, data in times:
-        if report['t_last'] <= t <= arrived:
+        if report['t_acked'] <= t <= arrived:
             reads.extend(r for r in proto.StreamDecoder('request').feed(data)
                          if r.instruction == Instruction.READ and tuple(r.params) in LOOP_READS)
     assert len(reads) <= 3 * 3, len(reads)
