@@ -469,34 +469,24 @@ def test_round2_11b_a_reboot_recorded_late_by_a_loaded_driver_is_counted_once(tm
     # it decodes it, and its own record of the reboot only once it has handled the frame (log
     # line, status, diagnostics) - here 0.35 s later. The report judged "same reboot" by a
     # 0.2 s window between the two and counted three reboots for these two.
-    heartbeat = p.encode_module_heartbeat().hex(' ')
-    query = p.encode_boot_count_query().hex(' ')
-
-    def boot(n):
-        return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
-
     _jsonl(tmp_path / 'late.jsonl', 1_790_000_000.0, [
-        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
-        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
-        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        *OPENED_AT_BOOT_5,
         ('state', 0.2, {'event': 'initialized', 'boot_count': 5, 'mismatch': []}),
         # Reboot 1, on a loaded host: the record 0.35 s after the first heartbeat.
-        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
-        ('frame', 10.05, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': HEARTBEAT}),
+        ('frame', 10.05, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 10.35, {'event': 'module reboot (unsolicited heartbeat)'}),
-        ('request', 10.4, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 10.4, {'dir': 'tx', 'hex': query}),
-        ('frame', 10.41, {'dir': 'rx', 'hex': boot(6)}),
+        ('request', 10.4, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 10.4, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 10.41, {'dir': 'rx', 'hex': _boot(6)}),
         ('state', 10.5, {'event': 'initialized', 'boot_count': 6, 'mismatch': []}),
         # Reboot 2, the second heartbeat decoded after the record (the reader caught up).
-        ('frame', 20.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 20.0, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 20.001, {'event': 'module reboot (unsolicited heartbeat)'}),
-        ('frame', 20.3, {'dir': 'rx', 'hex': heartbeat}),
-        ('request', 20.4, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 20.4, {'dir': 'tx', 'hex': query}),
-        ('frame', 20.41, {'dir': 'rx', 'hex': boot(7)}),
+        ('frame', 20.3, {'dir': 'rx', 'hex': HEARTBEAT}),
+        ('request', 20.4, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 20.4, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 20.41, {'dir': 'rx', 'hex': _boot(7)}),
         ('state', 20.5, {'event': 'initialized', 'boot_count': 7, 'mismatch': []}),
         ('stop', 30.0, {}),
     ])
@@ -526,30 +516,20 @@ def test_round2_11b_a_boot_count_read_before_the_drivers_reboot_record_is_the_sa
     # driver read the new boot count while the reader was still handling the power-up
     # heartbeat, so the boot count change came before the driver's reboot record. The report
     # counted the change as a reboot nobody saw, then the record as another: two for one.
-    heartbeat = p.encode_module_heartbeat().hex(' ')
-    query = p.encode_boot_count_query().hex(' ')
-
-    def boot(n):
-        return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
-
     _jsonl(tmp_path / 'early.jsonl', 1_790_000_000.0, [
-        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
-        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
-        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        *OPENED_AT_BOOT_5,
         ('state', 0.2, {'event': 'initialized', 'boot_count': 5, 'mismatch': []}),
-        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
-        ('frame', 10.05, {'dir': 'rx', 'hex': heartbeat}),
-        ('request', 10.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 10.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 10.11, {'dir': 'rx', 'hex': boot(6)}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': HEARTBEAT}),
+        ('frame', 10.05, {'dir': 'rx', 'hex': HEARTBEAT}),
+        ('request', 10.1, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 10.1, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 10.11, {'dir': 'rx', 'hex': _boot(6)}),
         ('state', 10.35, {'event': 'module reboot (unsolicited heartbeat)'}),
         ('state', 10.5, {'event': 'initialized', 'boot_count': 6, 'mismatch': []}),
         # A reboot the driver never saw (no heartbeat): still counted from the boot count.
-        ('request', 20.4, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 20.4, {'dir': 'tx', 'hex': query}),
-        ('frame', 20.41, {'dir': 'rx', 'hex': boot(7)}),
+        ('request', 20.4, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 20.4, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 20.41, {'dir': 'rx', 'hex': _boot(7)}),
         ('stop', 30.0, {}),
     ])
     summary, _ = report(tmp_path, tmp_path / 'early.jsonl')
@@ -658,27 +638,17 @@ def test_round2_22_a_second_reboot_within_the_late_window_is_counted_by_its_boot
     # The other reading of a late heartbeat: a power-up whose second heartbeat was lost, then
     # another reboot 1 s later. The driver records the second as "late" (not a reboot); the
     # boot count read after it (two more than before) makes the report count both.
-    heartbeat = p.encode_module_heartbeat().hex(' ')
-    query = p.encode_boot_count_query().hex(' ')
-
-    def boot(n):
-        return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
-
     _jsonl(tmp_path / 'twice.jsonl', 1_790_000_000.0, [
-        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
-        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
-        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
+        *OPENED_AT_BOOT_5,
         ('state', 0.2, {'event': 'initialized', 'boot_count': 5, 'mismatch': []}),
-        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 10.0, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 10.001, {'event': 'module reboot (unsolicited heartbeat)'}),
-        ('frame', 11.0, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 11.0, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 11.001, {'event': LATE_HEARTBEAT_EVENT}),
-        ('frame', 11.05, {'dir': 'rx', 'hex': heartbeat}),
-        ('request', 11.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 11.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 11.11, {'dir': 'rx', 'hex': boot(7)}),
+        ('frame', 11.05, {'dir': 'rx', 'hex': HEARTBEAT}),
+        ('request', 11.1, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 11.1, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 11.11, {'dir': 'rx', 'hex': _boot(7)}),
         ('state', 11.2, {'event': 'initialized', 'boot_count': 7, 'mismatch': []}),
         ('stop', 20.0, {}),
     ])
@@ -687,17 +657,13 @@ def test_round2_22_a_second_reboot_within_the_late_window_is_counted_by_its_boot
     assert [round(t, 2) for t in summary.reboots] == [10.0, 11.11]
     # The same when another thread read the boot count before the "late" record was written.
     _jsonl(tmp_path / 'early.jsonl', 1_790_000_000.0, [
-        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
-        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
-        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
-        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        *OPENED_AT_BOOT_5,
+        ('frame', 10.0, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 10.001, {'event': 'module reboot (unsolicited heartbeat)'}),
-        ('frame', 11.0, {'dir': 'rx', 'hex': heartbeat}),
-        ('request', 11.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 11.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 11.11, {'dir': 'rx', 'hex': boot(7)}),
+        ('frame', 11.0, {'dir': 'rx', 'hex': HEARTBEAT}),
+        ('request', 11.1, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 11.1, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 11.11, {'dir': 'rx', 'hex': _boot(7)}),
         ('state', 11.3, {'event': LATE_HEARTBEAT_EVENT}),
         ('stop', 20.0, {}),
     ])
@@ -705,18 +671,14 @@ def test_round2_22_a_second_reboot_within_the_late_window_is_counted_by_its_boot
     assert summary.counts['reboots'] == 2, summary.reboots
     # And a late second heartbeat of one power-up, the boot count read after it: one reboot.
     _jsonl(tmp_path / 'one.jsonl', 1_790_000_000.0, [
-        ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
-        ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
-        ('request', 0.1, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 0.1, {'dir': 'tx', 'hex': query}),
-        ('frame', 0.11, {'dir': 'rx', 'hex': boot(5)}),
-        ('frame', 10.0, {'dir': 'rx', 'hex': heartbeat}),
+        *OPENED_AT_BOOT_5,
+        ('frame', 10.0, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 10.001, {'event': 'module reboot (unsolicited heartbeat)'}),
-        ('frame', 10.4, {'dir': 'rx', 'hex': heartbeat}),
+        ('frame', 10.4, {'dir': 'rx', 'hex': HEARTBEAT}),
         ('state', 10.401, {'event': LATE_HEARTBEAT_EVENT}),
-        ('request', 10.5, {'hex': query, 'expect': 'BootCount'}),
-        ('frame', 10.5, {'dir': 'tx', 'hex': query}),
-        ('frame', 10.51, {'dir': 'rx', 'hex': boot(6)}),
+        ('request', 10.5, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+        ('frame', 10.5, {'dir': 'tx', 'hex': BOOT_QUERY}),
+        ('frame', 10.51, {'dir': 'rx', 'hex': _boot(6)}),
         ('stop', 20.0, {}),
     ])
     summary, _ = report(tmp_path, tmp_path / 'one.jsonl')
@@ -882,6 +844,25 @@ def test_unknown_kinds_fields_and_older_lines_are_listed_not_fatal(normal_run, t
     assert events_of(summary, 'other', "unknown kind 'preflight_v9'")
     (dep,) = summary.deployments
     assert dep.outcome == 'unknown' and 'OUTCOME UNKNOWN' in dep.paragraph
+
+
+HEARTBEAT = p.encode_module_heartbeat().hex(' ')
+BOOT_QUERY = p.encode_boot_count_query().hex(' ')
+
+
+def _boot(n):
+    """A boot count reply of `n`, as the black box records a frame."""
+    return p.module_frame(p.CMD_BOOT_COUNT, n).hex(' ')
+
+
+OPENED_AT_BOOT_5 = (
+    ('start', 0.0, {'port': '/dev/ttyUSB0', 'baud': 115200, 'config': {}}),
+    ('state', 0.01, {'port_open': True, 'reason': 'port open'}),
+    ('request', 0.1, {'hex': BOOT_QUERY, 'expect': 'BootCount'}),
+    ('frame', 0.1, {'dir': 'tx', 'hex': BOOT_QUERY}),
+    ('frame', 0.11, {'dir': 'rx', 'hex': _boot(5)}),
+)
+"""A black box's first records: the port opened, the boot count read (5)."""
 
 
 def _jsonl(path, t0, records):

@@ -177,6 +177,19 @@ def flood(rig, rate_hz, seconds, ids='1,2'):
     return report, len(during) / (hi - lo)
 
 
+def wait_newest_on_wire(rig, report, mark):
+    """Wait until the flood's newest command (servos 1 and 2) is the last SYNC_WRITE on the
+    wire since `mark`; return that frame."""
+    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in report['last']]
+    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
+
+    def last_command():
+        syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
+        return syncs[-1].raw if syncs else None
+    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    return wanted
+
+
 def test_safety_17_a_command_flood_keeps_the_reads_going_and_the_newest_command_wins(rig):
     times = []
 
@@ -192,14 +205,7 @@ def test_safety_17_a_command_flood_keeps_the_reads_going_and_the_newest_command_
     report, rate = flood(rig, 1000, 10)
     print(f'joint_states: {refused_rate:.1f} Hz under refused commands, {rate:.1f} Hz under '
           f'{report["sent"]} commands')
-    x = report['last']
-    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in x]
-    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
-
-    def last_command():
-        syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
-        return syncs[-1].raw if syncs else None
-    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    wanted = wait_newest_on_wire(rig, report, mark)
     syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
     assert len(syncs) < report['sent']
     # The newest command reached the wire within a read cycle or so of the driver having it:
@@ -258,13 +264,7 @@ def test_round2_22_6_the_newest_command_of_a_flood_arrives_when_the_driver_stall
     assert flood.returncode == 0, err
     report = json.loads(out.strip().splitlines()[-1])
     assert report['acked'], 'the driver did not take the last commands within 30 s'
-    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in report['last']]
-    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
-
-    def last_command():
-        syncs = [r for r in rig.wire.commands(mark) if r.instruction == Instruction.SYNC_WRITE]
-        return syncs[-1].raw if syncs else None
-    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    wait_newest_on_wire(rig, report, mark)
     assert_alive_and_reading(rig, 'a stall at the end of a command flood')
 
 
@@ -289,14 +289,7 @@ def test_safety_14_17_a_command_flood_through_unplug_cycles(rig):
     assert flood.returncode == 0, err
     report = json.loads(out.strip().splitlines()[-1])
     assert report['acked'], 'the driver did not take the last commands within 30 s'
-    ticks = [int(round(2048 + p * 4096 / (2 * math.pi))) for p in report['last']]
-    wanted = proto.encode_sync_write_positions([(1, ticks[0], 0), (2, ticks[1], 0)])
-
-    def last_command():
-        syncs = [r for r in rig.wire.commands(replugged)
-                 if r.instruction == Instruction.SYNC_WRITE]
-        return syncs[-1].raw if syncs else None
-    wait_for(lambda: last_command() == wanted, 5, what='the newest command on the wire')
+    wait_newest_on_wire(rig, report, replugged)
     assert_alive_and_reading(rig, 'a command flood through 8 unplug/replug cycles')
     assert 'read loop stopped' not in rig.node.output()
 
