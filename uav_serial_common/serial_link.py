@@ -268,6 +268,7 @@ class SerialLink:
             with run.lock:
                 run.send_next()
             while True:
+                in_grace = False
                 with run.lock:
                     if run.done:
                         break
@@ -283,8 +284,11 @@ class SerialLink:
                         if run.no_reply or now >= grace[1] or not self.unread_input():
                             run.expire()
                             continue
-                        remaining = 0.002
-                run.event.wait(remaining)
+                        in_grace = True
+                if in_grace:
+                    self._chain_reader_behind(run, *grace)
+                else:
+                    run.event.wait(remaining)
                 if not self._port_open.is_set():
                     with run.lock:
                         run.finish()
@@ -294,6 +298,19 @@ class SerialLink:
             return run.sent
         finally:
             self._remove_waiter(run)
+
+    def _chain_reader_behind(self, run: RunningChain, sent: int, end: float) -> None:
+        """Wait (until `end`) while the reader holds unread bytes that may answer request `sent`.
+
+        Woken by the reader each time it has handed on what it read, as `_reader_behind`: no
+        poll, and the chain's next request goes out as soon as the late reply is taken.
+        """
+        with self._rx_handed_on:
+            while not run.done and run.sent == sent and self.unread_input():
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    return
+                self._rx_handed_on.wait(remaining)
 
     def flush_input(self, port: bool = True) -> None:
         """Discard unread input (unless `port` is False) and any partial frame.
