@@ -300,15 +300,18 @@ class ServoBusLink:
                 self._lock.release()
 
     def probe(self, frame: bytes, servo_id: int, reply_params: int,
-              priority: int = PRIORITY_SERVICE) -> Tuple[Optional[Reply], bool]:
+              priority: int = PRIORITY_SERVICE,
+              flush: bool = True) -> Tuple[Optional[Reply], bool]:
         """Send one request once; return (its reply or None, whether a garbled reply came).
 
         Garbled = bytes arrived but no frame at all: on a half-duplex bus, the sign of two
-        servos answering at once (S24); a plain silence is (None, False).
+        servos answering at once (S24); a plain silence is (None, False). `flush` False keeps
+        what arrived before the request (as `transact`).
         """
         garbled = self.garbled_by_id[servo_id]
         try:
-            return self.transact(frame, servo_id, reply_params, priority, retries=0), False
+            return self.transact(frame, servo_id, reply_params, priority, retries=0,
+                                 flush=flush), False
         except LinkTimeout:
             return None, self.garbled_by_id[servo_id] > garbled
 

@@ -258,12 +258,15 @@ class ServoServices:
         # request (a PING of the scan when the device stalled) is one reply to one request.
         unsolicited = self.bus.unsolicited_replies(servo_id, POSITION.size)
         frame = proto.encode_read(servo_id, POSITION.address, POSITION.size)
-        # A second whole reply follows the first at once; give it time to arrive before the
-        # next request flushes the input.
+        # A second whole reply follows the first at once: the next READ waits for it to end
+        # (it would collide with it on the bus). Only the first READ flushes the input: a
+        # second reply later than that (the device or the reader fell behind) is then taken by
+        # the next READ or counted unsolicited, never thrown away (thrown away, beside a busy
+        # loop, it let set_id rename two servos at one id).
         quiet = wire_time(2 * (POSITION.size + 6), self.config.baud) + 0.003
         values, garbled = [], 0
-        for _ in range(PROBE_READS):
-            reply, mangled = self.bus.probe(frame, servo_id, POSITION.size)
+        for k in range(PROBE_READS):
+            reply, mangled = self.bus.probe(frame, servo_id, POSITION.size, flush=k == 0)
             if reply is not None:
                 values.append(int.from_bytes(reply.params, 'big'))
                 time.sleep(quiet)
