@@ -15,7 +15,7 @@ build:
 
 test: build
 	@$(ENV) && python -m pytest test -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile \
-		$(PYTEST_ARGS)
+		--no-loadscope-reorder $(PYTEST_ARGS)
 
 test-core: build
 	@$(ENV) && python -m pytest test -p no:cacheprovider -m core $(PYTEST_ARGS)

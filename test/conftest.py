@@ -65,11 +65,27 @@ CORE_TIER = frozenset({
 with no process, pty or ROS graph (``make test-core``; ``make test`` runs every tier)."""
 
 
+LONGEST_FIRST = (
+    'test_fault_campaign.py', 'test_servo_safety.py', 'test_blackbox_report.py',
+    'test_originman_node.py', 'test_mavlink_link.py', 'test_parachute_core.py',
+    'test_handset_node.py', 'test_user_errors.py', 'test_shutdown_noise.py',
+    'test_parachute_safety.py', 'test_servo_node_faults.py', 'test_servo_core.py',
+    'test_demo.py', 'test_lint.py', 'test_parachute_round2_stream.py', 'test_executables.py',
+    'test_parachute_virtual.py', 'test_originman_round2.py', 'test_servo_node_shutdown.py',
+)
+"""The files that take longest (summed test time, 2026-11-27), longest first. `make test`
+hands files to its workers in collection order (``--no-loadscope-reorder``): started first,
+the long files no longer make the tail of the run while the other workers idle (xdist's own
+order, most tests first, started them last). Files not named follow in their usual order."""
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
-    """Mark the core tier's tests ``core`` (select them with ``-m core``)."""
+    """Mark the core tier's tests ``core``; put the longest files first (``LONGEST_FIRST``)."""
     for item in items:
         if item.path.name in CORE_TIER:
             item.add_marker(pytest.mark.core)
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: same file order
 
 
 def pytest_report_header(config: pytest.Config) -> str:
