@@ -12,6 +12,16 @@ port, the threads and the clocks, and carries the decisions out in the order giv
   ``ahead_s`` of servo-bus work in front of a stop (issue 21 item 7);
 * :class:`BoardPlan`: the three together, with the rules that join them (no command but a stop
   to a board judged offline; queued commands are dropped when it goes offline).
+
+:meth:`BoardPlan.step` is the one door every path of the core goes through (issue 22 item 2):
+an event with its time in (the port opened or closed, a frame from the board, the worker's
+``Tick``, the timer's ``Deadline``, a motor command or keep-alive, a stop, a command, a bus servo
+move, a frame written, the end of a write, new timeouts), the actions out, in the order to carry
+them out: ``Send`` (one at a time: the next is chosen when the one before is done, so a stop
+queued meanwhile goes next, issue 22 item 3), ``OnlineChanged``, ``Refuse`` and ``Drop`` (a
+caller's frame that will not leave), ``Log`` and ``SetTimer`` (the plan's next deadline). The
+methods below it (``connection``, ``frame``, ``tick``, ``command``, ``take``...) are its parts,
+kept for the tests that drive one rule alone.
 """
 
 from __future__ import annotations
@@ -22,8 +32,10 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 from originman_board_ros import protocol as p
 from uav_serial_common.core_events import LinkDown, LinkUp, Log, SetTimer, Tick
 
-__all__ = ['BoardPlan', 'FrameScheduler', 'MotorWatchdog', 'OnlineJudge', 'PACE_AHEAD_S',
-           'PACE_MARGIN', 'STOP_ALL_FRAME', 'board_time']
+__all__ = ['Action', 'BoardPlan', 'Command', 'Deadline', 'Drop', 'DROPPED', 'Event', 'FrameIn',
+           'FrameScheduler', 'MotorCommand', 'MotorWatchdog', 'Move', 'OnlineChanged',
+           'OnlineJudge', 'PACE_AHEAD_S', 'PACE_MARGIN', 'Reconfigure', 'Refuse', 'Send',
+           'SendDone', 'STOP_ALL_FRAME', 'StopMotors', 'Written', 'board_time']
 
 SERVO_BUS_BAUD = 115200
 """The board's servo bus (§6): 10 bits a byte."""
