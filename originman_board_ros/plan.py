@@ -184,6 +184,11 @@ class Drop:
     reason: str
 
 
+QUIET_EVENTS = (Written, FrameIn, LinkUp, LinkDown)
+"""Events whose step never gives a ``Send``: the link reports them from inside its locks (a
+write, the decoder), and none of them makes a frame ready (the port opening or closing leaves
+the board offline, a frame only makes it online: nothing is queued then; every event that
+queues a frame sends it or finds a ``Send`` out). Their thread never writes."""
 Event = Union[LinkUp, LinkDown, FrameIn, Tick, Deadline, MotorCommand, StopMotors, Command,
               Move, Written, SendDone, Reconfigure]
 Action = Union[Send, OnlineChanged, Refuse, Drop, Log, SetTimer]
@@ -456,8 +461,7 @@ class BoardPlan:
             raise TypeError(f'not an event of the board plan: {event!r}')
         if change is not None:
             out.append(OnlineChanged(change[0], change[1], now))
-        # Not from Written: the link reports it from inside a write.
-        if not self.sending and not isinstance(event, Written):
+        if not self.sending and not isinstance(event, QUIET_EVENTS):
             item = self.take(pace)
             if item is not None:
                 self.sending = True
