@@ -48,12 +48,14 @@ Threads and state (who owns what):
   services (``core_services``). They validate and step the plan with their frame and a ticket,
   then wait (``_wait``, on ``_sent``) until the frame has left, was dropped or could not be
   written; a read goes through the link (a lock per FUNCTION keeps one read outstanding).
-* **writing**: any of the threads above. The plan has at most one ``Send`` out: the thread
-  whose step got it writes it (outside ``_lock``), steps its ``SendDone`` and writes whatever
-  the plan gives next, until nothing is ready; a thread whose step gets no ``Send`` writes
-  nothing. So a stop (the watchdog's or ``stop_all_motors``) queued while another thread
-  writes a caller's queued frames is the next frame on the wire, after at most the one being
-  written (issue 22 item 3), and its caller's answer does not wait for the rest.
+* **writing**: a caller, the worker or the timer, never the reader (the plan gives no ``Send``
+  for the reader's and the link's events: they come from inside the link's locks). The plan
+  has at most one ``Send`` out: the thread whose step got it writes it (outside ``_lock``),
+  steps its ``SendDone`` and writes whatever the plan gives next, until nothing is ready; a
+  thread whose step gets no ``Send`` writes nothing. So a stop (the watchdog's or
+  ``stop_all_motors``) queued while another thread writes a caller's queued frames is the next
+  frame on the wire, after at most the one being written (issue 22 item 3), and its caller's
+  answer does not wait for the rest.
 * shared, always under ``_lock``: ``_plan`` (stepped by ``_stepper``), ``_results`` (what
   became of each caller's ticket), ``_status``, ``_settings_*``, ``_servos`` (the
   poll and the read services), ``_poll_ids`` (renamed by ``set_bus_servo_id``),
