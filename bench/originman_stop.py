@@ -12,7 +12,12 @@ board's arrival times of the frames (``queue_log``, CLOCK_MONOTONIC, shared by b
   ``originman_stop_frames_ahead_max``: the most frames that reached the board after the call
   and before its stop (1 = the one being written when the stop came);
 - ``originman_watchdog_stop_*_ms``: from the watchdog's deadline (the last motor command plus
-  ``motor_timeout_s``) to the stop's arrival, the same floods running.
+  ``motor_timeout_s``) to the stop's arrival, the same floods running;
+- ``originman_stop_write_*_ms`` and ``originman_stop_writes_ahead_max`` (the driver's side,
+  free of the board process's own scheduling on a loaded machine): from the call to the return
+  of the stop's write to the pty, and the most frames the driver wrote between the call and
+  its stop (1: the one being written when the stop came); ``originman_watchdog_stop_write_*``
+  the same from the watchdog's deadline.
 """
 
 from __future__ import annotations
@@ -31,6 +36,28 @@ if str(ROOT / 'test') not in sys.path:
 IDS = list(range(1, 21))
 MOTOR_TIMEOUT_S = 0.2
 FLOOD_PERIOD_S = 0.002
+
+
+class _Writes:
+    """The driver's writes, timed when each returned (the link's ``write``, wrapped)."""
+
+    def __init__(self, core: Any) -> None:
+        self.log: List[tuple] = []
+        serial = core.link.serial
+        write = serial.write
+
+        def timed(data: bytes) -> None:
+            write(data)
+            self.log.append((time.monotonic(), bytes(data)))
+        serial.write = timed
+
+    def stop_after(self, t0: float, stop_frame: bytes) -> Any:
+        """Return when the first stop after ``t0`` was written, and the writes before it."""
+        after = [(t, f) for t, f in list(self.log) if t >= t0]
+        for k, (t, frame) in enumerate(after):
+            if frame == stop_frame:
+                return t, k
+        return None
 
 
 class _Floods:
@@ -94,6 +121,7 @@ def run(stops: int = 40, watchdog_stops: int = 20) -> Dict[str, Any]:
     """Measure both latencies (``stops`` calls, ``watchdog_stops`` watchdog firings)."""
     from originman_board_ros import protocol as p
     from originman_board_ros.core import OriginManConfig, OriginManCore
+    from originman_board_ros.plan import STOP_ALL_FRAME
     from originman_rig import BoardProcess
 
     out: Dict[str, Any] = {}
@@ -104,8 +132,9 @@ def run(stops: int = 40, watchdog_stops: int = 20) -> Dict[str, Any]:
             # The calls: no watchdog, so that every stop on the wire is a call's.
             core = OriginManCore(OriginManConfig(port=board.path, motor_timeout_s=0.0,
                                                  bus_servo_ids=()))
+            writes = _Writes(core)
             core.start()
-            calls, returns, ahead = [], [], []
+            calls, returns, ahead, written, writes_ahead = [], [], [], [], []
             try:
                 wait_for(lambda: core.online, 10, what='the board online')
                 with _Floods(core):
@@ -121,14 +150,19 @@ def run(stops: int = 40, watchdog_stops: int = 20) -> Dict[str, Any]:
                                          what='the stop on the wire')
                         calls.append(found[0] - t0)
                         ahead.append(found[1])
+                        wrote = wait_for(lambda: writes.stop_after(t0, STOP_ALL_FRAME), 10,
+                                         what='the stop written')
+                        written.append(wrote[0] - t0)
+                        writes_ahead.append(wrote[1])
             finally:
                 core.stop(stop_motors=False)
             # The watchdog: a motor command, then nothing but the floods.
             core = OriginManCore(OriginManConfig(port=board.path,
                                                  motor_timeout_s=MOTOR_TIMEOUT_S,
                                                  bus_servo_ids=()))
+            writes = _Writes(core)
             core.start()
-            fired = []
+            fired, fired_written = [], []
             try:
                 wait_for(lambda: core.online, 10, what='the board online')
                 with _Floods(core):
@@ -142,6 +176,9 @@ def run(stops: int = 40, watchdog_stops: int = 20) -> Dict[str, Any]:
                         found = wait_for(lambda: _stop_after(board, deadline, p), 10,
                                          what='the watchdog stop on the wire')
                         fired.append(found[0] - deadline)
+                        wrote = wait_for(lambda: writes.stop_after(deadline, STOP_ALL_FRAME),
+                                         10, what='the watchdog stop written')
+                        fired_written.append(wrote[0] - deadline)
                         time.sleep(rng.uniform(0.02, 0.06))
             finally:
                 core.stop(stop_motors=False)
@@ -150,7 +187,10 @@ def run(stops: int = 40, watchdog_stops: int = 20) -> Dict[str, Any]:
     out.update(_ms(calls, 'originman_stop'))
     out.update(_ms(returns, 'originman_stop_return'))
     out['originman_stop_frames_ahead_max'] = max(ahead, default=-1)
+    out.update(_ms(written, 'originman_stop_write'))
+    out['originman_stop_writes_ahead_max'] = max(writes_ahead, default=-1)
     out.update(_ms(fired, 'originman_watchdog_stop'))
+    out.update(_ms(fired_written, 'originman_watchdog_stop_write'))
     return out
 
 

@@ -198,10 +198,12 @@ def bench_servo_latency(res: Results, a: argparse.Namespace) -> None:
 
 def bench_originman_stop(res: Results, a: argparse.Namespace) -> None:
     r = originman_stop.run(stops=15 if a.quick else 40, watchdog_stops=8 if a.quick else 20)
-    for name in ('originman_stop', 'originman_watchdog_stop'):
+    for name in ('originman_stop', 'originman_watchdog_stop', 'originman_stop_write',
+                 'originman_watchdog_stop_write'):
         for stat in ('p50_ms', 'p99_ms', 'max_ms', 'n'):
             res.add(f'{name}_{stat}', r[f'{name}_{stat}'])
     res.add('originman_stop_frames_ahead_max', r['originman_stop_frames_ahead_max'])
+    res.add('originman_stop_writes_ahead_max', r['originman_stop_writes_ahead_max'])
     res.note(f'originman stop (stop_all_motors() -> the stop at the board, bus servo and LED/PWM '
              f'floods from two threads): call returned p50 '
              f'{r["originman_stop_return_p50_ms"]:.2f} ms, p99 '
