@@ -22,6 +22,7 @@ board's arrival times of the frames (``queue_log``, CLOCK_MONOTONIC, shared by b
 
 from __future__ import annotations
 
+import argparse
 import random
 import sys
 import threading
@@ -196,8 +197,12 @@ def run(stops: int = 40, watchdog_stops: int = 20) -> Dict[str, Any]:
 
 def main() -> None:
     """Print the figures on a ``bench:`` line."""
-    quick = '--quick' in sys.argv
-    r = run(stops=15 if quick else 40, watchdog_stops=8 if quick else 20)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--quick', action='store_true', help='15 stops and 8 watchdog stops')
+    parser.add_argument('--stops', type=int, default=40)
+    parser.add_argument('--watchdog-stops', type=int, default=20)
+    a = parser.parse_args()
+    r = run(stops=15 if a.quick else a.stops, watchdog_stops=8 if a.quick else a.watchdog_stops)
     print('bench: ' + ' '.join(
         f'{k}={v:.2f}' if isinstance(v, float) else f'{k}={v}' for k, v in r.items()))
 
