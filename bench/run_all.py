@@ -21,8 +21,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import (bad_inputs, blackbox_kill9, cpu, decoders, fuzz, latency,  # noqa: E402
-                   mavlink_latency, models, reconnects, report_memory, servo_latency, servo_rate,
-                   soak)
+                   mavlink_latency, models, originman_stop, reconnects, report_memory,
+                   servo_latency, servo_rate, soak)
 from bench.common import claim_domain_id  # noqa: E402
 
 Row = Tuple[str, str, str, str]  # name, value, goal, verdict
@@ -196,6 +196,23 @@ def bench_servo_latency(res: Results, a: argparse.Namespace) -> None:
              + ('' if r['alive'] else '; servo_bus_node DIED'))
 
 
+def bench_originman_stop(res: Results, a: argparse.Namespace) -> None:
+    r = originman_stop.run(stops=15 if a.quick else 40, watchdog_stops=8 if a.quick else 20)
+    for name in ('originman_stop', 'originman_watchdog_stop', 'originman_stop_write',
+                 'originman_watchdog_stop_write'):
+        for stat in ('p50_ms', 'p99_ms', 'max_ms', 'n'):
+            res.add(f'{name}_{stat}', r[f'{name}_{stat}'])
+    res.add('originman_stop_frames_ahead_max', r['originman_stop_frames_ahead_max'])
+    res.add('originman_stop_writes_ahead_max', r['originman_stop_writes_ahead_max'])
+    res.note(f'originman stop (stop_all_motors() -> the stop at the board, bus servo and LED/PWM '
+             f'floods from two threads): call returned p50 '
+             f'{r["originman_stop_return_p50_ms"]:.2f} ms, p99 '
+             f'{r["originman_stop_return_p99_ms"]:.2f} ms, max '
+             f'{r["originman_stop_return_max_ms"]:.2f} ms; at most '
+             f'{r["originman_stop_frames_ahead_max"]} frames reached the board between the call '
+             'and its stop (the one being written, and one on its way)')
+
+
 def bench_cpu(res: Results, a: argparse.Namespace) -> None:
     r = cpu.run(duration_s=5.0 if a.quick else 20.0)
     res.add('cpu_servo_pct', r['cpu_servo_pct'], '<= 4.0', r['cpu_servo_pct'] <= 4.0)
@@ -303,6 +320,7 @@ FAMILIES: Dict[str, Callable[[Results, argparse.Namespace], None]] = {
     'imu_latency': bench_imu_latency,
     'mavlink': bench_mavlink,
     'servo_latency': bench_servo_latency,
+    'originman_stop': bench_originman_stop,
     'cpu': bench_cpu,
     'reconnects': bench_reconnects,
     'soak': bench_soak,

@@ -9,7 +9,12 @@ refer to ``docs/protocols.md``.
 
 The decisions that must not wait (the motor watchdog, the online judgement, the order and pace
 of outgoing frames) live in :class:`~originman_board_ros.plan.BoardPlan`, which has no I/O,
-thread or clock; this module feeds it events with their time and carries out what it decides.
+thread or clock. Every path (a caller's command, the worker's round, the timer, the reader's
+connection and frame callbacks, every frame written) steps it with one event and its time
+through the shared runner (``core_runner.run_core``, :meth:`_step`), and carries out what it
+returns with one handler per action type: ``Send`` (write the frame; its ``SendDone`` is
+stepped next), ``OnlineChanged``, ``Refuse``/``Drop`` (a caller's frame that will not leave),
+``Log`` and ``SetTimer`` (the timer wakes by the plan's next deadline).
 
 It is assembled here from one mixin class per responsibility, each in a module of its own whose
 docstring says which threads run its code and which of the state below it owns:
@@ -21,7 +26,7 @@ docstring says which threads run its code and which of the state below it owns:
 - ``core_bus_poll``: the bus servo poll.
 
 This module holds the shared state, the life cycle, the worker's and the timer's loops, the
-online judgement, the sending (``_drain``), the reader's callbacks and the snapshot.
+plan's actions (``_step`` and its handlers), the reader's callbacks and the snapshot.
 
 Threads and state (who owns what):
 
@@ -40,10 +45,19 @@ Threads and state (who owns what):
   ``on_bus_servo_states``. It owns the poll schedule (``_next_poll``, ``_telemetry_at``,
   ``_reprobe_at``, ``_check_at``: worker only, no lock).
 * **caller threads** (a node's executor) call the command methods (``core_commands``) and the
-  services (``core_services``). They validate, queue their frame in the plan and write what it
-  has ready (``_drain``: one writer at a time, stops first); a read goes through the link (a
-  lock per FUNCTION keeps one read outstanding).
-* shared, always under ``_lock``: ``_plan``, ``_status``, ``_settings_*``, ``_servos`` (the
+  services (``core_services``). They validate and step the plan with their frame and a ticket,
+  then wait (``_wait``, on ``_sent``) until the frame has left, was dropped or could not be
+  written; a read goes through the link (a lock per FUNCTION keeps one read outstanding).
+* **writing**: a caller, the worker or the timer, never the reader (the plan gives no ``Send``
+  for the reader's and the link's events: they come from inside the link's locks). The plan
+  has at most one ``Send`` out: the thread whose step got it writes it (outside ``_lock``),
+  steps its ``SendDone`` and writes whatever the plan gives next, until nothing is ready; a
+  thread whose step gets no ``Send`` writes nothing. So a stop (the watchdog's or
+  ``stop_all_motors``) queued while another thread writes a caller's queued frames is the next
+  frame on the wire, after at most the one being written (issue 22 item 3), and its caller's
+  answer does not wait for the rest.
+* shared, always under ``_lock``: ``_plan`` (stepped by ``_stepper``), ``_results`` (what
+  became of each caller's ticket), ``_status``, ``_settings_*``, ``_servos`` (the
   poll and the read services), ``_poll_ids`` (renamed by ``set_bus_servo_id``),
   ``_expected_offsets`` (the worker and ``set_pwm_servo_offset``), the refusal and report
   counters.
@@ -73,8 +87,13 @@ from originman_board_ros.core_types import (  # noqa: F401 (the names of this mo
     MOTOR_TYPES, OriginManConfig, OriginManSnapshot, PwmServoStates, Refused, sbus_normalize,
     SbusSample, STANDARD_GRAVITY)
 from originman_board_ros.link import LinkDown, LinkError, OriginManLink
-from originman_board_ros.plan import BoardPlan
+from originman_board_ros.plan import (Action, BoardPlan, Command, Deadline, Drop, Event,
+                                      FrameIn, OnlineChanged, Reconfigure, Refuse, Send,
+                                      SendDone, Written)
+from uav_serial_common import core_events as ev
+from uav_serial_common.core_runner import run_core
 from uav_serial_common.deadline_timer import DeadlineTimer
+from uav_serial_common.logs import log_at
 from uav_serial_common.result import Outcome, Result  # noqa: F401 (what the core answers)
 
 __all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'ButtonSample', 'ConfigError',
@@ -91,6 +110,21 @@ TIMER_IDLE_S = 0.5
 """The longest the timer thread sleeps without a deadline (commands wake it earlier)."""
 DEFAULT_BATTERY_WARN_MV = 6300
 """The firmware's own alarm threshold, used for warnings when ``low_battery_mv`` is -1."""
+SEND_WAIT_S = 5.0
+"""The longest a caller waits for its frame to leave (frames ahead of it are written first)."""
+
+
+class _LockedPlan:
+    """The plan, stepped under the core's lock with the board's clock for its pacing."""
+
+    def __init__(self, plan: BoardPlan, lock: threading.Lock,
+                 pace_clock: Callable[[], float]) -> None:
+        self.plan, self.lock, self.pace_clock = plan, lock, pace_clock
+
+    def step(self, event: Event) -> List[Action]:
+        """Step the plan with ``event`` under the lock (what it asks is carried out after)."""
+        with self.lock:
+            return self.plan.step(event, self.pace_clock())
 
 
 class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
@@ -138,12 +172,17 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
-        # The decisions (watchdog, online judgement, outgoing frames): under _lock.
+        # The decisions (watchdog, online judgement, outgoing frames): stepped under _lock
+        # by every thread (run_core), their actions carried out by that thread outside it.
         self._plan = BoardPlan(self.config.motor_timeout_s, self.config.offline_timeout_s)
-        # One writer at a time drains the plan's frames; a caller's own frame has left (or
-        # failed: the reason) when its ticket is in _results after its drain.
-        self._send_lock = threading.Lock()
-        self._results: Dict[object, Optional[str]] = {}
+        self._stepper = _LockedPlan(self._plan, self._lock, pace_clock)
+        self._handlers = {Send: self._send, OnlineChanged: self._online_changed,
+                          Refuse: self._unsent, Drop: self._unsent, ev.Log: self._log_line,
+                          ev.SetTimer: self._set_timer}
+        # What became of a caller's frame (its ticket): ('sent' | 'failed' | 'refused' |
+        # 'dropped', why), set by whichever thread carried it out; the caller waits on _sent.
+        self._results: Dict[object, Tuple[str, Optional[str]]] = {}
+        self._sent = threading.Condition(self._lock)
         # The watchdog and the paced frames have a thread of their own that never waits
         # behind a read (issue 21 item 6).
         self._timer = DeadlineTimer(self._timer_duty, name='originman-timer', clock=clock,
@@ -225,7 +264,6 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         desired = ('low_battery_mv', 'motor_type', 'pwm_servo_offsets_us')
         with self._lock:
             self.config = new
-            self._plan.configure(new.motor_timeout_s, new.offline_timeout_s)
             if new.bus_servo_ids != old.bus_servo_ids:
                 self._poll_ids = list(new.bus_servo_ids)
                 self._servos = {i: self._servos.get(i, BusServoStatus(i))
@@ -237,6 +275,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
                     self._settings_due = self._clock()
                     self._settings_ok = False
                     self._settings_message = 'writing'
+        self._step(Reconfigure(self._clock(), new.motor_timeout_s, new.offline_timeout_s))
         self._wake.set()
         self._timer.wake()
 
@@ -293,22 +332,14 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
 
     def _tick(self, now: float) -> bool:
         """Judge silence and run the watchdog at ``now``; send what is due. Return online."""
+        self._step(ev.Tick(now))
         with self._lock:
-            change, fired = self._plan.tick(now)
             online = self._plan.online
             if not self.link.port_open:
                 self._status = f'port {self.config.port} not open: ' \
                                f'{self.link.serial.last_error or "connecting"}'
             elif not online and self._plan.judge.last_frame_at is None:
                 self._status = 'port open, no frame from the board yet'
-            last = self._plan.watchdog.last_command_at
-        if change is not None:
-            self._changed(change, now)
-        if fired:
-            self._log.warning(f'no motor command for {now - (last or now):.2f} s '
-                              f'(motor_timeout_s {self.config.motor_timeout_s:g}): '
-                              'stopping every motor')
-        self._drain()
         return online
 
     def _changed(self, change: Tuple[bool, str], now: float) -> None:
@@ -330,32 +361,59 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         self._call('online', online, why)
         self._wake.set()
 
-    # -- sending ---------------------------------------------------------------------------------
+    # -- the plan's actions -------------------------------------------------------------------
 
-    def _drain(self) -> None:
-        """Write every frame the plan has ready, in its order (stops first, paced moves)."""
-        with self._send_lock:
-            while True:
-                with self._lock:
-                    item = self._plan.take(self._pace_clock())
-                if item is None:
-                    return
-                _, frame, ticket = item
-                error: Optional[str] = None
-                try:
-                    self.link.send(frame)
-                except LinkError as exc:
-                    error = str(exc) or type(exc).__name__
-                if ticket is not None:
-                    with self._lock:
-                        self._results[ticket] = error
+    def _step(self, *events: Event) -> List[Action]:
+        """Step the plan with ``events`` and carry out what it asks, here, in its order.
 
-    def _outcome(self, ticket: object) -> Optional[str]:
-        """After a drain: None if the ticket's frame left, else why not."""
+        Every path goes through here (callers, the worker, the timer, the reader). The plan is
+        stepped under ``_lock``; its actions are carried out outside it, by this thread. The
+        plan has at most one ``Send`` out at a time and chooses the next when it is done, so
+        the thread that writes goes on with what is ready then: a stop another thread queued
+        meanwhile is next, whoever queued the frames before it (issue 22 item 3).
+        """
+        return run_core(self._stepper, events, self._handlers)
+
+    def _send(self, action: Send) -> List[Event]:
+        """Write the plan's frame (outside ``_lock``); its ``SendDone`` frees the writer."""
+        error: Optional[str] = None
+        try:
+            self.link.send(action.frame)
+        except LinkError as exc:
+            error = str(exc) or type(exc).__name__
+        except Exception as exc:  # noqa: BLE001 - the writer must be freed whatever happens
+            self._log.exception('originman core: a write failed')
+            error = f'{type(exc).__name__}: {exc}'
+        if action.ticket is not None:
+            self._settle(action.ticket, 'sent' if error is None else 'failed', error)
+        return [SendDone(self._clock(), error)]
+
+    def _unsent(self, action: Any) -> None:
+        """Answer a caller whose frame was refused (offline) or dropped unsent."""
+        if action.ticket is not None:
+            self._settle(action.ticket, 'refused' if isinstance(action, Refuse) else 'dropped',
+                         action.reason)
+
+    def _settle(self, ticket: object, outcome: str, why: Optional[str]) -> None:
+        with self._sent:
+            self._results[ticket] = (outcome, why)
+            self._sent.notify_all()
+
+    def _refused(self, ticket: object) -> bool:
+        """Whether the step that queued ``ticket`` refused it (the board is offline)."""
         with self._lock:
-            if ticket in self._results:
-                return self._results.pop(ticket)
-        return 'dropped before it left (a motor stop came after it, or the board went offline)'
+            if self._results.get(ticket, ('',))[0] == 'refused':
+                del self._results[ticket]
+                return True
+        return False
+
+    def _wait(self, ticket: object) -> Optional[str]:
+        """Wait until ``ticket``'s frame has left: None, or why it did not."""
+        with self._sent:
+            if not self._sent.wait_for(lambda: ticket in self._results, SEND_WAIT_S):
+                return f'not written within {SEND_WAIT_S:g} s'
+            outcome, why = self._results.pop(ticket)
+        return None if outcome == 'sent' else why
 
     def _write(self, frame: bytes, cancels: Sequence[int] = ()) -> None:
         """Send a command now, behind queued ones; raise LinkError when it did not leave.
@@ -363,42 +421,36 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         ``cancels``: queued bus servo targets of these ids are dropped (a stop, torque off).
         """
         ticket = object()
-        with self._lock:
-            queued = self._plan.command(frame, ticket, cancels)
-        if not queued:
+        self._step(Command(self._clock(), frame, ticket, tuple(cancels)))
+        if self._refused(ticket):
             raise LinkDown(f'the board is offline ({self._status})')
-        self._drain()
-        error = self._outcome(ticket)
+        error = self._wait(ticket)
         if error is not None:
             raise LinkDown(error)
 
+    def _online_changed(self, action: OnlineChanged) -> None:
+        self._changed((action.online, action.reason), action.now)
+
+    def _log_line(self, action: ev.Log) -> None:
+        log_at(self._log, action.level, action.text)
+
+    def _set_timer(self, action: ev.SetTimer) -> None:
+        self._timer.wake(by=action.at)
+
     def _on_written(self, frame: bytes) -> None:
         """Every frame that left, reads included: the board's work to come (link thread)."""
-        with self._lock:
-            self._plan.scheduler.written(frame, self._pace_clock())
+        self._step(Written(self._clock(), frame))
 
     def _timer_duty(self) -> Optional[float]:
         """Fire the watchdog, release paced frames; return when next due (on ``_clock``).
 
         Never reads or waits on the board.
         """
-        now = self._clock()
-        with self._lock:
-            fired = self._plan.tick_watchdog(now)
-        if fired:
-            self._log.warning(f'no motor command for motor_timeout_s '
-                              f'{self.config.motor_timeout_s:g} s: stopping every motor')
-        self._drain()
-        now, pace_now = self._clock(), self._pace_clock()
-        dues = []
-        with self._lock:
-            deadline = self._plan.watchdog.deadline
-            if deadline is not None and self._plan.judge.port_open:
-                dues.append(deadline)
-            due = self._plan.scheduler.next_time(pace_now)
-            if due is not None:
-                dues.append(now + (due - pace_now))  # the pace clock's deadline, on _clock
-        return min(dues, default=None)
+        due = None
+        for action in self._step(Deadline(self._clock())):
+            if isinstance(action, ev.SetTimer):
+                due = action.at  # the last step's: after the frames this thread wrote
+        return due
 
     def _timer_failed(self, exc: BaseException) -> None:
         self._log.exception('originman core: timer failed')
@@ -407,21 +459,15 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
 
     def _on_connection(self, up: bool, reason: str) -> None:
         now = self._clock()
-        with self._lock:
-            # O38: after (re)opening the port the motors' state is unknown; without a motor
-            # command within motor_timeout_s they are stopped (the plan arms the watchdog).
-            change = self._plan.connection(up, now)
-        if change is not None:
-            self._changed(change, now)
+        # O38: after (re)opening the port the motors' state is unknown; without a motor
+        # command within motor_timeout_s they are stopped (the plan arms the watchdog).
+        self._step(ev.LinkUp(now) if up else ev.LinkDown(now, reason))
         self._wake.set()
         self._timer.wake()
 
     def _on_frames(self, now: float) -> None:
         # Issue 21 item 11(a): online from the frame itself, before anyone sees it published.
-        with self._lock:
-            change = self._plan.frame(now)
-        if change is not None:
-            self._changed(change, now)
+        self._step(FrameIn(now))
 
     def _on_report(self, msg: Any) -> None:
         now = self._clock()

@@ -5,8 +5,10 @@ assembles it; the shared state, ``_lock`` and the other threads are described th
 Threads:
 
 * **caller threads** (a node's executor) call the command methods. They validate (the helpers
-  below raise :class:`Refused`; nothing is sent before they all pass), queue their frame in the
-  plan and write what it has ready (``_drain``: one writer at a time, stops first).
+  below raise :class:`Refused`; nothing is sent before they all pass), then step the plan with
+  their frame (``_step``). The plan refuses it while the board is offline; else the caller
+  writes what the plan has ready if no other thread is writing, and waits until its own frame
+  has left (``_wait``), whichever thread wrote it.
 
 Owns, under ``_lock``: the refusal counters (``_refusals``).
 """
@@ -19,6 +21,7 @@ from typing import Any, Callable, Iterable, List, Sequence, Tuple
 from originman_board_ros import protocol as p
 from originman_board_ros.core_types import _is_int, Refused
 from originman_board_ros.link import LinkError
+from originman_board_ros.plan import MotorCommand, Move, StopMotors
 from uav_serial_common.result import Result
 
 STOP_ALL_MASK = (1 << p.MOTOR_COUNT) - 1
@@ -203,18 +206,15 @@ class Commands:
         except Refused as exc:
             return self._refuse(exc)
         ticket = object()
-        with self._lock:
-            # Zeros and empty calls restart the timeout too; a refused one does not: its
-            # sender is not in control of the motors (O39).
-            accepted = self._plan.motor_command(frames[0] if frames else None, self._clock(),
-                                                ticket)
-        if not accepted:
+        # Zeros and empty calls restart the timeout too; a refused one does not: its sender
+        # is not in control of the motors (O39). The new deadline reaches the timer as the
+        # plan's SetTimer.
+        self._step(MotorCommand(self._clock(), frames[0] if frames else None, ticket))
+        if self._refused(ticket):
             return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
-        self._timer.wake()  # a new motor deadline: the timer may be sleeping past it
         if not frames:
             return Result.sent(f'{what}: sent')
-        self._drain()
-        error = self._outcome(ticket)
+        error = self._wait(ticket)
         if error is not None:
             return Result.failed(f'{what}: not sent: {error}', cause='link_down')
         return Result.sent(f'{what}: sent')
@@ -222,13 +222,12 @@ class Commands:
     def stop_all_motors(self) -> Result:
         """Set every motor's speed to 0 (MOTOR 0x03, mask 0x0F), offline or not; for shutdown.
 
-        The stop goes out ahead of every queued frame; the answer comes once it has left.
+        The stop goes out ahead of every queued frame, after at most the one frame another
+        thread is writing; the answer comes once it has left.
         """
         ticket = object()
-        with self._lock:
-            self._plan.stop_motors(ticket)
-        self._drain()
-        error = self._outcome(ticket)
+        self._step(StopMotors(self._clock(), ticket))
+        error = self._wait(ticket)
         if error is not None:
             return Result.failed(f'stop all motors: not sent: {error}', cause='link_down')
         return Result.sent('stop all motors: sent')
@@ -269,17 +268,15 @@ class Commands:
             self._require_online()
         except Refused as exc:
             return self._refuse(exc)
-        with self._lock:
-            # Issue 21 item 7: the newest target of each servo waits for room on the board's
-            # servo bus; a later command for the same servo replaces it.
-            accepted = self._plan.move(ms, items)
-        if not accepted:
+        ticket = object()
+        # Issue 21 item 7: the newest target of each servo waits for room on the board's
+        # servo bus; a later command for the same servo replaces it.
+        self._step(Move(self._clock(), ms, tuple(items), ticket))
+        if self._refused(ticket):
             return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
-        self._drain()
         with self._lock:
             waiting = [i for i, _ in items if i in self._plan.scheduler.targets]
         if waiting:
-            self._timer.wake()
             return Result.sent(f'{what}: queued (the servo bus is busy; a newer target of the '
                                'same servo replaces it)')
         return Result.sent(f'{what}: sent')

@@ -12,16 +12,30 @@ port, the threads and the clocks, and carries the decisions out in the order giv
   ``ahead_s`` of servo-bus work in front of a stop (issue 21 item 7);
 * :class:`BoardPlan`: the three together, with the rules that join them (no command but a stop
   to a board judged offline; queued commands are dropped when it goes offline).
+
+:meth:`BoardPlan.step` is the one door every path of the core goes through (issue 22 item 2):
+an event with its time in (the port opened or closed, a frame from the board, the worker's
+``Tick``, the timer's ``Deadline``, a motor command or keep-alive, a stop, a command, a bus servo
+move, a frame written, the end of a write, new timeouts), the actions out, in the order to carry
+them out: ``Send`` (one at a time: the next is chosen when the one before is done, so a stop
+queued meanwhile goes next, issue 22 item 3), ``OnlineChanged``, ``Refuse`` and ``Drop`` (a
+caller's frame that will not leave), ``Log`` and ``SetTimer`` (the plan's next deadline). The
+methods below it (``connection``, ``frame``, ``tick``, ``command``, ``take``...) are its parts,
+kept for the tests that drive one rule alone.
 """
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 from originman_board_ros import protocol as p
+from uav_serial_common.core_events import LinkDown, LinkUp, Log, SetTimer, Tick
 
-__all__ = ['BoardPlan', 'FrameScheduler', 'MotorWatchdog', 'OnlineJudge', 'PACE_AHEAD_S',
-           'PACE_MARGIN', 'STOP_ALL_FRAME', 'board_time']
+__all__ = ['Action', 'BoardPlan', 'Command', 'Deadline', 'Drop', 'DROPPED', 'Event', 'FrameIn',
+           'FrameScheduler', 'MotorCommand', 'MotorWatchdog', 'Move', 'OnlineChanged',
+           'OnlineJudge', 'PACE_AHEAD_S', 'PACE_MARGIN', 'Reconfigure', 'Refuse', 'Send',
+           'SendDone', 'STOP_ALL_FRAME', 'StopMotors', 'Written', 'board_time']
 
 SERVO_BUS_BAUD = 115200
 """The board's servo bus (§6): 10 bits a byte."""
@@ -44,6 +58,141 @@ PER_FRAME = (p.MAX_DATA - 4) // 3
 
 Change = Tuple[bool, str]
 """An online change: (online, reason)."""
+
+
+# -- the events and actions of :meth:`BoardPlan.step` -------------------------------------------
+# Besides the shared ``LinkUp(now)``, ``LinkDown(now, reason)`` and ``Tick(now)`` (the worker's
+# round: the silence judgement, the watchdog, what is ready to send).
+
+@dataclass(frozen=True)
+class FrameIn:
+    """A valid frame from the board arrived at ``now``."""
+
+    now: float
+
+
+@dataclass(frozen=True)
+class Deadline:
+    """The timer reached a deadline a ``SetTimer`` gave: the watchdog and the paced frames.
+
+    Not the silence judgement: the worker judges it (``Tick``), and the online change it
+    brings sets off the worker's duties (settings).
+    """
+
+    now: float
+
+
+@dataclass(frozen=True)
+class MotorCommand:
+    """Set motor speeds with ``frame`` (None: a keep-alive that only restarts the timeout)."""
+
+    now: float
+    frame: Optional[bytes]
+    ticket: object = None
+
+
+@dataclass(frozen=True)
+class StopMotors:
+    """Stop every motor, ahead of every queued frame, online or not."""
+
+    now: float
+    ticket: object = None
+
+
+@dataclass(frozen=True)
+class Command:
+    """A command after those queued; ``cancels`` drops queued bus servo targets of those ids."""
+
+    now: float
+    frame: bytes
+    ticket: object = None
+    cancels: Tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class Move:
+    """Bus servo targets ``items`` ((id, position), ...) in ``duration_ms``."""
+
+    now: float
+    duration_ms: int
+    items: Tuple[Tuple[int, int], ...]
+    ticket: object = None
+
+
+@dataclass(frozen=True)
+class Written:
+    """``frame`` left at ``now`` (every frame, reads included): the board's work to come.
+
+    It sends nothing (the link reports it from inside its write).
+    """
+
+    now: float
+    frame: bytes
+
+
+@dataclass(frozen=True)
+class SendDone:
+    """The ``Send`` being carried out is over (``error``: why it did not leave, else None)."""
+
+    now: float
+    error: Optional[str] = None
+
+
+@dataclass(frozen=True)
+class Reconfigure:
+    """New timeouts."""
+
+    now: float
+    motor_timeout_s: float
+    offline_timeout_s: float
+
+
+@dataclass(frozen=True)
+class Send:
+    """Write ``frame`` now (``kind``: stop, motor, command or move), then step ``SendDone``.
+
+    One at a time: no other ``Send`` comes before that ``SendDone``.
+    """
+
+    kind: str
+    frame: bytes
+    ticket: object = None
+
+
+@dataclass(frozen=True)
+class OnlineChanged:
+    """The board is judged ``online`` (or not) at ``now``, for ``reason``."""
+
+    online: bool
+    reason: str
+    now: float
+
+
+@dataclass(frozen=True)
+class Refuse:
+    """The frame of ``ticket`` was not queued: the board is offline; nothing was sent."""
+
+    ticket: object
+    reason: str
+
+
+@dataclass(frozen=True)
+class Drop:
+    """The frame of ``ticket`` was queued and dropped unsent (a stop after it, or offline)."""
+
+    ticket: object
+    reason: str
+
+
+QUIET_EVENTS = (Written, FrameIn, LinkUp, LinkDown)
+"""Events whose step never gives a ``Send``: the link reports them from inside its locks (a
+write, the decoder), and none of them makes a frame ready (the port opening or closing leaves
+the board offline, a frame only makes it online: nothing is queued then; every event that
+queues a frame sends it or finds a ``Send`` out). Their thread never writes."""
+Event = Union[LinkUp, LinkDown, FrameIn, Tick, Deadline, MotorCommand, StopMotors, Command,
+              Move, Written, SendDone, Reconfigure]
+Action = Union[Send, OnlineChanged, Refuse, Drop, Log, SetTimer]
+DROPPED = 'dropped before it left (a motor stop came after it, or the board went offline)'
 
 
 def _bus_bytes_time(nbytes: int) -> float:
@@ -164,6 +313,9 @@ class FrameScheduler:
         self.targets: Dict[int, Tuple[int, int]] = {}  # id -> (position, duration ms)
         self.board_free_at = 0.0
         self.coalesced = 0
+        self.dropped: List[object] = []
+        """Tickets of queued frames dropped unsent (by a stop, or :meth:`clear`), oldest first;
+        whoever reads them empties it."""
 
     def push_stop(self, frame: bytes, ticket: object = None) -> None:
         """Queue a motor stop ahead of everything; it drops queued motor commands.
@@ -171,6 +323,7 @@ class FrameScheduler:
         A motor command queued before the stop was given before it: sent after the stop, it
         would start the motors again with nothing left to stop them.
         """
+        self._drop([c for c in self.commands if c[2]])
         self.commands = [c for c in self.commands if not c[2]]
         self.stops.append((frame, ticket))
 
@@ -196,9 +349,13 @@ class FrameScheduler:
     def clear(self) -> int:
         """Drop every queued command and target (not the stops); return how many."""
         n = len(self.commands) + len(self.targets)
-        self.commands.clear()
+        self._drop(self.commands)
+        self.commands = []
         self.targets.clear()
         return n
+
+    def _drop(self, commands: Sequence[Tuple[bytes, object, bool]]) -> None:
+        self.dropped.extend(ticket for _, ticket, _ in commands if ticket is not None)
 
     def backlog(self, now: float) -> float:
         """Seconds of work the board still has from frames written before ``now``.
@@ -255,6 +412,90 @@ class BoardPlan:
         self.watchdog = MotorWatchdog(motor_timeout_s)
         self.judge = OnlineJudge(offline_timeout_s)
         self.scheduler = FrameScheduler(ahead_s, baud)
+        self.sending = False
+        """A ``Send`` of :meth:`step` is being carried out (until its ``SendDone``)."""
+
+    def step(self, event: Event, pace_now: Optional[float] = None) -> List[Action]:
+        """Take one event; return what to carry out, in order.
+
+        ``pace_now``: the board's clock, for pacing the servo moves, when it is not the
+        events' (a test's fake clock for the rules, the wall for the board); default
+        ``event.now``. At most one ``Send`` is out at a time: the next is chosen when the one
+        before is done (``SendDone``), so a stop that comes meanwhile goes next, ahead of
+        every queued frame. A ``Send`` comes first (a stop leaves before its log line);
+        ``SetTimer`` last: when the timer must step ``Deadline`` (the watchdog's deadline, or
+        when the next paced frame may leave), on the events' clock.
+        """
+        now = event.now
+        pace = now if pace_now is None else pace_now
+        out: List[Action] = []
+        change: Optional[Change] = None
+        if isinstance(event, (LinkUp, LinkDown)):
+            change = self.connection(isinstance(event, LinkUp), now)
+        elif isinstance(event, FrameIn):
+            change = self.frame(now)
+        elif isinstance(event, Tick):
+            change = self.judge.tick(now)
+            self._went_offline(change)
+            self._watchdog(now, out)
+        elif isinstance(event, Deadline):
+            self._watchdog(now, out)
+        elif isinstance(event, MotorCommand):
+            if not self.motor_command(event.frame, now, event.ticket):
+                out.append(Refuse(event.ticket, 'the board is offline'))
+        elif isinstance(event, StopMotors):
+            self.stop_motors(event.ticket)
+        elif isinstance(event, Command):
+            if not self.command(event.frame, event.ticket, event.cancels):
+                out.append(Refuse(event.ticket, 'the board is offline'))
+        elif isinstance(event, Move):
+            if not self.move(event.duration_ms, event.items):
+                out.append(Refuse(event.ticket, 'the board is offline'))
+        elif isinstance(event, Written):
+            self.scheduler.written(event.frame, pace)
+        elif isinstance(event, SendDone):
+            self.sending = False
+        elif isinstance(event, Reconfigure):
+            self.configure(event.motor_timeout_s, event.offline_timeout_s)
+        else:
+            raise TypeError(f'not an event of the board plan: {event!r}')
+        if change is not None:
+            out.append(OnlineChanged(change[0], change[1], now))
+        if not self.sending and not isinstance(event, QUIET_EVENTS):
+            item = self.take(pace)
+            if item is not None:
+                self.sending = True
+                out.insert(0, Send(*item))
+        out.extend(Drop(ticket, DROPPED) for ticket in self.scheduler.dropped)
+        self.scheduler.dropped.clear()
+        due = self.timer_due(now, pace)
+        if due is not None:
+            out.append(SetTimer(due))
+        return out
+
+    def timer_due(self, now: float, pace_now: Optional[float] = None) -> Optional[float]:
+        """When the timer must step ``Deadline`` (on ``now``'s clock), None: no deadline.
+
+        The watchdog's deadline while the port is open; when the next paced frame may leave
+        while no ``Send`` is out (the one out is followed by the next when it is done).
+        """
+        pace = now if pace_now is None else pace_now
+        dues = []
+        deadline = self.watchdog.deadline
+        if deadline is not None and self.judge.port_open:
+            dues.append(deadline)
+        if not self.sending:
+            paced = self.scheduler.next_time(pace)
+            if paced is not None:
+                dues.append(now + (paced - pace))
+        return min(dues, default=None)
+
+    def _watchdog(self, now: float, out: List[Action]) -> None:
+        last = self.watchdog.last_command_at
+        if self.tick_watchdog(now):
+            out.append(Log('warn', f'no motor command for {now - (last or now):.2f} s '
+                                   f'(motor_timeout_s {self.watchdog.timeout_s:g}): '
+                                   'stopping every motor'))
 
     @property
     def online(self) -> bool:

@@ -7,6 +7,7 @@ deterministic while the bytes still cross a real pty.
 
 from dataclasses import replace
 import math
+import threading
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core import (ConfigError, IDLE_MAX_S, OriginManConfig, OriginManCore,
@@ -309,6 +310,53 @@ def test_stop_all_motors_and_shutdown_stop_every_motor(rig):
     rig.core.stop()
     assert rig.wire(mark)[-1] == p.StopMotors(3, (0, 1, 2, 3))
     wait_for(lambda: rig.model.motor_set_points == [0.0] * 4, 5, what='every motor stopped')
+
+
+def test_round2_22_3_a_stop_goes_next_behind_a_caller_writing_and_is_answered_at_once(rig):
+    """A stop queued while another caller writes queued frames leaves after the frame being
+    written, ahead of the others, and its caller is answered then, not after the rest."""
+    core, real_send = rig.core, rig.core.link.send
+    held = {p.SetLed: threading.Event(), p.SetBuzzer: threading.Event()}
+    entered = []
+
+    def send(frame):  # the real write, held at the LED and the buzzer until the test says
+        kind = type(p.decode_host_command(p.BoardParser().feed(frame)[0]))
+        entered.append(kind)
+        if kind in held:
+            held[kind].wait(60)  # (the test lets it go in any case)
+        real_send(frame)
+    core.link.send = send
+    mark = rig.mark()
+    answers = {}
+
+    def call(name, *args):
+        thread = threading.Thread(target=lambda: answers.update({name: getattr(core, name)(
+            *args)}), daemon=True)
+        thread.start()
+        return thread
+    threads = [call('set_led', 1, 0.1, 0.1, 1)]
+    try:
+        wait_for(lambda: p.SetLed in entered, 5, what='the LED being written')
+        threads.append(call('set_buzzer', 2000, 0.05, 0.05, 1))
+        threads.append(call('set_bus_servos', [1, 2], [100, 200], 0.02))
+        plan = core._plan
+        wait_for(lambda: plan.scheduler.commands and plan.scheduler.targets, 5,
+                 what='a command and moves queued behind the LED')
+        threads.append(call('stop_all_motors'))
+        wait_for(lambda: plan.scheduler.stops, 5, what='the stop queued')
+        held[p.SetLed].set()
+        # Before: the stop left next, but its caller waited for the whole drain of the
+        # caller that wrote it (here: held at the buzzer).
+        wait_for(lambda: 'stop_all_motors' in answers, 5, what='the answer to the stop')
+        assert answers['stop_all_motors'].ok
+        assert entered[:3] == [p.SetLed, p.StopMotors, p.SetBuzzer]
+    finally:
+        for event in held.values():
+            event.set()
+        for thread in threads:
+            thread.join(10)
+    assert all(result.ok for result in answers.values()), answers
+    assert [type(c) for c in rig.wire(mark)] == [p.SetLed, p.StopMotors, p.SetBuzzer, p.BusMove]
 
 
 # ----- validation: refused before anything reaches the wire ------------------------------------

@@ -10,11 +10,15 @@ every step (issue 22, OriginMan).
 from hypothesis import strategies as st
 from hypothesis.stateful import initialize, invariant, precondition, rule, RuleBasedStateMachine
 from originman_board_ros import protocol as p
-from originman_board_ros.plan import (BoardPlan, board_time, FrameScheduler, PACE_AHEAD_S,
-                                      STOP_ALL_FRAME)
+from originman_board_ros.plan import (BoardPlan, board_time, Command, Deadline, Drop, DROPPED,
+                                      FrameIn, FrameScheduler, MotorCommand, Move,
+                                      OnlineChanged, PACE_AHEAD_S, PACE_MARGIN, Refuse, Send,
+                                      SendDone,
+                                      STOP_ALL_FRAME, StopMotors, Written)
 from originman_board_ros.simulation import VirtualOriginManBoardModel
 from model_runs import search
 import pytest
+from uav_serial_common.core_events import LinkDown, LinkUp, Log, SetTimer, Tick
 
 MOTOR_TIMEOUT_S = 0.5
 OFFLINE_TIMEOUT_S = 2.5
@@ -147,10 +151,111 @@ def test_a_stop_waits_little_on_a_slower_board_after_a_long_servo_flood(slower):
     assert waited <= (PACE_AHEAD_S + 10 * 10 / 115200) * slower + 0.002, waited
 
 
+# ----- step(): the path every thread of the core goes through ------------------------------------
+
+def online_plan():
+    plan = BoardPlan(MOTOR_TIMEOUT_S, OFFLINE_TIMEOUT_S)
+    plan.step(LinkUp(0.0))
+    plan.step(FrameIn(0.0))
+    return plan
+
+
+def sends(actions):
+    return [a for a in actions if isinstance(a, Send)]
+
+
+def test_round2_22_3_a_stop_queued_while_a_frame_is_written_is_the_next_write():
+    plan = online_plan()
+    plan.step(Written(0.0, p.encode_bus_move(20, [(i, 500) for i in SERVOS])))  # a busy bus
+    first = sends(plan.step(Command(0.0, LED_FRAME, 'led')))
+    assert [s.ticket for s in first] == ['led'] and plan.sending
+    # While 'led' is being written, other threads queue commands, moves and then a stop: none
+    # of them writes (one write at a time), and the stop is the next frame, after 'led' only.
+    assert not sends(plan.step(Command(0.0, LED_FRAME, 'second')))
+    assert not sends(plan.step(Move(0.0, 20, ((1, 100), (2, 200)), 'move')))
+    assert not sends(plan.step(MotorCommand(0.0, p.encode_motor_speeds([(0, 1.0)]), 'run')))
+    stop = plan.step(StopMotors(0.0, 'stop'))
+    assert not sends(stop) and Drop('run', DROPPED) in stop  # a motor command before a stop
+    plan.step(Written(0.0, LED_FRAME))
+    assert [(s.kind, s.ticket) for s in sends(plan.step(SendDone(0.0)))] == [('stop', 'stop')]
+    plan.step(Written(0.0, STOP_ALL_FRAME))
+    assert [s.ticket for s in sends(plan.step(SendDone(0.0)))] == ['second']
+    # The moves wait for room on the servo bus; the timer is told when.
+    done = plan.step(SendDone(0.0))
+    assert not sends(done) and isinstance(done[-1], SetTimer) and 0.0 < done[-1].at < 0.1
+
+
+def test_round2_22_3_the_watchdog_stop_goes_next_behind_a_frame_being_written():
+    plan = online_plan()
+    plan.step(MotorCommand(0.0, p.encode_motor_speeds([(0, 1.0)]), 'run'))
+    plan.step(SendDone(0.0))
+    for k in range(5):  # a caller is writing its frame when the deadline comes
+        plan.step(Command(0.4, LED_FRAME, k))
+    fired = plan.step(Deadline(0.5))
+    assert not sends(fired) and [type(a) for a in fired] == [Log]
+    assert sends(plan.step(SendDone(0.5)))[0].frame == STOP_ALL_FRAME
+
+
+def test_round2_22_2_nothing_but_a_stop_is_written_while_offline():
+    plan = BoardPlan(MOTOR_TIMEOUT_S, OFFLINE_TIMEOUT_S)
+    plan.step(LinkUp(0.0))  # the port is open, no frame from the board yet
+    led = plan.step(Command(0.0, LED_FRAME, 'led'))
+    assert Refuse('led', 'the board is offline') in led and not sends(led)
+    assert Refuse('move', 'the board is offline') in plan.step(Move(0.0, 20, ((1, 1),), 'move'))
+    assert Refuse('run', 'the board is offline') in plan.step(
+        MotorCommand(0.0, p.encode_motor_speeds([(0, 1.0)]), 'run'))
+    assert [(s.kind, s.ticket) for s in sends(plan.step(StopMotors(0.0, 'stop')))] == \
+        [('stop', 'stop')]
+    # Online, then the port closes with commands queued behind a write: they are dropped.
+    plan.step(SendDone(0.0))
+    plan.step(FrameIn(0.1))
+    plan.step(Command(0.1, LED_FRAME, 'a'))
+    plan.step(Command(0.1, LED_FRAME, 'b'))
+    down = plan.step(LinkDown(0.2))
+    assert OnlineChanged(False, 'port closed', 0.2) in down and Drop('b', DROPPED) in down
+    assert not sends(plan.step(SendDone(0.2)))
+
+
+def test_round2_22_2_set_timer_is_the_watchdog_deadline():
+    plan = online_plan()
+    assert plan.step(Tick(0.1))[-1] == SetTimer(MOTOR_TIMEOUT_S)  # armed at the connect (O38)
+    plan.step(MotorCommand(0.3, None, 'keep-alive'))
+    assert plan.step(Tick(0.31))[-1] == SetTimer(0.3 + MOTOR_TIMEOUT_S)
+    assert not sends(plan.step(Deadline(0.79)))
+    fired = plan.step(Deadline(0.8))
+    assert [type(a) for a in fired] == [Send, Log] and fired[0].frame == STOP_ALL_FRAME
+    assert not [a for a in plan.step(SendDone(0.8)) if isinstance(a, SetTimer)]
+    plan.step(LinkDown(1.0))
+    plan.step(LinkUp(2.0))  # re-armed at the connect, whatever it was before
+    assert plan.step(Tick(2.0))[-1] == SetTimer(2.0 + MOTOR_TIMEOUT_S)
+
+
+def test_round2_22_2_every_thread_that_steps_may_write_but_never_two_at_once():
+    plan = online_plan()
+    assert sends(plan.step(Command(0.0, LED_FRAME, 1)))
+    # Not from Written: the link reports it from inside its write.
+    assert not sends(plan.step(Written(0.0, LED_FRAME)))
+    plan.step(SendDone(0.0))
+    for event in (Written(0.0, LED_FRAME), FrameIn(0.0), LinkUp(0.0), LinkDown(0.0)):
+        assert not sends(plan.step(event))  # the reader's and the link's never write
+    plan.step(LinkUp(0.0))
+    plan.step(FrameIn(0.0))
+    assert sends(plan.step(Command(0.0, LED_FRAME, 1)))
+    for event in (Tick(0.0), Deadline(0.0), FrameIn(0.0), Command(0.0, LED_FRAME, 2)):
+        assert not sends(plan.step(event))
+    assert [s.ticket for s in sends(plan.step(SendDone(0.0)))] == [2]
+
+
 # ----- the state machine ------------------------------------------------------------------------
 
 class BoardPlanMachine(RuleBasedStateMachine):
-    """The plan as the core runs it, against a record of the wire."""
+    """The plan as the core runs it (every path through ``step``), against a record of the wire.
+
+    Actions are carried out as the core's handlers do: a ``Send`` is written (``Written`` and
+    ``SendDone`` stepped), unless a write is held: then several threads step the plan while one
+    writes (``callers_while_one_writes``). The timer steps ``Deadline`` at the earliest
+    ``SetTimer`` it was given, and at no other time: the deadlines the plan gives are all it has.
+    """
 
     @initialize(online=st.booleans())
     def start(self, online):
@@ -162,54 +267,93 @@ class BoardPlanMachine(RuleBasedStateMachine):
         self.on_board = {}        # servo -> last target written
         self.wire = []            # (time, kind, frame)
         self.motor_frames = []    # motor speeds and stops written since the port opened
+        self.timer_at = None      # the earliest SetTimer since the timer last ran
+        self.in_flight = None     # the Send being written
+        self.hold = False         # the write in flight is not over yet
+        self.read_at = -1.0
+        self.unpaced_until = 0.0  # when the board is through with the commands written
+        self.tickets = 0
+        self.waiting = set()      # tickets of frames queued, not yet answered
+        self.answered = set()
         if online:  # most interleavings worth trying start from a board that talks
             self.connect()
             self.frame_from_the_board()
 
     # -- the runtime, emulated -------------------------------------------------------------------
 
-    def drain(self):
-        while True:
+    def ticket(self):
+        self.tickets += 1
+        self.waiting.add(self.tickets)
+        return self.tickets
+
+    def answer(self, ticket):
+        if ticket is None:
+            return
+        assert ticket not in self.answered, f'ticket {ticket} answered twice'
+        self.waiting.discard(ticket)
+        self.answered.add(ticket)
+
+    def run(self, event):
+        """Step ``event`` and the events its actions bring about, as ``run_core`` does."""
+        events = [event]
+        while events:
+            event = events.pop(0)
             stops_waiting = bool(self.plan.scheduler.stops)
-            online = self.plan.online
-            item = self.plan.take(self.now)
-            if item is None:
-                return
-            kind, frame, _ = item
-            if stops_waiting:
-                assert kind == 'stop', 'a frame left before a waiting stop'
-            if kind != 'stop':
-                assert online, f'{kind} sent to a board judged offline'
-            if not self.connected:
-                continue  # the write fails: the port is closed
-            if kind == 'stop' and self.armed_at is not None:
-                late = self.now - self.armed_at
-                assert late <= MOTOR_TIMEOUT_S + STOP_MARGIN_S, f'stop {late:.3f} s late'
-            if kind == 'stop':
-                # The stop waits on the board behind at most the paced work (and two reads).
-                backlog = self.plan.scheduler.backlog(self.now)
-                assert backlog <= PACE_AHEAD_S + 2 * board_time(READ_FRAME) + 0.002, backlog
-                self.armed_at = None
-            self.plan.scheduler.written(frame, self.now)
-            self.wire.append((self.now, kind, frame))
-            cmd = decode(frame)
-            if isinstance(cmd, (p.SetMotorSpeeds, p.StopMotors)):
-                self.motor_frames.append(cmd)
-            if isinstance(cmd, p.BusMove):
-                for servo_id, position in cmd.items:
-                    self.on_board[servo_id] = position
+            for action in self.plan.step(event):
+                if isinstance(action, Send):
+                    assert self.in_flight is None, 'two frames written at once'
+                    if stops_waiting:
+                        assert action.kind == 'stop', 'a frame left before a waiting stop'
+                    if action.kind != 'stop':
+                        assert self.plan.online, f'{action.kind} sent to a board judged offline'
+                    self.in_flight = action
+                    if not self.hold:
+                        events += self.write()
+                elif isinstance(action, SetTimer):
+                    self.timer_at = action.at if self.timer_at is None else \
+                        min(self.timer_at, action.at)
+                elif isinstance(action, (Refuse, Drop)):
+                    self.answer(action.ticket)
+        if not self.plan.online:
+            self.dropped()
+
+    def write(self):
+        """Write the frame in flight; return the events that follow."""
+        action, self.in_flight = self.in_flight, None
+        kind, frame = action.kind, action.frame
+        self.answer(action.ticket)
+        if not self.connected:
+            return [SendDone(self.now, 'port closed')]
+        if kind == 'stop' and self.armed_at is not None:
+            late = self.now - self.armed_at
+            assert late <= MOTOR_TIMEOUT_S + STOP_MARGIN_S, f'stop {late:.3f} s late'
+        if kind == 'stop':
+            # The stop waits on the board behind at most the paced work, two reads and what
+            # is left of the commands given before it (they go first, unpaced, O55: found by
+            # the search, a burst of a hundred callers' motor and LED frames at one instant).
+            backlog = self.plan.scheduler.backlog(self.now)
+            unpaced = max(0.0, self.unpaced_until - self.now)
+            assert backlog <= PACE_AHEAD_S + 2 * board_time(READ_FRAME) + unpaced + 0.002, \
+                backlog
+            self.armed_at = None
+        elif kind in ('command', 'motor'):
+            self.unpaced_until = max(self.unpaced_until, self.now) + \
+                board_time(frame) * PACE_MARGIN
+        self.wire.append((self.now, kind, frame))
+        cmd = decode(frame)
+        if isinstance(cmd, (p.SetMotorSpeeds, p.StopMotors)):
+            self.motor_frames.append(cmd)
+        if isinstance(cmd, p.BusMove):
+            for servo_id, position in cmd.items:
+                self.on_board[servo_id] = position
+        return [Written(self.now, frame), SendDone(self.now)]
 
     def timer_until(self, end):
-        """The timer thread: fire every deadline up to ``end``, writing what is due."""
-        while True:
-            deadline = self.plan.watchdog.deadline if self.plan.judge.port_open else None
-            paced = self.plan.scheduler.next_time(self.now)
-            due = min([t for t in (deadline, paced) if t is not None], default=None)
-            if due is None or due > end:
-                break
-            self.now = max(self.now, due)
-            self.plan.tick_watchdog(self.now)
-            self.drain()
+        """The timer thread: step ``Deadline`` at each deadline it was given, up to ``end``."""
+        while self.timer_at is not None and self.timer_at <= end:
+            self.now = max(self.now, self.timer_at)
+            self.timer_at = None
+            self.run(Deadline(self.now))
         self.now = max(self.now, end)
 
     def dropped(self):
@@ -219,6 +363,30 @@ class BoardPlanMachine(RuleBasedStateMachine):
                     self.on_board.get(servo_id) != self.wanted[servo_id]:
                 del self.wanted[servo_id]
 
+    def read(self):
+        # The worker waits for the reply to each read: the board answers it after the work
+        # before it and its own, so a read follows the one before by at least that.
+        if self.now >= self.read_at + board_time(READ_FRAME):
+            self.read_at = self.now
+            self.run(Written(self.now, READ_FRAME))
+
+    def motor(self, speed=2.0):
+        frame = None if speed is None else p.encode_motor_speeds([(1, speed)])
+        online = self.plan.online
+        self.run(MotorCommand(self.now, frame, self.ticket() if frame else None))
+        if online and self.connected:
+            self.armed_at = self.now
+        return online
+
+    def move(self, items, duration=20):
+        ticket = self.ticket()
+        self.run(Move(self.now, duration, tuple(items), ticket))
+        if ticket in self.answered:
+            assert not self.plan.online
+        else:
+            self.waiting.discard(ticket)  # a move is never answered: its targets are queued
+            self.wanted.update(items)
+
     # -- events ----------------------------------------------------------------------------------
 
     @rule()
@@ -226,99 +394,82 @@ class BoardPlanMachine(RuleBasedStateMachine):
         if not self.connected:
             self.connected = True
             self.motor_frames = []
-            self.plan.connection(True, self.now)
+            self.run(LinkUp(self.now))
             self.armed_at = self.now
-            self.drain()
 
     @rule()
     def disconnect(self):
         if self.connected:
             self.connected = False
-            self.plan.connection(False, self.now)
+            self.run(LinkDown(self.now))
             self.armed_at = None  # no port: nothing to stop; O38 re-arms at the connect
-            self.dropped()
 
     @rule()
     def frame_from_the_board(self):
-        self.plan.frame(self.now)
+        self.run(FrameIn(self.now))
         if self.connected:
             assert self.plan.online, 'a frame on an open port and the board not online'
 
     @rule()
     def worker_poll(self):
-        change, _ = self.plan.tick(self.now)
-        if change is not None and not change[0]:
-            self.dropped()
-        self.drain()
+        self.run(Tick(self.now))
 
-    # A caller queues its frame, then drains; another thread's frames may be queued between
-    # (``drain`` False: the caller has not reached its drain yet).
+    @rule(speed=st.one_of(st.none(), st.floats(-6, 6)))
+    def motor_command(self, speed):
+        assert self.motor(speed) == self.plan.online or not self.connected
 
-    @rule(speed=st.one_of(st.none(), st.floats(-6, 6)), drain=st.booleans())
-    def motor_command(self, speed, drain):
-        frame = None if speed is None else p.encode_motor_speeds([(0, speed)])
-        accepted = self.plan.motor_command(frame, self.now)
-        assert accepted == self.plan.online
-        if accepted and self.connected:
-            self.armed_at = self.now
-        if drain:
-            self.drain()
+    @rule(calls=st.lists(st.sampled_from(['motor', 'led', 'move', 'stop', 'read']), min_size=2,
+                         max_size=8))
+    def callers_while_one_writes(self, calls):
+        """Issue 22 item 3: threads step the plan while another writes the frame in flight.
 
-    @rule()
-    def a_caller_drains(self):
-        self.drain()
-
-    @rule(calls=st.lists(st.sampled_from(['motor', 'led', 'move', 'stop']), min_size=2,
-                         max_size=6))
-    def callers_at_once(self, calls):
-        """Several threads queue their frames before any of them drains."""
+        The first call's frame is being written; the others queue theirs. When that write is
+        over, the next frame is a stop if one was queued (``run`` checks it).
+        """
+        self.hold = True
+        self.run(Command(self.now, LED_FRAME, self.ticket()))
         for k, call in enumerate(calls):
             if call == 'motor':
-                if self.plan.motor_command(p.encode_motor_speeds([(1, 2.0)]), self.now) and \
-                        self.connected:
-                    self.armed_at = self.now
+                self.motor()
             elif call == 'led':
-                self.plan.command(LED_FRAME)
+                self.run(Command(self.now, LED_FRAME, self.ticket()))
             elif call == 'move':
-                items = [(i, (k * 101 + i) % 1001) for i in SERVOS[:10]]
-                if self.plan.move(20, items):
-                    self.wanted.update(items)
+                self.move([(i, (k * 101 + i) % 1001) for i in SERVOS[:10]])
+            elif call == 'read':
+                self.read()  # the worker's read leaves beside the plan's frames
             else:
-                self.plan.stop_motors()
-        self.drain()
+                self.run(StopMotors(self.now, self.ticket()))
+        self.hold = False
+        if self.in_flight is not None:
+            self.run_after(self.write())
+
+    def run_after(self, events):
+        for event in events:
+            self.run(event)
 
     @rule()
     def stop_motors(self):
-        self.plan.stop_motors()
-        self.drain()
+        self.run(StopMotors(self.now, self.ticket()))
 
     @rule(ids=st.lists(st.sampled_from(SERVOS), min_size=1, max_size=8, unique=True),
-          position=st.integers(0, 1000), duration=st.sampled_from([0, 20, 100]),
-          drain=st.booleans())
-    def bus_servo_command(self, ids, position, duration, drain):
-        items = [(i, (position + 13 * i) % 1001) for i in ids]
-        if self.plan.move(duration, items):
-            self.wanted.update(items)
-        else:
-            assert not self.plan.online
-        if drain:
-            self.drain()
+          position=st.integers(0, 1000), duration=st.sampled_from([0, 20, 100]))
+    def bus_servo_command(self, ids, position, duration):
+        self.move([(i, (position + 13 * i) % 1001) for i in ids], duration)
 
     @rule(rounds=st.integers(5, 40), duration=st.sampled_from([0, 20]))
     def servo_command_flood(self, rounds, duration):
         """Issue 21 item 7: 20 servos every 10 ms, more than the servo bus carries."""
         for k in range(rounds):
-            items = [(i, (k * 37 + i) % 1001) for i in SERVOS[:20]]
-            if self.plan.move(duration, items):
-                self.wanted.update(items)
-            self.drain()
+            self.move([(i, (k * 37 + i) % 1001) for i in SERVOS[:20]], duration)
             self.timer_until(self.now + 0.01)
 
-    @rule(drain=st.booleans())
-    def led_command(self, drain):
-        assert self.plan.command(LED_FRAME) == self.plan.online
-        if drain:
-            self.drain()
+    @rule()
+    def led_command(self):
+        online = self.plan.online
+        ticket = self.ticket()
+        self.run(Command(self.now, LED_FRAME, ticket))
+        assert (ticket in self.answered) == (not online or not self.connected or
+                                             ticket in self.answered)
 
     @rule(count=st.integers(1, 40))
     def reads_left_unanswered(self, count):
@@ -326,7 +477,7 @@ class BoardPlanMachine(RuleBasedStateMachine):
         for _ in range(count):
             if not (self.connected and self.plan.online):
                 break
-            self.plan.scheduler.written(READ_FRAME, self.now)
+            self.read()
             self.timer_until(self.now + 0.1)
 
     @rule(dt=st.floats(0.001, 1.5))
@@ -359,6 +510,21 @@ class BoardPlanMachine(RuleBasedStateMachine):
     def nothing_but_stops_waits_while_offline(self):
         if not self.plan.online:
             assert not self.plan.scheduler.commands and not self.plan.scheduler.targets
+
+    @invariant()
+    def every_call_is_answered_once_its_frame_left_or_was_dropped(self):
+        # Between rules no write is in flight: every ticket still waiting is queued.
+        assert self.in_flight is None and not self.plan.sending
+        queued = {t for _, t in self.plan.scheduler.stops} | \
+            {t for _, t, _ in self.plan.scheduler.commands}
+        assert self.waiting <= queued, self.waiting - queued
+
+    @invariant()
+    def nothing_ready_waits_without_a_writer_or_a_timer(self):
+        assert not self.plan.scheduler.stops and not self.plan.scheduler.commands
+        if self.plan.scheduler.targets:
+            paced = self.plan.scheduler.next_time(self.now)
+            assert self.timer_at is not None and self.timer_at <= paced, (self.timer_at, paced)
 
     @precondition(lambda self: self.plan.online and self.plan.scheduler.targets)
     @rule()
