@@ -68,6 +68,7 @@ not call back into blocking methods of the core from the reader thread.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -176,9 +177,12 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         # by every thread (run_core), their actions carried out by that thread outside it.
         self._plan = BoardPlan(self.config.motor_timeout_s, self.config.offline_timeout_s)
         self._stepper = _LockedPlan(self._plan, self._lock, pace_clock)
-        self._handlers = {Send: self._send, OnlineChanged: self._online_changed,
-                          Refuse: self._unsent, Drop: self._unsent, ev.Log: self._log_line,
-                          ev.SetTimer: self._set_timer}
+        # No handler raises: a step's later action failing would lose the SendDone of its
+        # Send (queued behind it), and a plan left "sending" writes nothing ever again, not
+        # even the watchdog's stop.
+        self._handlers = {kind: self._never_raises(handler) for kind, handler in (
+            (Send, self._send), (OnlineChanged, self._online_changed), (Refuse, self._unsent),
+            (Drop, self._unsent), (ev.Log, self._log_line), (ev.SetTimer, self._set_timer))}
         # What became of a caller's frame (its ticket): ('sent' | 'failed' | 'refused' |
         # 'dropped', why), set by whichever thread carried it out; the caller waits on _sent.
         self._results: Dict[object, Tuple[str, Optional[str]]] = {}
@@ -373,6 +377,19 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         meanwhile is next, whoever queued the frames before it (issue 22 item 3).
         """
         return run_core(self._stepper, events, self._handlers)
+
+    def _never_raises(self, handler: Callable[[Any], Any]) -> Callable[[Any], Any]:
+        def carry_out(action: Any) -> Any:
+            try:
+                return handler(action)
+            except Exception:  # noqa: BLE001 - see _handlers
+                done = [SendDone(self._clock(), 'the write failed')] \
+                    if isinstance(action, Send) else None
+                with contextlib.suppress(Exception):  # (the logger may be what failed)
+                    self._log.exception(f'originman core: carrying out '
+                                        f'{type(action).__name__} failed')
+                return done
+        return carry_out
 
     def _send(self, action: Send) -> List[Event]:
         """Write the plan's frame (outside ``_lock``); its ``SendDone`` frees the writer."""

@@ -262,6 +262,54 @@ def test_motors_stop_when_no_motor_command_came_for_the_timeout(make_rig):
     assert r.frames_out == sent + 2  # stopped once, not again and again
 
 
+class FailingOnce:
+    """A logger whose first warning raises (a log handler on a full disk), then logs."""
+
+    def __init__(self):
+        self.failed = False
+        self.lines = []
+
+    def warning(self, text):
+        if not self.failed:
+            self.failed = True
+            raise OSError(28, 'No space left on device')
+        self.lines.append(text)
+
+    def __getattr__(self, name):  # info, error, exception: kept
+        return lambda text, *args, **kwargs: self.lines.append(text)
+
+
+def test_round2_22_2_a_failing_log_line_after_the_watchdog_stop_leaves_the_sending_going(
+        tmp_path):
+    """The watchdog's step gives its stop's Send, then its log line: a log line that raised
+    lost the stop's SendDone, and the plan, left "sending", wrote nothing ever again (not the
+    next command, not the next stop)."""
+    board = VirtualBoard(str(tmp_path / 'board'))
+    board.start()
+    clock = FakeClock()
+    log = FailingOnce()
+    core = OriginManCore(OriginManConfig(port=board.path, motor_timeout_s=0.5,
+                                         read_timeout_s=0.25), clock=clock, logger=log)
+    try:
+        core.start(worker=False)
+        assert core.link.wait_port_open(5)
+        wait_for(lambda: core.link.decoder.frames_decoded > 0, 5, what='a frame')
+        core.poll()
+        assert core.online
+        for speed in (1.0, 2.0):
+            assert core.set_motor_speeds([1], [speed]).ok
+            wait_for(lambda: board.model.motor_set_points[0] == speed, 5,
+                     what=f'motor 1 at {speed}')
+            clock.advance(0.5)
+            core.poll()
+            wait_for(lambda: board.model.motor_set_points[0] == 0.0, 5,
+                     what='motor 1 stopped by the watchdog')
+        assert log.failed and core.snapshot().watchdog_stops == 2
+    finally:
+        core.stop(stop_motors=False)
+        board.stop()
+
+
 def test_o39_a_refused_motor_command_does_not_restart_the_timeout(make_rig):
     r = make_rig(motor_timeout_s=0.5)
     r.online()
