@@ -72,7 +72,7 @@ import contextlib
 import logging
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core_bus_poll import (BusServoPoll, SERVO_OFFLINE_AFTER,  # noqa: F401
@@ -87,7 +87,7 @@ from originman_board_ros.core_types import (  # noqa: F401 (the names of this mo
     ConfigError, gamepad_axes, gamepad_buttons, GamepadSample, imu_to_si, ImuSample,
     MOTOR_TYPES, OriginManConfig, OriginManSnapshot, PwmServoStates, Refused, sbus_normalize,
     SbusSample, STANDARD_GRAVITY)
-from originman_board_ros.link import LinkDown, LinkError, OriginManLink
+from originman_board_ros.link import LinkDown, LinkError, LinkTimeout, OriginManLink
 from originman_board_ros.plan import (Action, BoardPlan, Command, Deadline, Drop, Event,
                                       FrameIn, OnlineChanged, Reconfigure, Refuse, Send,
                                       SendDone, Written)
@@ -186,6 +186,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         # What became of a caller's frame (its ticket): ('sent' | 'failed' | 'refused' |
         # 'dropped', why), set by whichever thread carried it out; the caller waits on _sent.
         self._results: Dict[object, Tuple[str, Optional[str]]] = {}
+        self._abandoned: Set[object] = set()  # tickets whose caller stopped waiting
         self._sent = threading.Condition(self._lock)
         # The watchdog and the paced frames have a thread of their own that never waits
         # behind a read (issue 21 item 6).
@@ -413,6 +414,9 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
 
     def _settle(self, ticket: object, outcome: str, why: Optional[str]) -> None:
         with self._sent:
+            if ticket in self._abandoned:
+                self._abandoned.discard(ticket)  # its caller has had its answer
+                return
             self._results[ticket] = (outcome, why)
             self._sent.notify_all()
 
@@ -425,10 +429,16 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         return False
 
     def _wait(self, ticket: object) -> Optional[str]:
-        """Wait until ``ticket``'s frame has left: None, or why it did not."""
+        """Wait until ``ticket``'s frame has left: None, or why it did not.
+
+        Raises LinkTimeout when it is still queued after ``SEND_WAIT_S``: it may leave later,
+        so whether it does is not known (and its outcome, when it comes, is not kept).
+        """
         with self._sent:
             if not self._sent.wait_for(lambda: ticket in self._results, SEND_WAIT_S):
-                return f'not written within {SEND_WAIT_S:g} s'
+                self._abandoned.add(ticket)
+                raise LinkTimeout(f'still queued after {SEND_WAIT_S:g} s (the port wrote '
+                                  'nothing meanwhile): it may leave later')
             outcome, why = self._results.pop(ticket)
         return None if outcome == 'sent' else why
 

@@ -20,7 +20,7 @@ from typing import Any, Callable, Iterable, List, Sequence, Tuple
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core_types import _is_int, Refused
-from originman_board_ros.link import LinkError
+from originman_board_ros.link import LinkError, LinkTimeout
 from originman_board_ros.plan import MotorCommand, Move, StopMotors
 from uav_serial_common.result import Result
 
@@ -114,6 +114,8 @@ class Commands:
         try:
             for frame in frames:
                 self._write(frame, cancels)
+        except LinkTimeout as exc:
+            return Result.unknown(f'{what}: {exc}', cause='timeout')
         except LinkError as exc:
             return Result.failed(f'{what}: not sent: {exc}', cause='link_down')
         # The board never acknowledges these: "sent" is all anyone can know.
@@ -214,7 +216,10 @@ class Commands:
             return self._refuse(Refused('offline', f'the board is offline ({self._status})'))
         if not frames:
             return Result.sent(f'{what}: sent')
-        error = self._wait(ticket)
+        try:
+            error = self._wait(ticket)
+        except LinkTimeout as exc:
+            return Result.unknown(f'{what}: {exc}', cause='timeout')
         if error is not None:
             return Result.failed(f'{what}: not sent: {error}', cause='link_down')
         return Result.sent(f'{what}: sent')
@@ -227,7 +232,10 @@ class Commands:
         """
         ticket = object()
         self._step(StopMotors(self._clock(), ticket))
-        error = self._wait(ticket)
+        try:
+            error = self._wait(ticket)
+        except LinkTimeout as exc:
+            return Result.unknown(f'stop all motors: {exc}', cause='timeout')
         if error is not None:
             return Result.failed(f'stop all motors: not sent: {error}', cause='link_down')
         return Result.sent('stop all motors: sent')

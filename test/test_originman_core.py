@@ -407,6 +407,37 @@ def test_round2_22_3_a_stop_goes_next_behind_a_caller_writing_and_is_answered_at
     assert [type(c) for c in rig.wire(mark)] == [p.SetLed, p.StopMotors, p.SetBuzzer, p.BusMove]
 
 
+def test_round2_22_2_a_frame_still_queued_when_its_caller_stops_waiting_is_unknown_not_failed(
+        rig, monkeypatch):
+    """A caller whose frame is still queued when it stops waiting gets UNKNOWN (it may leave
+    later, and does), not a failure; its outcome, when it comes, is not kept for nobody."""
+    import originman_board_ros.core as core_module
+    monkeypatch.setattr(core_module, 'SEND_WAIT_S', 0.3)
+    core, real_send = rig.core, rig.core.link.send
+    release = threading.Event()
+
+    def send(frame):  # the LED's write held: the port takes nothing meanwhile
+        if isinstance(p.decode_host_command(p.BoardParser().feed(frame)[0]), p.SetLed):
+            release.wait(30)
+        real_send(frame)
+    core.link.send = send
+    mark = rig.mark()
+    answers = {}
+    writer = threading.Thread(target=lambda: answers.update(led=core.set_led(1, 0.1, 0.1, 1)),
+                              daemon=True)
+    writer.start()
+    try:
+        wait_for(lambda: core._plan.sending, 5, what='the LED being written')
+        result = core.set_buzzer(2000, 0.05, 0.05, 1)
+        assert result.outcome == Outcome.UNKNOWN and 'may leave later' in result.message, result
+    finally:
+        release.set()
+        writer.join(10)
+    assert answers['led'].ok
+    assert [type(c) for c in rig.wire(mark)] == [p.SetLed, p.SetBuzzer]  # it did leave
+    assert core._results == {} and core._abandoned == set()
+
+
 # ----- validation: refused before anything reaches the wire ------------------------------------
 
 REFUSALS = [
