@@ -19,7 +19,7 @@ from rcl_interfaces.srv import SetParameters
 from sensor_msgs.msg import BatteryState
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool
-from uav_serial_common.process import LaunchedProcesses
+from uav_serial_common.process import LaunchedProcesses, wait_for
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
 
@@ -140,6 +140,12 @@ class Rig:
             boot = self.sim.boot_count
         self.config.wait(lambda m: m.boot_count == boot and m.settings_verified, 10,
                          what=f'config re-read after power cycle (boot {boot})')
+        # The initialization goes on after the settings (the trigger records are read last):
+        # a deployment before its end is reported by the records it reads (via RECORD), not by
+        # the status the test may be waiting for.
+        wait_for(lambda: any(r.get('event') == 'initialized' and r.get('boot_count') == boot
+                             for r in self.blackbox()), 10, interval=0.05,
+                 what=f'the initialization of boot {boot} in the black box')
         start = len(self.status)
         self.status.wait(lambda m: m.online and m.streaming and not m.triggered and
                          not m.armed, 10, what='fresh streaming status', start=start)
