@@ -2,9 +2,11 @@
 
 :class:`PriorityLock` serves the bus's callers by priority (an emergency stop before commands
 and services, those before the read loop); :class:`Posted` are frames without a reply handed to
-a running chain; :class:`ReadChain` runs a :class:`ReadPlan` as a request chain of the serial
-link, deciding at each READ boundary what goes next by the schedule's ``next_on_bus``. Used by
-:class:`~desheng_servo_ros.link.ServoBusLink`, which owns the port.
+a running chain, each a :class:`~uav_serial_common.ticket.Ticket` its poster may wait on (the
+thread that wrote or dropped them settles it); :class:`ReadChain` runs a :class:`ReadPlan` as a
+request chain of the serial link, deciding at each READ boundary what goes next by the
+schedule's ``next_on_bus``. Used by :class:`~desheng_servo_ros.link.ServoBusLink`, which owns
+the port.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from desheng_servo_ros.protocol import Reply
 from desheng_servo_ros.schedule import IDLE_GUARD_S, next_on_bus, POSTED, YIELD
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkError
+from uav_serial_common.ticket import Ticket
 
 if TYPE_CHECKING:  # pragma: no cover
     from desheng_servo_ros.link import ServoBusLink
@@ -32,30 +35,35 @@ class BusBusy(LinkError):
     """The bus stayed taken by others for too long."""
 
 
-class Posted:
-    """Frames without a reply handed to the read chain (`ServoBusLink.post`), and their fate."""
+class Posted(Ticket):
+    """Frames without a reply handed to the read chain (`ServoBusLink.post`), and their fate.
 
-    __slots__ = ('frames', 'size', 'event', 'error', 'written_at')
+    Settled once (`settle`) by whichever thread wrote them or dropped them: ``'written'`` or
+    ``'failed'``, with the error and when it happened as its ``detail``.
+    """
+
+    __slots__ = ('frames', 'size')
 
     def __init__(self, frames: Sequence[bytes]) -> None:
+        super().__init__()
         self.frames = list(frames)
         self.size = sum(map(len, frames))
         """Bytes of all the frames."""
-        self.event = threading.Event()
-        self.error: Optional[LinkError] = None
-        self.written_at = 0.0
-        """When the last frame had left the line (monotonic), once `done`."""
 
     @property
-    def done(self) -> bool:
-        """Whether every frame was written (or failed: `error`)."""
-        return self.event.is_set()
+    def error(self) -> Optional[LinkError]:
+        """What writing them raised (or why they were dropped), once `settled`."""
+        return self.detail[0] if self.settled else None
 
-    def settle(self, error: Optional[LinkError] = None) -> None:
-        """Record the outcome and wake whoever waits."""
-        self.error = error
-        self.written_at = time.monotonic()
-        self.event.set()
+    @property
+    def written_at(self) -> float:
+        """When the last frame had left the line (monotonic), once `settled`."""
+        return self.detail[1] if self.settled else 0.0
+
+    def settle(self, error: Optional[LinkError] = None) -> bool:  # type: ignore[override]
+        """Record the outcome and wake whoever waits; False if it was settled already."""
+        return super().settle('written' if error is None else 'failed',
+                              (error, time.monotonic()))
 
 
 class _PriorityLock:

@@ -69,7 +69,7 @@ class CommandPath:
         """
         last = self._last_post
         if last is not None:
-            if not last.done:
+            if not last.settled:
                 return False
             self._last_post = None
             self._charge(last.written_at, last.size)
@@ -117,7 +117,7 @@ class CommandPath:
             if in_flight is not None:
                 # The frames handed to the read chain are not out yet; the reader thread
                 # settles them. Waited for outside the lock: it takes the post lock meanwhile.
-                in_flight.event.wait(0.1)
+                in_flight.wait(0.1)
                 continue
             try:
                 frames = self.bus.sync_write_positions(targets, PRIORITY_SERVICE, wait=False)

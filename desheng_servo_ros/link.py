@@ -359,7 +359,7 @@ class ServoBusLink:
                 return None
             self._posted.append(item)
         if wait_s is not None:
-            if not item.event.wait(wait_s):
+            if not item.wait(wait_s):
                 raise BusBusy(f'the bus on {self.port} took no command for {wait_s:.0f} s')
             if item.error is not None:
                 raise item.error

@@ -45,9 +45,12 @@ Threads and state (who owns what):
   ``on_bus_servo_states``. It owns the poll schedule (``_next_poll``, ``_telemetry_at``,
   ``_reprobe_at``, ``_check_at``: worker only, no lock).
 * **caller threads** (a node's executor) call the command methods (``core_commands``) and the
-  services (``core_services``). They validate and step the plan with their frame and a ticket,
-  then wait (``_wait``, on ``_sent``) until the frame has left, was dropped or could not be
-  written; a read goes through the link (a lock per FUNCTION keeps one read outstanding).
+  services (``core_services``). They validate and step the plan with their frame and a
+  :class:`~uav_serial_common.ticket.Ticket` (opaque to the plan), then wait on it (``_wait``)
+  until the frame has left, was dropped or could not be written: whichever thread carries out
+  the plan's ``Send``, ``Refuse`` or ``Drop`` settles it. A ticket holds its own fate, so one
+  settled after its caller gave up (``SEND_WAIT_S``) is kept for nobody. A read goes through
+  the link (a lock per FUNCTION keeps one read outstanding).
 * **writing**: a caller, the worker or the timer, never the reader (the plan gives no ``Send``
   for the reader's and the link's events: they come from inside the link's locks). The plan
   has at most one ``Send`` out: the thread whose step got it writes it (outside ``_lock``),
@@ -56,11 +59,10 @@ Threads and state (who owns what):
   ``stop_all_motors``) queued while another thread writes a caller's queued frames is the next
   frame on the wire, after at most the one being written (issue 22 item 3), and its caller's
   answer does not wait for the rest.
-* shared, always under ``_lock``: ``_plan`` (stepped by ``_stepper``), ``_results`` (what
-  became of each caller's ticket), ``_status``, ``_settings_*``, ``_servos`` (the
-  poll and the read services), ``_poll_ids`` (renamed by ``set_bus_servo_id``),
-  ``_expected_offsets`` (the worker and ``set_pwm_servo_offset``), the refusal and report
-  counters.
+* shared, always under ``_lock``: ``_plan`` (stepped by ``_stepper``), ``_status``,
+  ``_settings_*``, ``_servos`` (the poll and the read services), ``_poll_ids`` (renamed by
+  ``set_bus_servo_id``), ``_expected_offsets`` (the worker and ``set_pwm_servo_offset``), the
+  refusal and report counters.
 
 ``_lock`` is never held while calling a callback or doing I/O. Callbacks must be quick and must
 not call back into blocking methods of the core from the reader thread.
@@ -72,7 +74,7 @@ import contextlib
 import logging
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core_bus_poll import (BusServoPoll, SERVO_OFFLINE_AFTER,  # noqa: F401
@@ -96,6 +98,7 @@ from uav_serial_common.core_runner import run_core
 from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.logs import log_at
 from uav_serial_common.result import Outcome, Result  # noqa: F401 (what the core answers)
+from uav_serial_common.ticket import Ticket
 
 __all__ = ['AsrSample', 'BatterySample', 'BusServoStatus', 'ButtonSample', 'ConfigError',
            'GamepadSample', 'ImuSample', 'MOTOR_TYPES', 'OriginManConfig', 'OriginManCore',
@@ -183,11 +186,6 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         self._handlers = {kind: self._never_raises(handler) for kind, handler in (
             (Send, self._send), (OnlineChanged, self._online_changed), (Refuse, self._unsent),
             (Drop, self._unsent), (ev.Log, self._log_line), (ev.SetTimer, self._set_timer))}
-        # What became of a caller's frame (its ticket): ('sent' | 'failed' | 'refused' |
-        # 'dropped', why), set by whichever thread carried it out; the caller waits on _sent.
-        self._results: Dict[object, Tuple[str, Optional[str]]] = {}
-        self._abandoned: Set[object] = set()  # tickets whose caller stopped waiting
-        self._sent = threading.Condition(self._lock)
         # The watchdog and the paced frames have a thread of their own that never waits
         # behind a read (issue 21 item 6).
         self._timer = DeadlineTimer(self._timer_duty, name='originman-timer', clock=clock,
@@ -402,52 +400,39 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
         except Exception as exc:  # noqa: BLE001 - the writer must be freed whatever happens
             self._log.exception('originman core: a write failed')
             error = f'{type(exc).__name__}: {exc}'
-        if action.ticket is not None:
-            self._settle(action.ticket, 'sent' if error is None else 'failed', error)
+        if action.ticket is not None:  # (the ticket holds its fate: nothing kept for nobody)
+            action.ticket.settle('sent' if error is None else 'failed', error)
         return [SendDone(self._clock(), error)]
 
     def _unsent(self, action: Any) -> None:
         """Answer a caller whose frame was refused (offline) or dropped unsent."""
         if action.ticket is not None:
-            self._settle(action.ticket, 'refused' if isinstance(action, Refuse) else 'dropped',
-                         action.reason)
+            action.ticket.settle('refused' if isinstance(action, Refuse) else 'dropped',
+                                 action.reason)
 
-    def _settle(self, ticket: object, outcome: str, why: Optional[str]) -> None:
-        with self._sent:
-            if ticket in self._abandoned:
-                self._abandoned.discard(ticket)  # its caller has had its answer
-                return
-            self._results[ticket] = (outcome, why)
-            self._sent.notify_all()
-
-    def _refused(self, ticket: object) -> bool:
+    @staticmethod
+    def _refused(ticket: Ticket) -> bool:
         """Whether the step that queued ``ticket`` refused it (the board is offline)."""
-        with self._lock:
-            if self._results.get(ticket, ('',))[0] == 'refused':
-                del self._results[ticket]
-                return True
-        return False
+        return ticket.outcome == 'refused'
 
-    def _wait(self, ticket: object) -> Optional[str]:
+    @staticmethod
+    def _wait(ticket: Ticket) -> Optional[str]:
         """Wait until ``ticket``'s frame has left: None, or why it did not.
 
         Raises LinkTimeout when it is still queued after ``SEND_WAIT_S``: it may leave later,
         so whether it does is not known (and its outcome, when it comes, is not kept).
         """
-        with self._sent:
-            if not self._sent.wait_for(lambda: ticket in self._results, SEND_WAIT_S):
-                self._abandoned.add(ticket)
-                raise LinkTimeout(f'still queued after {SEND_WAIT_S:g} s (the port wrote '
-                                  'nothing meanwhile): it may leave later')
-            outcome, why = self._results.pop(ticket)
-        return None if outcome == 'sent' else why
+        if not ticket.wait(SEND_WAIT_S):
+            raise LinkTimeout(f'still queued after {SEND_WAIT_S:g} s (the port wrote '
+                              'nothing meanwhile): it may leave later')
+        return None if ticket.outcome == 'sent' else ticket.detail
 
     def _write(self, frame: bytes, cancels: Sequence[int] = ()) -> None:
         """Send a command now, behind queued ones; raise LinkError when it did not leave.
 
         ``cancels``: queued bus servo targets of these ids are dropped (a stop, torque off).
         """
-        ticket = object()
+        ticket = Ticket()
         self._step(Command(self._clock(), frame, ticket, tuple(cancels)))
         if self._refused(ticket):
             raise LinkDown(f'the board is offline ({self._status})')

@@ -8,7 +8,8 @@ Threads:
   below raise :class:`Refused`; nothing is sent before they all pass), then step the plan with
   their frame (``_step``). The plan refuses it while the board is offline; else the caller
   writes what the plan has ready if no other thread is writing, and waits until its own frame
-  has left (``_wait``), whichever thread wrote it.
+  has left (``_wait``, on its :class:`~uav_serial_common.ticket.Ticket`), whichever thread
+  wrote it.
 
 Owns, under ``_lock``: the refusal counters (``_refusals``).
 """
@@ -23,6 +24,7 @@ from originman_board_ros.core_types import _is_int, Refused
 from originman_board_ros.link import LinkError, LinkTimeout
 from originman_board_ros.plan import MotorCommand, Move, StopMotors
 from uav_serial_common.result import Result
+from uav_serial_common.ticket import Ticket
 
 STOP_ALL_MASK = (1 << p.MOTOR_COUNT) - 1
 LED_TIME_MAX_S = 65.535
@@ -207,7 +209,7 @@ class Commands:
             self._require_online()
         except Refused as exc:
             return self._refuse(exc)
-        ticket = object()
+        ticket = Ticket()
         # Zeros and empty calls restart the timeout too; a refused one does not: its sender
         # is not in control of the motors (O39). The new deadline reaches the timer as the
         # plan's SetTimer.
@@ -230,7 +232,7 @@ class Commands:
         The stop goes out ahead of every queued frame, after at most the one frame another
         thread is writing; the answer comes once it has left.
         """
-        ticket = object()
+        ticket = Ticket()
         self._step(StopMotors(self._clock(), ticket))
         try:
             error = self._wait(ticket)
@@ -276,7 +278,7 @@ class Commands:
             self._require_online()
         except Refused as exc:
             return self._refuse(exc)
-        ticket = object()
+        ticket = Ticket()
         # Issue 21 item 7: the newest target of each servo waits for room on the board's
         # servo bus; a later command for the same servo replaces it.
         self._step(Move(self._clock(), ms, tuple(items), ticket))

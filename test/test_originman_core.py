@@ -6,8 +6,10 @@ deterministic while the bytes still cross a real pty.
 """
 
 from dataclasses import replace
+import gc
 import math
 import threading
+import weakref
 
 from originman_board_ros import protocol as p
 from originman_board_ros.core import (ConfigError, IDLE_MAX_S, OriginManConfig, OriginManCore,
@@ -412,9 +414,20 @@ def test_round2_22_2_a_frame_still_queued_when_its_caller_stops_waiting_is_unkno
     """A caller whose frame is still queued when it stops waiting gets UNKNOWN (it may leave
     later, and does), not a failure; its outcome, when it comes, is not kept for nobody."""
     import originman_board_ros.core as core_module
+    import originman_board_ros.core_commands as commands_module
     monkeypatch.setattr(core_module, 'SEND_WAIT_S', 0.3)
     core, real_send = rig.core, rig.core.link.send
     release = threading.Event()
+    tickets = []  # (weak: what the test holds must not keep them)
+
+    class Ticket(core_module.Ticket):
+        __slots__ = ()
+
+        def __init__(self):
+            super().__init__()
+            tickets.append(weakref.ref(self))
+    monkeypatch.setattr(core_module, 'Ticket', Ticket)
+    monkeypatch.setattr(commands_module, 'Ticket', Ticket)
 
     def send(frame):  # the LED's write held: the port takes nothing meanwhile
         if isinstance(p.decode_host_command(p.BoardParser().feed(frame)[0]), p.SetLed):
@@ -435,7 +448,11 @@ def test_round2_22_2_a_frame_still_queued_when_its_caller_stops_waiting_is_unkno
         writer.join(10)
     assert answers['led'].ok
     assert [type(c) for c in rig.wire(mark)] == [p.SetLed, p.SetBuzzer]  # it did leave
-    assert core._results == {} and core._abandoned == set()
+    # Both tickets were settled ('sent') and nothing keeps them, the one whose caller gave up
+    # included: no outcome kept for nobody.
+    assert len(tickets) == 2
+    gc.collect()
+    assert [ref() for ref in tickets] == [None, None]
 
 
 # ----- validation: refused before anything reaches the wire ------------------------------------

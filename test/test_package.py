@@ -242,7 +242,7 @@ ROS_FREE = {
                             'core_services', 'core_settings', 'core_bus_poll', 'simulation',
                             'simulation_parts', 'simulation_handlers'],
     'parachute_mavlink_ros': ['events', 'core'],
-    'uav_serial_common': ['core_events', 'core_runner'],  # (what every core may import)
+    'uav_serial_common': ['core_events', 'core_runner', 'ticket'],  # (what every core may import)
 }
 
 

@@ -717,7 +717,7 @@ def test_a_command_goes_out_at_the_next_read_boundary_from_the_running_read_loop
                 before.append(r)
             # At most the READ that was on the wire when the command came.
             assert len(before) <= 1, before
-            wait_for(lambda: rig.core._last_post is None or rig.core._last_post.done, 2,
+            wait_for(lambda: rig.core._last_post is None or rig.core._last_post.settled, 2,
                      what='the command written')
         # The read loop went on.
         count = rig.core.cycle_count
