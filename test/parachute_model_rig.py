@@ -120,6 +120,8 @@ class ModelRig:
         self.hold_until = -1e9
         self.reboot_at: Optional[float] = None   # a reboot of the module due (in a stall)
         self.heard_boots: Set[int] = set()       # power-ups whose heartbeat the core took
+        # A Reply not yet stepped (by id; kept alive so no other takes its id) and its boot.
+        self.sent_by: Dict[int, Tuple[Reply, int]] = {}
         self.armed_boot: Optional[int] = None    # the power-up the last armed state read is of
         self.order_problems: List[str] = []
         self.decoder = p.StreamDecoder('from_module')
@@ -252,12 +254,22 @@ class ModelRig:
     # -- carrying out the core's actions ------------------------------------------------------
 
     def _run(self, events: List[Any]) -> None:
-        run_core(self if self.mirror else self.core, events, {
+        run_core(self, events, {
             Request: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
             SaveAttempts: self._save, PassGate: self._gate, DeployAnswer: self._answer})
 
     def step(self, event: Any) -> List[Any]:
-        """Step a mirror core as the session does: its keeper takes the event in first."""
+        """Step the core; a mirror core as the session does: its keeper takes the event first.
+
+        What the invariants follow of the module's frames is taken here, as the core takes
+        them: a batch the reader brings is stepped one frame at a time, and a request the core
+        sends on one of them leaves before it takes the next (which it could not know of).
+        """
+        if isinstance(event, Reply):
+            _, boot = self.sent_by.pop(id(event), (event, self.model.boot_count))
+            self._told(event.message, event.now, boot)
+        if not self.mirror:
+            return self.core.step(event)
         keeper = self.keeper
         assert keeper is not None
         if not isinstance(event, (DeployCall, GateDone)):
@@ -427,7 +439,7 @@ class ModelRig:
         frames = self.decoder.feed(out) + self.decoder.flush()
         replies = [Reply(now, p.decode_module_frame(f)) for f in frames]
         for reply in replies:
-            self._told(reply.message, now, self.model.boot_count if boot is None else boot)
+            self.sent_by[id(reply)] = (reply, self.model.boot_count if boot is None else boot)
         return replies
 
     # -- what the invariants need -------------------------------------------------------------
@@ -456,7 +468,7 @@ class ModelRig:
             if msg.armed == self.model.armed:
                 self.unseen_change = False
         elif isinstance(msg, p.DeployAck) and msg.success:
-            self.unacked[self.model.boot_count] = 0
+            self.unacked[boot] = 0
 
     def _count_deploy_frame(self) -> None:
         boot = self.model.boot_count

@@ -45,7 +45,8 @@ import pytest
 from dps_parachute_ros.deploy_core import DeployCore, MAX_FAILED_DEPLOYS
 from dps_parachute_ros.deploy_knowledge import LATE_HEARTBEAT_EVENT
 from model_runs import search
-from parachute_model_rig import Call, FAULTS, ModelRig, REBOOT_S
+from dps_parachute_ros.release_gate import GateDone
+from parachute_model_rig import Call, FAULTS, HEARTBEAT, ModelRig, REBOOT_S
 from uav_serial_common.core_events import Record
 
 
@@ -369,6 +370,48 @@ def test_round2_22_3_late_heartbeats_on_each_request_of_a_deploy(mirror, fault, 
     assert all(n <= MAX_FAILED_DEPLOYS for n in rig.unacked.values()), rig.unacked
     if fault in rig.applied and fault != 'lost_heartbeat_reboot' and not mirror:
         assert late_heartbeats(rig), rig.actions
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+@pytest.mark.parametrize('change', ['reboot', 'late_heartbeat', 'lock', 'deployed'])
+def test_round2_22_3_found_a_change_while_the_deploy_gate_is_passed_is_judged_before_the_frame(
+        mirror, change):
+    # Found by the 20,000-sequence search once the reader could stall: the frames it held came
+    # in while the release gate was passed (a late heartbeat, a status frame saying deployed):
+    # the deploy frame left on the armed state read before the gate. Whatever is taken
+    # meanwhile is judged before the frame leaves (D15), as the trigger core does (22_7).
+    rig = ModelRig(armed=True, mirror=mirror)
+    if change == 'late_heartbeat':
+        rig.wait(REBOOT_S)
+        rig.model.power_cycle()
+        rig.wait(0.0)  # its first heartbeat: a reboot...
+        rig._lose_second_heartbeat()  # ...whose second the reader takes late (below)
+        rig.model.armed = True
+    rig.status_frame()
+    model = rig.model
+
+    def gate(action):
+        rig.actions.append(action)
+        if change == 'reboot':
+            rig.power_cycle()
+        elif change == 'late_heartbeat':
+            rig.t += 0.5
+            rig._run(rig._deliver([(HEARTBEAT, model.boot_count)]))
+        elif change == 'lock':
+            model.armed = False
+            rig.status_frame()
+        else:
+            model._fire(0x04)
+            rig.status_frame()
+        return [GateDone(rig.t)]
+
+    rig._gate = gate
+    call = rig.deploy(gate=True)
+    check_call(rig, call)
+    assert not rig.order_problems, rig.order_problems
+    assert call.deploy_sends == 0, call.answers
+    assert call.answers[0].outcome == ('already deployed' if change == 'deployed' else
+                                       'refused'), call.answers
 
 
 # -- the search -------------------------------------------------------------------------------
