@@ -37,12 +37,14 @@ class PowerUpHeartbeats:
     unknown, the module read afresh) but does not record as one: the boot count read next tells.
 
     Heartbeats taken close together are one power-up's only where that is the one reading: the
-    second after a first. A third is another power-up (a `REBOOT`: the reader held them all),
-    and one close after a `MAYBE_REBOOT` is that power-up's second or the first of another
-    (its request of the power-up before, taken in between, is void): a `MAYBE_REBOOT` too.
+    second right after a first that is surely a first (taken after a pair, or long after the
+    heartbeat before). A third is another power-up (a `REBOOT`: the reader held them all); one
+    close after a heartbeat that may be a late second (a `MAYBE_REBOOT`, or a `REBOOT` taken
+    within `LATE_HEARTBEAT_S` of one) may be the first of another power-up, whose request of
+    the power-up before, taken in between, is void: a `MAYBE_REBOOT` too.
     """
 
-    _FIRST, _PAIR, _MAYBE = 'first', 'pair', 'maybe'
+    _FIRST, _PAIR, _UNSURE = 'first', 'pair', 'unsure'
 
     def __init__(self) -> None:
         """Start with no heartbeat seen."""
@@ -58,13 +60,14 @@ class PowerUpHeartbeats:
             if newest == self._FIRST:
                 self._newest = self._PAIR
                 return SAME_POWER_UP
-            if newest == self._MAYBE:
+            if newest == self._UNSURE:
                 return MAYBE_REBOOT
             self._newest = self._FIRST  # (a third heartbeat of one power-up cannot be)
             return REBOOT
-        if newest == self._FIRST and gap <= LATE_HEARTBEAT_S:
-            self._newest = self._MAYBE
-            return MAYBE_REBOOT
+        if gap <= LATE_HEARTBEAT_S and newest != self._PAIR:
+            # A late second, or another power-up's first: either way not surely a first.
+            self._newest = self._UNSURE
+            return MAYBE_REBOOT if newest == self._FIRST else REBOOT
         self._newest = self._FIRST
         return REBOOT
 

@@ -227,10 +227,17 @@ def test_round2_22_3_heartbeats_taken_together_are_one_power_up_only_as_a_first_
     assert beats.take(10.6) == MAYBE_REBOOT    # the pair's second, late (or another reboot)
     assert beats.take(10.6) == MAYBE_REBOOT    # the next power-up's first (or that one's second)
     assert beats.take(10.65) == MAYBE_REBOOT   # (and so on while they come together)
-    assert beats.take(11.0) == REBOOT          # after a pair, alone: another power-up
-    assert beats.take(11.05) == SAME_POWER_UP  # its second
-    assert beats.take(11.1) == REBOOT          # a third: another power-up, held with them
-    assert beats.take(11.15) == SAME_POWER_UP
+    # After those, one alone is another power-up, or the late second of the one before: a
+    # reboot either way, and the one close after it is no surer.
+    assert beats.take(11.2) == REBOOT
+    assert beats.take(11.2) == MAYBE_REBOOT
+    # A pair surely whole, then a third close after it: another power-up the reader held.
+    assert beats.take(20.0) == REBOOT
+    assert beats.take(20.05) == SAME_POWER_UP
+    assert beats.take(20.1) == REBOOT
+    assert beats.take(20.15) == SAME_POWER_UP
+    assert beats.take(20.6) == REBOOT          # after a pair: another power-up's first
+    assert beats.take(20.65) == SAME_POWER_UP
 
 
 def test_round2_22_the_core_handles_a_late_heartbeat_as_a_reboot_but_records_none():
