@@ -600,6 +600,24 @@ def test_round2_22_3_found_a_request_between_a_late_heartbeat_and_a_reboot_is_vo
     assert seen.sent_at is None and seen.decisions[0].decision == 'denied'
 
 
+def test_round2_22_3_found_a_request_between_late_heartbeats_of_three_power_ups_is_void():
+    """Found by the 20,000-sequence search after the rule above: the reader stalled twice; the
+    heartbeat taken 0.6 s after a burst of late ones was taken for a sure first, and the next
+    power-up's first, taken with it and a request of the power-up before, for its second."""
+    rig = TriggerRig('confirm', 0.2)
+    assert rig.ask()
+    rig.reboot(late_s=0.3)
+    rig.reboot(late_s=0.6)
+    rig.gate_on, rig.gate_delay = True, 0.0
+    rig.model.armed = True  # (by its switch: it asks at its next instant)
+    rig.unseen = True
+    rig.reboot(again_s=0.6)
+    rig.finish()
+    rig.check(final=True)
+    late = [s for s in rig.seen.values() if s.t > START]
+    assert late and all(s.sent_at is None for s in late), late
+
+
 def test_round2_22_7_a_driver_stopping_leaves_a_held_request_not_answered():
     core = TriggerCore('defer')
     core.know(True, '', False, True, True)
