@@ -192,8 +192,10 @@ class ModelRig:
             self.model.step(self.t + 0.1)
         elif late_s or again_s is not None:
             self.wait(0.0)  # its first heartbeat
-            if late_s:
-                self.hold_until = max(self.hold_until, self.t + late_s)
+            if late_s and self.t >= self.hold_until:
+                # (A stall going on is not made longer: no heartbeat is taken more than
+                # LATE_HEARTBEAT_S after the one before, the rule's bound, D3.)
+                self.hold_until = self.t + late_s
             if again_s is not None:
                 self._lose_second_heartbeat()
                 self.wait(again_s - 0.06)
@@ -343,7 +345,8 @@ class ModelRig:
                 out_parts = []
                 if fault in LATE_HEARTBEAT_FAULTS:
                     stall, again = LATE_HEARTBEAT_FAULTS[fault]
-                    self.hold_until = max(self.hold_until, self.t + stall)
+                    if self.t >= self.hold_until:  # (a stall going on is not made longer)
+                        self.hold_until = self.t + stall
                     if again is not None:
                         self.reboot_at = self.t + again
             if send.frame == DEPLOY_FRAME:

@@ -203,8 +203,10 @@ class TriggerRig:
             self.unseen = True
         elif late_s or again_s is not None:
             self.from_model()  # its first heartbeat
-            if late_s:
-                self.hold_until = max(self.hold_until, self.t + late_s)
+            if late_s and self.t >= self.hold_until:
+                # (A stall going on is not made longer: no heartbeat is taken more than
+                # LATE_HEARTBEAT_S after the one before, the rule's bound, D3.)
+                self.hold_until = self.t + late_s
             if again_s is not None:
                 self.lose_second_heartbeat()
                 self.wait(again_s - 0.06)
@@ -265,11 +267,15 @@ class TriggerRig:
 
     def finish(self) -> None:
         """Every gate passed, every deadline over: each request decided, each call answered."""
-        while self.gates:
-            self.pass_gate()
         self.monitor_lag = 0.0
-        self.wait(2 * MODULE_WINDOW_S)
-        self.run(Tick(self.t))
+        self.wait(max(0.0, self.hold_until - self.t))  # (the reader takes what it held)
+        for _ in range(10):  # (a request taken meanwhile asks for a gate again)
+            while self.gates:
+                self.pass_gate()
+            self.wait(2 * MODULE_WINDOW_S)
+            self.run(Tick(self.t))
+            if not self.gates:
+                break
 
     # -- the wire -----------------------------------------------------------------------------
 
