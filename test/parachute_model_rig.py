@@ -122,6 +122,8 @@ class ModelRig:
         self.heard_boots: Set[int] = set()       # power-ups whose heartbeat the core took
         # A Reply not yet stepped (by id; kept alive so no other takes its id) and its boot.
         self.sent_by: Dict[int, Tuple[Reply, int]] = {}
+        # A request's own end (Timeout, LinkDown) not yet stepped, and the request.
+        self.end_of: Dict[int, Tuple[Any, Request]] = {}
         self.armed_boot: Optional[int] = None    # the power-up the last armed state read is of
         self.order_problems: List[str] = []
         self.decoder = p.StreamDecoder('from_module')
@@ -270,6 +272,11 @@ class ModelRig:
         if isinstance(event, Reply):
             _, boot = self.sent_by.pop(id(event), (event, self.model.boot_count))
             self._told(event.message, event.now, boot)
+        _, request = self.end_of.pop(id(event), (event, None))
+        if request is not None and self.core._waiting is not request:
+            # A frame the reader took before it (held by a stall) answered that request: a
+            # runtime ends a request once, and the link's next request says it is down.
+            return []
         if not self.mirror:
             return self.core.step(event)
         keeper = self.keeper
@@ -320,6 +327,13 @@ class ModelRig:
                                       keeper._sent_since_read)
 
     def _send(self, send: Request) -> List[Any]:
+        events = self._carry_out(send)
+        for event in events:
+            if isinstance(event, (Timeout, LinkDown)):
+                self.end_of[id(event)] = (event, send)
+        return events
+
+    def _carry_out(self, send: Request) -> List[Any]:
         self.actions.append(send)
         if send.frame == DEPLOY_FRAME:
             self._check_before_deploy_frame()

@@ -414,6 +414,25 @@ def test_round2_22_3_found_a_change_while_the_deploy_gate_is_passed_is_judged_be
                                        'refused'), call.answers
 
 
+@pytest.mark.parametrize('mirror', [False, True])
+def test_round2_22_3_a_request_answered_by_a_frame_the_reader_held_ends_once(mirror):
+    # Reported by the 20,000-sequence search, a fault of the rig: the reader's stall ended with
+    # the reply to the boot count query and a status frame of the stream; the status query sent
+    # on the reply was answered by that frame (as a link matches replies), its own frame left
+    # and the module was unplugged: that LinkDown reached the core while it waited for the
+    # deploy frame, which never left ("UNKNOWN"). A request ends once: the deploy frame's own
+    # send tells the link is down (nothing sent).
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.status_frame()
+    check_call(rig, rig.deploy(faults=['late_heartbeat_slow']))
+    rig.model.armed = True
+    rig.status_frame()
+    call = rig.deploy(faults=['clean', 'unplug_after'])
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'refused' and call.deploy_sends == 0, call.answers
+    assert not rig.order_problems, rig.order_problems
+
+
 # -- the search -------------------------------------------------------------------------------
 
 class ParachuteDeployModel(RuleBasedStateMachine):
