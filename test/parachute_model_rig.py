@@ -162,7 +162,7 @@ class ModelRig:
     def restart_driver(self) -> None:
         """Respawn the driver: a new core, with the attempts the old one kept."""
         saved = self.saved
-        self._new_core(None if saved is None or saved.boot_count is None
+        self._new_core(None if saved is None
                        else Stored(saved.boot_count, saved.failed, saved.unacked,
                                    saved.since_read))
 

@@ -433,6 +433,32 @@ def test_round2_22_3_a_request_answered_by_a_frame_the_reader_held_ends_once(mir
     assert not rig.order_problems, rig.order_problems
 
 
+@pytest.mark.parametrize('mirror', [False, True])
+def test_round2_22_3_found_a_respawn_keeps_the_frames_of_a_run_that_never_read_the_boot_count(
+        mirror):
+    # Found by the 20,000-sequence search: the boot count query was lost, the status said armed
+    # (armed by another path), the frame was refused (its igniter failed: P11 counts it); the
+    # attempt was kept with no boot count, and the file of attempts wrote nothing without one:
+    # the respawned driver started from zero and two more frames put the module into
+    # protection. Kept with no boot count now, they count as sent since the last read.
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.power_cycle()
+    rig.model.igniter_fault = True
+    rig.deploy(faults=['drop_request', 'arm_by_other'])
+    rig.restart_driver()
+    rig.deploy()
+    rig.deploy()
+    assert all(n <= MAX_FAILED_DEPLOYS for n in rig.unacked.values()), rig.unacked
+    assert not rig.model.protection
+
+
+def test_round2_22_3_the_attempts_of_a_run_that_never_read_the_boot_count_are_kept(tmp_path):
+    from dps_parachute_ros.attempts import Attempts, AttemptsFile
+    kept = AttemptsFile(str(tmp_path), '/dev/ttyX')
+    assert kept.save(None, 1, 0, 1) == ''
+    assert AttemptsFile(str(tmp_path), '/dev/ttyX').load() == Attempts('/dev/ttyX', None, 1, 0, 1)
+
+
 # -- the search -------------------------------------------------------------------------------
 
 class ParachuteDeployModel(RuleBasedStateMachine):
