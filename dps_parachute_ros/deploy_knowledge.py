@@ -36,12 +36,13 @@ class PowerUpHeartbeats:
     another reboot: it is a `MAYBE_REBOOT`, which the driver handles as a reboot (the armed state
     unknown, the module read afresh) but does not record as one: the boot count read next tells.
 
-    Heartbeats taken close together are one power-up's only where that is the one reading: the
+    Heartbeats taken close together are one power-up's where that is the one reading: the
     second right after a first that is surely a first (taken after a pair, or long after the
-    heartbeat before). A third is another power-up (a `REBOOT`: the reader held them all); one
-    close after a heartbeat that may be a late second (a `MAYBE_REBOOT`, or a `REBOOT` taken
-    within `LATE_HEARTBEAT_S` of one) may be the first of another power-up, whose request of
-    the power-up before, taken in between, is void: a `MAYBE_REBOOT` too.
+    heartbeat before), or one after a whole pair (the module's answer to the driver's heartbeat
+    is the same frame). One close after a heartbeat that may be a late second (a
+    `MAYBE_REBOOT`, or a `REBOOT` taken within `LATE_HEARTBEAT_S` of one) may be the first of
+    another power-up, whose request of the power-up before, taken in between, is void: a
+    `MAYBE_REBOOT` too.
     """
 
     _FIRST, _PAIR, _UNSURE = 'first', 'pair', 'unsure'
@@ -62,8 +63,9 @@ class PowerUpHeartbeats:
                 return SAME_POWER_UP
             if newest == self._UNSURE:
                 return MAYBE_REBOOT
-            self._newest = self._FIRST  # (a third heartbeat of one power-up cannot be)
-            return REBOOT
+            # After a pair: the module's answer to the driver's heartbeat taken as unsolicited
+            # (the same frame), or a power-up the reader held with it: not told apart here.
+            return SAME_POWER_UP
         if gap <= LATE_HEARTBEAT_S and newest != self._PAIR:
             # A late second, or another power-up's first: either way not surely a first.
             self._newest = self._UNSURE
