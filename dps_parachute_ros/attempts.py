@@ -23,7 +23,8 @@ class Attempts:
     """Unsuccessful deploy frames in one power-up of the module at one port."""
 
     port: str
-    boot_count: int
+    boot_count: Optional[int]
+    """None: that run never read it (all its frames were sent since the last read, and count)."""
     failed: int
     unacked: int
     since_read: int = 0
@@ -41,9 +42,11 @@ class AttemptsFile:
 
     def save(self, boot_count: Optional[int], failed: int, unacked: int,
              since_read: int = 0) -> str:
-        """Write the count; return '' or what went wrong. No boot count: nothing to tie it to."""
-        if boot_count is None:
-            return ''
+        """Write the count; return '' or what went wrong.
+
+        No boot count (never read): kept all the same. A frame of this run may have gone to the
+        power-up the next run finds (P11); it counts them as sent since the last read.
+        """
         data = dict(port=self.port, boot_count=boot_count, failed=failed, unacked=unacked,
                     since_read=since_read)
         tmp = f'{self.path}.{os.getpid()}.tmp'
@@ -61,8 +64,10 @@ class AttemptsFile:
         try:
             with open(self.path) as src:
                 data = json.load(src)
-            attempts = Attempts(str(data['port']), int(data['boot_count']), int(data['failed']),
-                                int(data['unacked']), int(data.get('since_read', 0)))
+            boot = data['boot_count']
+            attempts = Attempts(str(data['port']), None if boot is None else int(boot),
+                                int(data['failed']), int(data['unacked']),
+                                int(data.get('since_read', 0)))
         except (OSError, ValueError, KeyError, TypeError):
             return None
         return attempts if attempts.port == self.port else None

@@ -333,7 +333,9 @@ class DeployCore(DeployKnowledge):
                     self._answer('refused', guard_text(self.failed, self.unacked))
                 return
             if not attempts and call.gate:
-                yield PassGate('deploy')  # every refusal is decided above
+                yield PassGate('deploy')  # every refusal is decided above...
+                if self._changed_at_gate(reboots):
+                    return  # ...on what was known before it: judged again after it
             attempts += 1
             # The decision is on disk before the frame leaves: a crash between the two must
             # not leave a deployment the black box never heard of.
@@ -393,6 +395,29 @@ class DeployCore(DeployKnowledge):
                               'module did not answer whether it is triggered', t0)
                 return
             said_not_triggered = triggered is False
+
+    def _changed_at_gate(self, reboots: int) -> bool:
+        """Answer the call if the module changed while the release gate was passed.
+
+        What was taken meanwhile (a reboot or a late heartbeat, a lock, a deployment, a
+        silence) is judged before the frame leaves, as it was before the gate (D15): the frame
+        goes only on an armed state read since the last reboot the driver knows of.
+        """
+        if self.fresh and self.triggered:
+            self._answer('already deployed', 'already deployed: the module reported triggered '
+                         'while the release gate was passed; nothing sent', ok=True)
+            return True
+        if self.reboots != reboots or not self.fresh:
+            what = 'may have rebooted and has not been re-read'
+        elif not self.online:
+            what = f'went offline ({self.offline_reason})'
+        elif self.armed is not True:
+            what = 'was locked'
+        else:
+            return False
+        self._answer('refused', f'deploy refused: while the release gate was passed the module '
+                     f'{what}; nothing sent. Try again in a moment.')
+        return True
 
     def _answered(self, ack: p.DeployAck, attempts: int, t0: float) -> _Wait:
         hexed = ack.raw.hex(' ')

@@ -78,9 +78,12 @@ class Report:
 
 @dataclass(frozen=True)
 class Stored:
-    """The attempts an earlier run kept (``attempts.Attempts`` fits)."""
+    """The attempts an earlier run kept (``attempts.Attempts`` fits).
 
-    boot_count: int
+    Boot count None: that run never read it (its frames count, as sent since the last read).
+    """
+
+    boot_count: Optional[int]
     failed: int
     unacked: int
     since_read: int = 0

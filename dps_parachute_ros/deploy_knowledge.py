@@ -35,24 +35,42 @@ class PowerUpHeartbeats:
     `POWER_UP_HEARTBEATS_S` after the first (the reader stalled in between) cannot be told from
     another reboot: it is a `MAYBE_REBOOT`, which the driver handles as a reboot (the armed state
     unknown, the module read afresh) but does not record as one: the boot count read next tells.
+
+    Heartbeats taken close together are one power-up's where that is the one reading: the
+    second right after a first that is surely a first (taken after a pair, or long after the
+    heartbeat before), or one after a whole pair (the module's answer to the driver's heartbeat
+    is the same frame). One close after a heartbeat that may be a late second (a
+    `MAYBE_REBOOT`, or a `REBOOT` taken within `LATE_HEARTBEAT_S` of one) may be the first of
+    another power-up, whose request of the power-up before, taken in between, is void: a
+    `MAYBE_REBOOT` too.
     """
+
+    _FIRST, _PAIR, _UNSURE = 'first', 'pair', 'unsure'
 
     def __init__(self) -> None:
         """Start with no heartbeat seen."""
         self._last = -1e9
-        self._in_pair = 0  # heartbeats of the newest power-up taken so far
+        self._newest = self._PAIR  # what the last heartbeat taken was
 
     def take(self, now: float) -> str:
         """Take a heartbeat at `now`; return `SAME_POWER_UP`, `REBOOT` or `MAYBE_REBOOT`."""
         gap = now - self._last
         self._last = now
+        newest = self._newest
         if gap <= POWER_UP_HEARTBEATS_S:
-            self._in_pair += 1
+            if newest == self._FIRST:
+                self._newest = self._PAIR
+                return SAME_POWER_UP
+            if newest == self._UNSURE:
+                return MAYBE_REBOOT
+            # After a pair: the module's answer to the driver's heartbeat taken as unsolicited
+            # (the same frame), or a power-up the reader held with it: not told apart here.
             return SAME_POWER_UP
-        if self._in_pair == 1 and gap <= LATE_HEARTBEAT_S:
-            self._in_pair = 2
-            return MAYBE_REBOOT
-        self._in_pair = 1
+        if gap <= LATE_HEARTBEAT_S and newest != self._PAIR:
+            # A late second, or another power-up's first: either way not surely a first.
+            self._newest = self._UNSURE
+            return MAYBE_REBOOT if newest == self._FIRST else REBOOT
+        self._newest = self._FIRST
         return REBOOT
 
     def handled(self, now: float) -> None:
@@ -70,9 +88,10 @@ def heartbeat_actions(verdict: str) -> List[Action]:
     if verdict == REBOOT:
         return [Log('warn', 'unsolicited heartbeat: the module has (re)booted'),
                 Record.of('state', event='module reboot (unsolicited heartbeat)')]
-    return [Log('warn', f'unsolicited heartbeat more than {POWER_UP_HEARTBEATS_S:g} s after the '
-                        'first of its power-up: its late second, or another reboot; the module '
-                        'is read afresh and its boot count tells'),
+    return [Log('warn', 'unsolicited heartbeat that may be a late one of the power-up before '
+                        f'(more than {POWER_UP_HEARTBEATS_S:g} s after its first, or taken with '
+                        'such a one), or another reboot; the module is read afresh and its boot '
+                        'count tells'),
             Record.of('state', event=LATE_HEARTBEAT_EVENT)]
 
 

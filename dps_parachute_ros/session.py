@@ -38,7 +38,7 @@ Threads, what each owns, and the lock that guards what they share:
 - monitor (``parachute-monitor``, ``session_online``): judges online/offline and the defer
   deadline from the clock (``tick()``), and records the link's error counters in the black box
   when they change; no I/O. It sleeps until the next of those deadlines (at most
-  ``IDLE_WAKE_S``); a deferred request wakes it.
+  ``IDLE_WAKE_S``); a deferred request wakes it by its deadline.
 - callers (the node's service threads): deploy, arm, settings, queries. ``_actuation``
   serializes deploy and arm (never taken on the reader thread or by a trigger-request answer).
 

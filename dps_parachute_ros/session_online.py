@@ -6,8 +6,8 @@ lock are described there). Threads:
 - monitor (``parachute-monitor``, a ``DeadlineTimer`` running ``_monitor_duty``) judges
   online/offline and the defer deadline from the clock (``tick()``), and records the link's
   error counters in the black box when they change; no I/O. It sleeps until the next of those
-  deadlines (``_monitor_due``, at most ``IDLE_WAKE_S``); a deferred request wakes it
-  (``_monitor.wake()``).
+  deadlines (``_monitor_due``, at most ``IDLE_WAKE_S``); a deferred request wakes it by its
+  deadline (``_monitor.wake(by=...)``).
 - every thread that sees a frame or ends a request (``_req``) calls ``_judge_online``; the
   serial reader also reports the port opening or closing (``_on_connection``).
 

@@ -15,7 +15,7 @@ waits). Before each event the core is told what the session knows of the module.
   its answer waits for it), a policy change (``reconfigure``), a reboot seen on any thread
   (``_void_pending``), ``stop``.
 - monitor: ``tick()`` steps `Tick` (the defer deadline, the module's window); it sleeps until
-  the core's ``deadline``.
+  the core's ``deadline``, and the core's `SetTimer` wakes it by then (``wake(by=...)``).
 
 Owns ``_triggers`` (the core) and ``_trigger_lock``; the ``pending_request`` field of the
 snapshot. A confirmation never waits behind I/O (only behind the release gate, off the reader).
@@ -65,7 +65,7 @@ class TriggerRequests:
         with self._trigger_lock:
             run_core(SimpleNamespace(step=step), [event], {
                 Write: self._trigger_write, Decide: self._trigger_decide,
-                Record: self._carry_record, SetTimer: lambda _: self._monitor.wake(),
+                Record: self._carry_record, SetTimer: self._trigger_timer,
                 Log: self._carry_log,
                 Pending: self._trigger_pending, PassGate: gates.append,
                 Answer: lambda action: answers.append(action.result)})
@@ -81,6 +81,12 @@ class TriggerRequests:
         if self.release_gate is not None:
             self.release_gate.before_release(gate.what, gate.t_request)  # (never raises)
         return self._trigger(GateDone(self.clock(), gate.token))
+
+    def _trigger_timer(self, action: SetTimer) -> None:
+        # The core's deadline is on the session's clock (its events carry self.clock()), the
+        # monitor's too: it runs by then (a sleep that ends earlier is left alone), and its
+        # duty's next deadline (_monitor_due) holds the core's, so it is kept after any run.
+        self._monitor.wake(by=action.at)
 
     def _trigger_write(self, action: Write) -> List[Event]:
         try:

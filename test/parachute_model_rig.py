@@ -12,7 +12,7 @@ could know of, and every call with its answers. No thread, no pty, no wall clock
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_core import (
@@ -30,11 +30,24 @@ REPLY_S = 0.004
 REBOOT_S = 0.3
 """A module takes this long to switch off and boot again (longer than the 0.2 s that one
 power-up's two heartbeats fit in, P5: two reboots never look like one)."""
+LATE_HEARTBEAT_FAULTS = {'late_heartbeat': (0.6, None), 'late_heartbeat_slow': (1.5, None),
+                         'late_heartbeat_reboot': (1.5, 1.2)}
+"""The module reboots as the request comes, its first heartbeat is taken at once, then the
+driver's reader stalls for the first figure (seconds): its second heartbeat (P5: 50 ms after the
+first) and all the module sends meanwhile are taken then, more than 0.2 s after the first (D3:
+a late heartbeat, handled as a possible reboot). ``_slow``: past the reply deadline.
+``_reboot``: the module reboots again (the second figure: seconds after the first) before the
+stall ends; that reboot's heartbeats are taken right after the late one."""
+REBOOT_FAULTS = ('reboot', 'reboot_quiet', 'lost_heartbeat_reboot') + tuple(LATE_HEARTBEAT_FAULTS)
 FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 'unplug_before',
-          'unplug_after', 'reboot', 'reboot_quiet', 'lock_by_other', 'arm_by_other',
-          'trigger_by_other', 'cut_records')
+          'unplug_after', 'lock_by_other', 'arm_by_other', 'trigger_by_other',
+          'cut_records') + REBOOT_FAULTS
 """What can happen to one request on the wire (or to the module just before it arrives).
-``cut_records``: a trigger-record answer loses its newest record's frame (cut short)."""
+``cut_records``: a trigger-record answer loses its newest record's frame (cut short).
+``lost_heartbeat_reboot``: the module reboots as the request comes, its first heartbeat is taken
+with the reply, its second is lost, and it reboots again 0.3 s later (within the 2 s of a late
+heartbeat: the second power-up's first heartbeat looks like the first's late second)."""
+HEARTBEAT = p.encode_module_heartbeat()
 GARBAGE = bytes([0x00, 0x13, 0x99, 0xFE, 0x37])  # no header byte: it completes no frame
 
 
@@ -46,6 +59,17 @@ def faulty_reply(fault: str, out: bytes) -> bytes:
         return out[:-1] + bytes([out[-1] ^ 0x40])
     if fault == 'garbage':
         return GARBAGE + out
+    return out
+
+
+def merged(parts: List[Tuple[bytes, int]]) -> List[Tuple[bytes, int]]:
+    """Join the consecutive `parts` (bytes, boot count) of one power-up; drop empty ones."""
+    out: List[Tuple[bytes, int]] = []
+    for data, boot in parts:
+        if out and out[-1][1] == boot:
+            out[-1] = (out[-1][0] + data, boot)
+        elif data:
+            out.append((data, boot))
     return out
 
 
@@ -80,6 +104,7 @@ class ModelRig:
         self.plugged = True
         self.saved: Optional[SaveAttempts] = None
         self.faults: List[str] = []
+        self.applied: List[str] = []           # the faults met by a request, in order
         self.actions: List[Any] = []
         self.calls: List[Call] = []
         self.call: Optional[Call] = None
@@ -89,6 +114,17 @@ class ModelRig:
         self.last_boot_told: Optional[int] = None
         self.unseen_reboot = False             # a reboot whose heartbeats were lost, not read
         self.unseen_change = False             # armed changed by another path, not read
+        # The truth of a reader that stalls (a late heartbeat, D3): what the module sent
+        # meanwhile, each part with its power-up (boot count), taken in order when it ends.
+        self.held: List[Tuple[bytes, int]] = []
+        self.hold_until = -1e9
+        self.reboot_at: Optional[float] = None   # a reboot of the module due (in a stall)
+        self.heard_boots: Set[int] = set()       # power-ups whose heartbeat the core took
+        # A Reply not yet stepped (by id; kept alive so no other takes its id) and its boot.
+        self.sent_by: Dict[int, Tuple[Reply, int]] = {}
+        # A request's own end (Timeout, LinkDown) not yet stepped, and the request.
+        self.end_of: Dict[int, Tuple[Any, Request]] = {}
+        self.armed_boot: Optional[int] = None    # the power-up the last armed state read is of
         self.order_problems: List[str] = []
         self.decoder = p.StreamDecoder('from_module')
         self.core = self._new_core(None)
@@ -102,6 +138,7 @@ class ModelRig:
         self.core = core
         self.armed_read = False
         self.last_boot_told = None
+        self._unhold()  # (a new process opens the port afresh)
         if self.plugged:
             self._run([LinkUp(self.t)])
         return core
@@ -125,14 +162,13 @@ class ModelRig:
     def restart_driver(self) -> None:
         """Respawn the driver: a new core, with the attempts the old one kept."""
         saved = self.saved
-        self._new_core(None if saved is None or saved.boot_count is None
+        self._new_core(None if saved is None
                        else Stored(saved.boot_count, saved.failed, saved.unacked,
                                    saved.since_read))
 
     def unplug(self) -> None:
         if self.plugged:
-            self.plugged = False
-            self.decoder.reset()
+            self.unplug_quietly()
             self._run([LinkDown(self.t, 'unplugged')])
 
     def replug(self) -> None:
@@ -141,37 +177,108 @@ class ModelRig:
             self.armed_read = False
             self._run([LinkUp(self.t)])
 
-    def power_cycle(self, quiet: bool = False) -> None:
-        """Switch the module off and on (boot count +1, locked); `quiet`: heartbeats lost."""
+    def power_cycle(self, quiet: bool = False, late_s: float = 0.0,
+                    again_s: Optional[float] = None) -> None:
+        """Switch the module off and on (boot count +1, locked); `quiet`: heartbeats lost.
+
+        `late_s`: its first heartbeat is taken at once, then the driver's reader stalls that
+        long (its second heartbeat is taken late, D3). `again_s`: its first heartbeat is taken,
+        its second is lost, and it reboots again that long after (within 2 s: that power-up's
+        first heartbeat looks like a late second).
+        """
         self.wait(REBOOT_S)
         self.model.power_cycle()
         if quiet or not self.plugged:
             self.unseen_reboot = True
         if quiet:
             self.model.step(self.t + 0.1)
+        elif late_s or again_s is not None:
+            self.wait(0.0)  # its first heartbeat
+            if late_s and self.t >= self.hold_until:
+                # (A stall going on is not made longer: no heartbeat is taken more than
+                # LATE_HEARTBEAT_S after the one before, the rule's bound, D3.)
+                self.hold_until = self.t + late_s
+            if again_s is not None:
+                self._lose_second_heartbeat()
+                self.wait(again_s - 0.06)
+                self.model.power_cycle()
+                if not self.plugged:
+                    self.unseen_reboot = True
         self.wait(0.1)
 
     def wait(self, seconds: float) -> None:
         """Time passes; what the module sends meanwhile reaches the core (when plugged)."""
-        self.t += seconds
-        out = self.model.step(self.t)
-        if self.plugged:
-            self._run(self._received(out, self.t))
+        end = self.t + seconds
+        if self.t < self.hold_until <= end:  # the reader takes what it held first
+            self.t = self.hold_until
+            self._run(self._deliver(self._module_to(self.t)))
+        self.t = end
+        self._run(self._deliver(self._module_to(self.t)))
 
     def status_frame(self) -> None:
         """Bring the module's status frame to the core (as the stream or a poll would)."""
         if self.plugged and self.model.powered:
-            self._run(self._received(self.model._status_frame(), self.t))
+            self._run(self._deliver([(self.model._status_frame(), self.model.boot_count)]))
+
+    # -- the module's side of the wire, and a reader that stalls ------------------------------
+
+    def _module_to(self, t: float) -> List[Tuple[bytes, int]]:
+        """Return what the module sends up to `t`, each part with its boot count.
+
+        A reboot due by then (``reboot_at``) comes first.
+        """
+        out = []
+        if self.reboot_at is not None and self.reboot_at <= t:
+            out.append((self.model.step(self.reboot_at), self.model.boot_count))
+            self.model.power_cycle()
+            self.unseen_reboot = True  # (until its boot count is read)
+            self.reboot_at = None
+        out.append((self.model.step(t), self.model.boot_count))
+        return out
+
+    def _deliver(self, parts: List[Tuple[bytes, int]]) -> List[Reply]:
+        """Bring the module's `parts` to the core now, or hold them while the reader stalls."""
+        if not self.plugged:
+            return []
+        if self.t < self.hold_until:
+            self.held += parts
+            return []
+        parts, self.held = self.held + parts, []
+        return [r for out, boot in parts for r in self._received(out, self.t, boot)]
+
+    def _unhold(self) -> None:
+        self.held, self.hold_until = [], -1e9
+
+    def _lose_second_heartbeat(self) -> None:
+        """50 ms on: the power-up's second heartbeat is lost on the wire, the rest arrives."""
+        self.t += 0.06
+        out = self.model.step(self.t)
+        self._run(self._deliver([(out.replace(HEARTBEAT, b'', 1), self.model.boot_count)]))
 
     # -- carrying out the core's actions ------------------------------------------------------
 
     def _run(self, events: List[Any]) -> None:
-        run_core(self if self.mirror else self.core, events, {
+        run_core(self, events, {
             Request: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
             SaveAttempts: self._save, PassGate: self._gate, DeployAnswer: self._answer})
 
     def step(self, event: Any) -> List[Any]:
-        """Step a mirror core as the session does: its keeper takes the event in first."""
+        """Step the core; a mirror core as the session does: its keeper takes the event first.
+
+        What the invariants follow of the module's frames is taken here, as the core takes
+        them: a batch the reader brings is stepped one frame at a time, and a request the core
+        sends on one of them leaves before it takes the next (which it could not know of).
+        """
+        if isinstance(event, Reply):
+            _, boot = self.sent_by.pop(id(event), (event, self.model.boot_count))
+            self._told(event.message, event.now, boot)
+        _, request = self.end_of.pop(id(event), (event, None))
+        if request is not None and self.core._waiting is not request:
+            # A frame the reader took before it (held by a stall) answered that request: a
+            # runtime ends a request once, and the link's next request says it is down.
+            return []
+        if not self.mirror:
+            return self.core.step(event)
         keeper = self.keeper
         assert keeper is not None
         if not isinstance(event, (DeployCall, GateDone)):
@@ -220,6 +327,13 @@ class ModelRig:
                                       keeper._sent_since_read)
 
     def _send(self, send: Request) -> List[Any]:
+        events = self._carry_out(send)
+        for event in events:
+            if isinstance(event, (Timeout, LinkDown)):
+                self.end_of[id(event)] = (event, send)
+        return events
+
+    def _carry_out(self, send: Request) -> List[Any]:
         self.actions.append(send)
         if send.frame == DEPLOY_FRAME:
             self._check_before_deploy_frame()
@@ -228,15 +342,27 @@ class ModelRig:
         events: List[Any] = []
         for _ in range(send.retries + 1):
             fault = self.faults.pop(0) if self.faults else 'clean'
+            self.applied.append(fault)
             sent_at = self.t
             if fault == 'unplug_before':
                 self.unplug_quietly()
                 return events + [LinkDown(self.t, 'unplugged', frame_left=False)]
-            pre = b''
-            if fault in ('reboot', 'reboot_quiet'):
+            out_parts: List[Tuple[bytes, int]] = []
+            if fault in REBOOT_FAULTS:
                 self.t += REBOOT_S
-                pre = self.model.step(self.t)  # (what it sent before it went off)
+                out_parts = self._module_to(self.t)  # (what it sent before it went off)
             self._module_fault(fault)
+            if fault in LATE_HEARTBEAT_FAULTS or fault == 'lost_heartbeat_reboot':
+                # Its first heartbeat is taken at once (then the reader stalls, or the second
+                # heartbeat is lost below).
+                events += self._deliver(out_parts + self._module_to(self.t))
+                out_parts = []
+                if fault in LATE_HEARTBEAT_FAULTS:
+                    stall, again = LATE_HEARTBEAT_FAULTS[fault]
+                    if self.t >= self.hold_until:  # (a stall going on is not made longer)
+                        self.hold_until = self.t + stall
+                    if again is not None:
+                        self.reboot_at = self.t + again
             if send.frame == DEPLOY_FRAME:
                 self._count_deploy_frame()
                 if self.keeper is not None:  # the session's _on_tx
@@ -244,49 +370,73 @@ class ModelRig:
                     self.keeper.unacked += 1
                     self.keeper._sent_since_read += 1
                     self.keeper._frame_at = self.t
-            out = pre
             if fault != 'drop_request':
                 before = self.model.deployments
-                out = pre + self.model.receive(send.frame, self.t)
+                out_parts += self._module_to(self.t)
+                out_parts.append((self.model.receive(send.frame, self.t),
+                                  self.model.boot_count))
                 if self.call is not None:
                     self.call.serial_deployments += self.model.deployments - before
                 self.t += REPLY_S
-                out += self.model.step(self.t)
+                out_parts += self._module_to(self.t)
                 if send.frame == DEPLOY_FRAME and self.call is not None:
                     self.call.deploy_frames += 1
+            if fault == 'lost_heartbeat_reboot':
+                self.t += 0.06
+                out, boot = self._module_to(self.t)[-1]
+                out_parts.append((out.replace(HEARTBEAT, b'', 1), boot))
+                self.t += REBOOT_S - 0.06
+                out_parts += self._module_to(self.t)
+                self.model.power_cycle()  # its heartbeats come with what the wire carries next
             if fault == 'unplug_after':
                 self.unplug_quietly()
                 return events + [LinkDown(self.t, 'unplugged', frame_left=True)]
-            out = faulty_reply(fault, out)
+            out_parts = merged(out_parts)
+            if out_parts and fault in ('drop_reply', 'corrupt', 'garbage'):
+                out, boot = out_parts[-1]
+                out_parts[-1] = (faulty_reply(fault, out), boot)
             late = fault == 'delay'
-            received = [] if late else self._received(out, self.t)
-            if p.TriggerRecord in send.expect:
-                # The link collects a record query's answer into one reply (query_records).
-                records = [e.message for e in received
-                           if isinstance(e.message, p.TriggerRecord)]
-                received = [e for e in received if not isinstance(e.message, p.TriggerRecord)]
-                stored = [i for i, r in enumerate(records) if not r.is_empty]
-                if fault == 'cut_records' and records:
-                    del records[stored[-1] if stored else -1]
-                if records:
-                    return events + received + [Reply(self.t, p.TriggerRecords(records))]
-            events += received
-            if any(isinstance(e.message, send.expect) for e in received):
-                return events
+            ended = None if late else self._ends(send, fault, events, self._deliver(out_parts))
+            if ended is not None:
+                return ended
+            if self.held and self.hold_until <= sent_at + self.core.timeout_s:
+                # The reader takes what it held before the reply deadline.
+                self.t = max(self.t, self.hold_until)
+                ended = self._ends(send, fault, events, self._deliver(self._module_to(self.t)))
+                if ended is not None:
+                    return ended
             self.t = max(self.t, sent_at + self.core.timeout_s)
             if late:
                 self.t += 0.05
                 events.append(Timeout(self.t - 0.05))
-                return events + self._received(out, self.t)
+                return events + self._deliver(out_parts)
         return events + [Timeout(self.t)]
+
+    def _ends(self, send: Request, fault: str, events: List[Any],
+              received: List[Reply]) -> Optional[List[Any]]:
+        """Add `received` to `events`; return them if they end the request `send`, else None."""
+        if p.TriggerRecord in send.expect:
+            # The link collects a record query's answer into one reply (query_records).
+            records = [e.message for e in received if isinstance(e.message, p.TriggerRecord)]
+            received = [e for e in received if not isinstance(e.message, p.TriggerRecord)]
+            stored = [i for i, r in enumerate(records) if not r.is_empty]
+            if fault == 'cut_records' and records:
+                del records[stored[-1] if stored else -1]
+            if records:
+                return events + received + [Reply(self.t, p.TriggerRecords(records))]
+        events += received
+        if any(isinstance(e.message, send.expect) for e in received):
+            return events
+        return None
 
     def unplug_quietly(self) -> None:
         self.plugged = False
         self.decoder.reset()
+        self._unhold()  # (what the port held is lost with it)
 
     def _module_fault(self, fault: str) -> None:
         model = self.model
-        if fault in ('reboot', 'reboot_quiet'):
+        if fault in REBOOT_FAULTS:
             model.power_cycle()
             self.unseen_reboot = True  # (its heartbeats may come late, or not at all)
             if fault == 'reboot_quiet':
@@ -301,18 +451,25 @@ class ModelRig:
         elif fault == 'trigger_by_other' and model._can_fire() and not model.igniter_fault:
             model._fire(p.SOURCE_PWM)
 
-    def _received(self, out: bytes, now: float) -> List[Reply]:
+    def _received(self, out: bytes, now: float, boot: Optional[int] = None) -> List[Reply]:
+        """Decode `out`, taken at `now`; `boot`: the power-up that sent it (default: now's)."""
         frames = self.decoder.feed(out) + self.decoder.flush()
         replies = [Reply(now, p.decode_module_frame(f)) for f in frames]
         for reply in replies:
-            self._told(reply.message, now)
+            self.sent_by[id(reply)] = (reply, self.model.boot_count if boot is None else boot)
         return replies
 
     # -- what the invariants need -------------------------------------------------------------
 
-    def _told(self, msg: Any, now: float) -> None:
-        """Follow what the core is told: reboots it can know of, armed states, acknowledgements."""
+    def _told(self, msg: Any, now: float, boot: int) -> None:
+        """Follow what the core is told: reboots it can know of, armed states, acknowledgements.
+
+        `boot`: the power-up that sent `msg`. Any heartbeat more than 0.2 s after the one
+        before may tell a reboot (P5, D3: a late second heartbeat too): the armed state read
+        before it is not known to hold after it.
+        """
         if isinstance(msg, p.Heartbeat):
+            self.heard_boots.add(boot)
             if now - self.last_heartbeat > POWER_UP_HEARTBEATS_S:
                 self.armed_read = False
             self.last_heartbeat = now
@@ -324,10 +481,11 @@ class ModelRig:
             self.last_boot_told = msg.count
         elif isinstance(msg, (p.ArmedState, p.Status)):
             self.armed_read = msg.armed
+            self.armed_boot = boot
             if msg.armed == self.model.armed:
                 self.unseen_change = False
         elif isinstance(msg, p.DeployAck) and msg.success:
-            self.unacked[self.model.boot_count] = 0
+            self.unacked[boot] = 0
 
     def _count_deploy_frame(self) -> None:
         boot = self.model.boot_count
@@ -339,6 +497,13 @@ class ModelRig:
         if not self.armed_read:
             self.order_problems.append('a deploy frame on an armed state not read since the '
                                        'last known reboot or reconnect')
+        boot = self.model.boot_count
+        if boot in self.heard_boots and self.armed_boot != boot:
+            # (A reboot whose heartbeat the driver took, even one taken within 0.2 s of a
+            # late heartbeat and so one with it, D3: its armed state must be read after.)
+            self.order_problems.append(f'a deploy frame to power-up {boot}, whose heartbeat '
+                                       f'the driver took, on an armed state read of power-up '
+                                       f'{self.armed_boot}')
         before = [a for a in self.actions[:-1] if not isinstance(a, (Log, Report))]
         record = next((a for a in reversed(before) if isinstance(a, Record)), None)
         fields = dict(record.fields) if record else {}

@@ -6,15 +6,18 @@ against the device model (``dps_parachute_ros.simulation``) in virtual time, thr
 ``arm_if_locked``), the module armed, locked or deployed by someone else, its igniter failing,
 wire faults on each request (the request or the reply dropped, a byte corrupted, the reply past
 its deadline, garbage before it), unplug and replug, module reboots (seen, or with their
-heartbeats lost), and a respawned driver (a new core from the attempts the old one kept). It
-runs twice: the core on its own, and as the session runs it (``mirror``: told before each step
-what the session's threads took in, here a second core that is never called). After every
-step:
+heartbeats lost; its second heartbeat taken late by a reader that stalled, or lost and another
+reboot within 2 s: D3's late heartbeat, as a rule and as wire faults), and a respawned driver (a
+new core from the attempts the old one kept). It runs twice: the core on its own, and as the
+session runs it (``mirror``: told before each step what the session's threads took in, here a
+second core that is never called). After every step:
 
 - at most two deploy frames of one power-up without a successful acknowledgement (P11), across
   reconnects and restarts, and the module never in protection;
 - no deploy frame on an armed state not read since the last reboot the driver could know of
-  (or the last reconnect) (D15);
+  (or the last reconnect) (D15): a heartbeat taken more than 0.2 s after the one before is one
+  (D3: a late second heartbeat may be another reboot), and so is any heartbeat of the power-up
+  the frame goes to (one taken within 0.2 s of a late heartbeat is taken with it);
 - every deploy call answered exactly once;
 - never "refused" or "not deployed" when the module deployed during the call, never
   "deployed" when it never deployed; UNKNOWN only when a deploy frame left;
@@ -37,9 +40,14 @@ from __future__ import annotations
 from hypothesis import strategies as st
 from hypothesis.stateful import invariant, precondition, rule, RuleBasedStateMachine
 
-from dps_parachute_ros.deploy_core import MAX_FAILED_DEPLOYS
+import pytest
+
+from dps_parachute_ros.deploy_core import DeployCore, MAX_FAILED_DEPLOYS
+from dps_parachute_ros.deploy_knowledge import LATE_HEARTBEAT_EVENT
 from model_runs import search
-from parachute_model_rig import Call, FAULTS, ModelRig
+from dps_parachute_ros.release_gate import GateDone
+from parachute_model_rig import Call, FAULTS, HEARTBEAT, ModelRig, REBOOT_S
+from uav_serial_common.core_events import Record
 
 
 def deployed_during(call: Call) -> bool:
@@ -276,6 +284,181 @@ def test_round2_22_1_a_clean_deploy_of_an_armed_module_deploys_it():
     assert not rig.order_problems
 
 
+def late_heartbeats(rig: ModelRig) -> int:
+    """How many late heartbeats (D3) the core recorded (a mirror core leaves that to the
+    session)."""
+    return sum(1 for a in rig.actions if isinstance(a, Record)
+               and dict(a.fields).get('event') == LATE_HEARTBEAT_EVENT)
+
+
+def knower(rig: ModelRig) -> DeployCore:
+    """The core that keeps what is known of the module (the keeper of a mirror core)."""
+    return rig.keeper if rig.keeper is not None else rig.core
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+@pytest.mark.parametrize('stall', [0.3, 1.9])
+def test_round2_22_3_a_late_second_heartbeat_leaves_the_armed_state_unknown(mirror, stall):
+    # The module reboots and is armed by its switch right away; the reader takes the first
+    # heartbeat and the status frame that says armed, then stalls: the second heartbeat is
+    # taken `stall` s after the first. The driver cannot tell it from another reboot (D3): the
+    # armed state is unknown until read again; a deploy reads it first.
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.status_frame()
+    rig.wait(REBOOT_S)
+    rig.model.power_cycle()
+    rig.wait(0.0)  # its first heartbeat: a reboot
+    rig.model.armed = True
+    rig.status_frame()
+    assert knower(rig).armed is True
+    rig.hold_until = rig.t + stall
+    rig.wait(stall + 0.1)  # its second heartbeat, taken late
+    assert knower(rig).armed is None and not knower(rig).fresh
+    call = rig.deploy()
+    check_call(rig, call)
+    assert not rig.order_problems, rig.order_problems
+    assert call.answers[0].outcome == 'deployed' and rig.model.triggered
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+@pytest.mark.parametrize('again', [0.3, 1.9])
+def test_round2_22_3_a_reboot_that_looks_like_a_late_heartbeat_voids_the_armed_state(mirror,
+                                                                                     again):
+    # The module reboots (its first heartbeat taken, its second lost), is armed by its switch
+    # (a status frame says so) and reboots again `again` s after the first: that power-up's
+    # first heartbeat looks like the late second of the one before (D3). It is a reboot as far
+    # as a deploy is concerned: the module is locked now, and no frame may go on "armed".
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.wait(REBOOT_S)
+    rig.model.power_cycle()
+    rig.wait(0.0)
+    rig._lose_second_heartbeat()
+    rig.model.armed = True
+    rig.status_frame()
+    assert knower(rig).armed is True
+    rig.wait(again - 0.06)
+    rig.model.power_cycle()
+    rig.wait(0.1)
+    assert knower(rig).armed is None and not knower(rig).fresh
+    call = rig.deploy()
+    check_call(rig, call)
+    assert not rig.order_problems, rig.order_problems
+    assert call.deploy_sends == 0 and call.answers[0].outcome == 'refused', call.answers
+    assert 'locked' in call.answers[0].message
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+@pytest.mark.parametrize('fault', ['late_heartbeat', 'late_heartbeat_slow',
+                                   'late_heartbeat_reboot', 'lost_heartbeat_reboot'])
+@pytest.mark.parametrize('at', [0, 1, 2, 3, 4])
+def test_round2_22_3_late_heartbeats_on_each_request_of_a_deploy(mirror, fault, at):
+    # The wire faults of D3 on each request of a deploy in turn (the boot count, the status and
+    # armed queries, the frame, the triggered query), then the same with the module armed again
+    # by its switch and read, and a clean deploy: no frame on an armed state of another
+    # power-up, no third unacknowledged frame, every answer true.
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.status_frame()
+    call = rig.deploy(arm_if_locked=True, faults=['clean'] * at + [fault])
+    check_call(rig, call)
+    rig.wait(2.0)
+    rig.model.armed = True
+    rig.status_frame()
+    check_call(rig, rig.deploy(faults=['clean'] * at + [fault]))
+    rig.wait(2.0)
+    check_call(rig, rig.deploy())
+    assert not rig.order_problems, rig.order_problems
+    assert all(n <= MAX_FAILED_DEPLOYS for n in rig.unacked.values()), rig.unacked
+    if fault in rig.applied and fault != 'lost_heartbeat_reboot' and not mirror:
+        assert late_heartbeats(rig), rig.actions
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+@pytest.mark.parametrize('change', ['reboot', 'late_heartbeat', 'lock', 'deployed'])
+def test_round2_22_3_found_a_change_while_the_deploy_gate_is_passed_is_judged_before_the_frame(
+        mirror, change):
+    # Found by the 20,000-sequence search once the reader could stall: the frames it held came
+    # in while the release gate was passed (a late heartbeat, a status frame saying deployed):
+    # the deploy frame left on the armed state read before the gate. Whatever is taken
+    # meanwhile is judged before the frame leaves (D15), as the trigger core does (22_7).
+    rig = ModelRig(armed=True, mirror=mirror)
+    if change == 'late_heartbeat':
+        rig.wait(REBOOT_S)
+        rig.model.power_cycle()
+        rig.wait(0.0)  # its first heartbeat: a reboot...
+        rig._lose_second_heartbeat()  # ...whose second the reader takes late (below)
+        rig.model.armed = True
+    rig.status_frame()
+    model = rig.model
+
+    def gate(action):
+        rig.actions.append(action)
+        if change == 'reboot':
+            rig.power_cycle()
+        elif change == 'late_heartbeat':
+            rig.t += 0.5
+            rig._run(rig._deliver([(HEARTBEAT, model.boot_count)]))
+        elif change == 'lock':
+            model.armed = False
+            rig.status_frame()
+        else:
+            model._fire(0x04)
+            rig.status_frame()
+        return [GateDone(rig.t)]
+
+    rig._gate = gate
+    call = rig.deploy(gate=True)
+    check_call(rig, call)
+    assert not rig.order_problems, rig.order_problems
+    assert call.deploy_sends == 0, call.answers
+    assert call.answers[0].outcome == ('already deployed' if change == 'deployed' else
+                                       'refused'), call.answers
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_round2_22_3_a_request_answered_by_a_frame_the_reader_held_ends_once(mirror):
+    # Reported by the 20,000-sequence search, a fault of the rig: the reader's stall ended with
+    # the reply to the boot count query and a status frame of the stream; the status query sent
+    # on the reply was answered by that frame (as a link matches replies), its own frame left
+    # and the module was unplugged: that LinkDown reached the core while it waited for the
+    # deploy frame, which never left ("UNKNOWN"). A request ends once: the deploy frame's own
+    # send tells the link is down (nothing sent).
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.status_frame()
+    check_call(rig, rig.deploy(faults=['late_heartbeat_slow']))
+    rig.model.armed = True
+    rig.status_frame()
+    call = rig.deploy(faults=['clean', 'unplug_after'])
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'refused' and call.deploy_sends == 0, call.answers
+    assert not rig.order_problems, rig.order_problems
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_round2_22_3_found_a_respawn_keeps_the_frames_of_a_run_that_never_read_the_boot_count(
+        mirror):
+    # Found by the 20,000-sequence search: the boot count query was lost, the status said armed
+    # (armed by another path), the frame was refused (its igniter failed: P11 counts it); the
+    # attempt was kept with no boot count, and the file of attempts wrote nothing without one:
+    # the respawned driver started from zero and two more frames put the module into
+    # protection. Kept with no boot count now, they count as sent since the last read.
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.power_cycle()
+    rig.model.igniter_fault = True
+    rig.deploy(faults=['drop_request', 'arm_by_other'])
+    rig.restart_driver()
+    rig.deploy()
+    rig.deploy()
+    assert all(n <= MAX_FAILED_DEPLOYS for n in rig.unacked.values()), rig.unacked
+    assert not rig.model.protection
+
+
+def test_round2_22_3_the_attempts_of_a_run_that_never_read_the_boot_count_are_kept(tmp_path):
+    from dps_parachute_ros.attempts import Attempts, AttemptsFile
+    kept = AttemptsFile(str(tmp_path), '/dev/ttyX')
+    assert kept.save(None, 1, 0, 1) == ''
+    assert AttemptsFile(str(tmp_path), '/dev/ttyX').load() == Attempts('/dev/ttyX', None, 1, 0, 1)
+
+
 # -- the search -------------------------------------------------------------------------------
 
 class ParachuteDeployModel(RuleBasedStateMachine):
@@ -294,6 +477,7 @@ class ParachuteDeployModel(RuleBasedStateMachine):
         check_call(self.rig, call)
 
     @precondition(lambda self: self.rig.plugged and self.rig.model.powered
+                  and self.rig.t >= self.rig.hold_until
                   and not self.rig.unseen_reboot and not self.rig.unseen_change
                   and not self.rig.model.igniter_fault
                   and self.rig.model.armed and not self.rig.model.triggered
@@ -335,9 +519,13 @@ class ParachuteDeployModel(RuleBasedStateMachine):
     def replug(self) -> None:
         self.rig.replug()
 
-    @rule(quiet=st.booleans())
-    def module_reboots(self, quiet: bool) -> None:
-        self.rig.power_cycle(quiet)
+    @rule(kind=st.sampled_from(['seen', 'quiet', 'late', 'lost_second_then_reboot']),
+          after=st.sampled_from([0.3, 0.6, 1.5, 1.9]))
+    def module_reboots(self, kind: str, after: float) -> None:
+        """The module reboots: its heartbeats seen or lost, or (D3) its second taken `after`
+        the first by a reader that stalled, or lost and another reboot `after` the first."""
+        self.rig.power_cycle(quiet=kind == 'quiet', late_s=after if kind == 'late' else 0.0,
+                             again_s=after if kind == 'lost_second_then_reboot' else None)
 
     @rule()
     def driver_restarts(self) -> None:

@@ -5,14 +5,16 @@ against the device model (``dps_parachute_ros.simulation``, `VirtualParachute`) 
 the module asks (tilted past its threshold on external power) and deploys on a confirmation
 within its 1 s window. Random interleavings of requests, answers true and false, policy and
 ``defer_timeout_s`` changes mid-request, a release gate and its delays (past the window too, a
-loaded host), module reboots (seen, or with their heartbeats lost), the module armed or locked by
+loaded host), module reboots (seen, or with their heartbeats lost; its second heartbeat taken late
+by a reader that stalled, or lost and another reboot within 2 s: D3), the module armed or locked by
 another path, unplug and replug, status reads, time passing with the monitor on time or late.
 After every step:
 
 - a confirmation leaves only while the policy says ``confirm``, or ``defer`` with a true answer
   given before the request's defer deadline; never while it says ``deny``; never after a reboot
-  the core was told of since the request; never 1 s or more after it; never for a request
-  already decided;
+  the driver could know of since the request (a heartbeat taken more than 0.2 s after the one
+  before: D3's late heartbeat may be another reboot; or one of a later power-up); never 1 s or
+  more after it; never for a request already decided;
 - the module deploys on a request only on the confirmation the core sent for that request;
 - every request gets at most one decision, "confirmed" exactly when its confirmation left (and
   then within the window); at the end of a sequence (every gate passed, every deadline over),
@@ -39,6 +41,7 @@ from hypothesis.stateful import (initialize, invariant, precondition, rule,
 import pytest
 
 from dps_parachute_ros import protocol as p
+from dps_parachute_ros.deploy_knowledge import PowerUpHeartbeats, SAME_POWER_UP
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import MODULE_WINDOW_S
 from dps_parachute_ros.release_gate import GateDone, PassGate
@@ -55,6 +58,7 @@ SLICE = 0.05
 """Virtual time moves in steps of at most this (the model's frames reach the core then)."""
 REBOOT_S = 0.3
 POWER_UP_HEARTBEATS_S = 0.2
+HEARTBEAT = p.encode_module_heartbeat()
 
 
 @dataclass
@@ -105,6 +109,12 @@ class TriggerRig:
         self.pending = False
         self.unseen = False  # the module changed (locked, rebooted) since the driver read it
         self.last_heartbeat = -1e9
+        self.last_boot = -1e9
+        self.power_ups = PowerUpHeartbeats()  # the session's rule (D3): which tell a reboot
+        # A reader that stalls: what the module sent meanwhile, with its power-up and pending
+        # request, taken in order when it ends.
+        self.held: List[Tuple[bytes, int, Any]] = []
+        self.hold_until = -1e9
         self.confirmed_deployments = 0
         self.monitor_lag = 0.0  # how late the monitor's tick comes after a deadline
         self.decoder = p.StreamDecoder('from_module')
@@ -175,22 +185,46 @@ class TriggerRig:
         self.run(PolicyChanged(self.t, policy, self.defer_s, self.gate_on))
         self.policy_before = policy
 
-    def reboot(self, quiet: bool = False) -> None:
-        """Power-cycle the module (boot count +1, locked); `quiet`: its heartbeats lost."""
+    def reboot(self, quiet: bool = False, late_s: float = 0.0,
+               again_s: Optional[float] = None) -> None:
+        """Power-cycle the module (boot count +1, locked); `quiet`: its heartbeats lost.
+
+        `late_s`: its first heartbeat is taken, then the reader stalls that long (the second
+        is taken late, D3). `again_s`: its first heartbeat is taken, its second lost, and it
+        reboots again that long after (that first heartbeat looks like a late second).
+        """
         # (Two power-ups' heartbeats closer than 0.2 s would be taken for one, P5.)
-        self.wait(max(0.0, self.last_heartbeat + REBOOT_S - self.t))
+        self.wait(max(0.0, max(self.last_heartbeat, self.last_boot) + REBOOT_S - self.t))
         self.model.power_cycle()
+        self.last_boot = self.t
         if quiet:
             self.model.step(self.t + 0.06)  # both heartbeats, lost on the wire
             self.t += 0.06
             self.unseen = True
+        elif late_s or again_s is not None:
+            self.from_model()  # its first heartbeat
+            if late_s and self.t >= self.hold_until:
+                # (A stall going on is not made longer: no heartbeat is taken more than
+                # LATE_HEARTBEAT_S after the one before, the rule's bound, D3.)
+                self.hold_until = self.t + late_s
+            if again_s is not None:
+                self.lose_second_heartbeat()
+                self.wait(again_s - 0.06)
+                self.model.power_cycle()
+                self.last_boot = self.t
         self.from_model()
+
+    def lose_second_heartbeat(self) -> None:
+        """50 ms on: the power-up's second heartbeat is lost on the wire, the rest arrives."""
+        self.t += 0.06
+        self.from_model(lose=HEARTBEAT)
 
     def unplug(self) -> None:
         if self.plugged:
             self.plugged = False
             self.known.update(online=False, fresh=False)
             self.decoder.reset()
+            self.held, self.hold_until = [], -1e9  # (what the port held is lost with it)
             self.run(LinkDown(self.t, 'unplugged'))
 
     def replug(self) -> None:
@@ -200,7 +234,7 @@ class TriggerRig:
 
     def read_status(self) -> None:
         """The driver reads the module (a status frame, a poll): it knows what is true."""
-        if self.plugged and self.model.powered:
+        if self.plugged and self.model.powered and self.t >= self.hold_until:
             self.known.update(online=True, triggered=self.model.triggered,
                               armed=self.model.armed, fresh=True)
             self.unseen = False
@@ -218,6 +252,8 @@ class TriggerRig:
         end = self.t + seconds
         while self.t < end:
             times = [end, self.t + SLICE] + [due for due, _, _ in self.gates if due > self.t]
+            if self.hold_until > self.t:
+                times.append(self.hold_until)
             deadline = self.core.deadline
             if deadline is not None and deadline + self.monitor_lag > self.t:
                 times.append(deadline + self.monitor_lag)
@@ -231,35 +267,53 @@ class TriggerRig:
 
     def finish(self) -> None:
         """Every gate passed, every deadline over: each request decided, each call answered."""
-        while self.gates:
-            self.pass_gate()
         self.monitor_lag = 0.0
-        self.wait(2 * MODULE_WINDOW_S)
-        self.run(Tick(self.t))
+        self.wait(max(0.0, self.hold_until - self.t))  # (the reader takes what it held)
+        for _ in range(10):  # (a request taken meanwhile asks for a gate again)
+            while self.gates:
+                self.pass_gate()
+            self.wait(2 * MODULE_WINDOW_S)
+            self.run(Tick(self.t))
+            if not self.gates:
+                break
 
     # -- the wire -----------------------------------------------------------------------------
 
-    def from_model(self) -> None:
-        out = self.model.step(self.t)
+    def from_model(self, lose: bytes = b'') -> None:
+        """Bring what the module sent to the driver (held while the reader stalls); `lose`:
+        a frame lost on the wire."""
+        out = self.model.step(self.t).replace(lose, b'', 1) if lose else self.model.step(self.t)
         if not self.plugged:
             return
-        for frame in self.decoder.feed(out):
-            msg = p.decode_module_frame(frame)
-            self.known['online'] = True
-            if isinstance(msg, p.TriggerRequest):
-                pending = self.model._pending
-                self.seen[self.t] = Seen(self.t, self.defer_s,
-                                         pending[0] if pending else None,
-                                         self.model.boot_count)
-                self.run(RequestReceived(self.t, self.gate_on))
-            elif isinstance(msg, p.Heartbeat):
-                if self.t - self.last_heartbeat > POWER_UP_HEARTBEATS_S:
-                    self.known.update(armed=None, triggered=None, fresh=False)
-                    for seen in self.seen.values():
-                        if seen.voided_at is None:
-                            seen.voided_at = self.t
-                    self.run(Rebooted(self.t))
-                self.last_heartbeat = self.t
+        self.held.append((out, self.model.boot_count, self.model._pending))
+        if self.t < self.hold_until:
+            return
+        parts, self.held = self.held, []
+        for out, boot, pending in parts:
+            for frame in self.decoder.feed(out):
+                self.take(p.decode_module_frame(frame), boot, pending)
+
+    def take(self, msg: Any, boot: int, pending: Any) -> None:
+        """The driver takes `msg` of power-up `boot` (the module's request then: `pending`)."""
+        self.known['online'] = True
+        if isinstance(msg, p.TriggerRequest):
+            while self.t in self.seen:  # (requests are told apart by their time: the reader
+                self.t += 1e-6          # takes what it held one after another)
+            self.seen[self.t] = Seen(self.t, self.defer_s, pending[0] if pending else None,
+                                     boot)
+            self.run(RequestReceived(self.t, self.gate_on))
+        elif isinstance(msg, p.Heartbeat):
+            # The truth: a heartbeat more than 0.2 s after the one before may tell a reboot
+            # (D3: a late second heartbeat too), and one of a later power-up does.
+            possible = self.t - self.last_heartbeat > POWER_UP_HEARTBEATS_S
+            for seen in self.seen.values():
+                if seen.voided_at is None and (possible or boot != seen.boot):
+                    seen.voided_at = self.t
+            self.last_heartbeat = self.t
+            # The session's rule tells the core (session_init._on_heartbeat).
+            if self.power_ups.take(self.t) != SAME_POWER_UP:
+                self.known.update(armed=None, triggered=None, fresh=False)
+                self.run(Rebooted(self.t))
 
     # -- carrying out the core's actions, checked -----------------------------------------------
 
@@ -459,6 +513,117 @@ def test_round2_22_7_a_reboot_seen_voids_the_request_it_ended(quiet):
     rig.check(final=True)
 
 
+@pytest.mark.parametrize('stall', [0.3, 0.9])  # (the module's window is 1 s)
+def test_round2_22_3_a_late_second_heartbeat_voids_a_held_request(stall):
+    """D3: the module reboots, is armed and asks at once; the reader takes the first heartbeat
+    and the request, then stalls: the second heartbeat is taken `stall` s after the first. It
+    cannot be told from another reboot: the request is void, an answer true sends nothing."""
+    rig = TriggerRig('defer', 0.95)
+    rig.reboot()
+    rig.wait(REBOOT_S)
+    rig.model.power_cycle()
+    rig.from_model()  # its first heartbeat
+    assert rig.ask() and rig.core.pending
+    rig.hold_until = rig.t + stall - 0.01
+    rig.wait(stall)
+    assert not rig.core.pending
+    call = rig.answer(True)
+    rig.check()
+    assert call.sends == 0 and call.answers[0].outcome == Outcome.REFUSED
+    assert not rig.model.triggered
+    rig.finish()
+    rig.check(final=True)
+
+
+@pytest.mark.parametrize('again', [0.3, 0.9])
+def test_round2_22_3_a_reboot_that_looks_like_a_late_heartbeat_voids_a_held_request(again):
+    """D3: the module reboots (its first heartbeat taken, its second lost), is armed and asks;
+    held under defer. It reboots again `again` s after the first: that power-up's first
+    heartbeat looks like the late second of the one before, and is a reboot all the same: the
+    request is void, an answer true sends nothing."""
+    rig = TriggerRig('defer', 0.95)
+    rig.reboot()
+    rig.wait(REBOOT_S)
+    rig.model.power_cycle()
+    rig.last_boot = rig.t
+    rig.from_model()
+    rig.lose_second_heartbeat()
+    assert rig.ask() and rig.core.pending
+    rig.wait(again - 0.07)
+    rig.model.power_cycle()
+    rig.from_model()  # its heartbeat, within 2 s of the one before: late, or another reboot
+    assert not rig.core.pending
+    call = rig.answer(True)
+    rig.check()
+    assert call.sends == 0 and call.answers[0].outcome == Outcome.REFUSED
+    rig.finish()
+    rig.check(final=True)
+
+
+def test_round2_22_3_a_reboot_taken_right_after_a_late_heartbeat_voids_the_request_between():
+    """D3: the module reboots; the reader takes its first heartbeat and stalls. Meanwhile the
+    module sends its second, is armed and asks, and reboots again (locked). When the stall
+    ends the reader takes the late second heartbeat (handled as a reboot), the request of that
+    power-up, and the next power-up's heartbeats, within 0.2 s of the late one: they tell a
+    reboot after the request, which voids it; an answer true sends nothing."""
+    rig = TriggerRig('defer', 0.95)
+    rig.reboot()
+    rig.wait(REBOOT_S)
+    rig.model.power_cycle()
+    rig.last_boot = rig.t
+    rig.from_model()  # its first heartbeat
+    rig.hold_until = rig.t + 0.8
+    rig.wait(0.1)  # its second, held
+    assert rig.ask()  # its request, held
+    rig.wait(0.3)
+    rig.model.power_cycle()  # another power-up: its heartbeats held
+    rig.wait(0.5)  # the stall ends
+    assert len(rig.seen) == 1
+    call = rig.answer(True)
+    rig.check()
+    assert call.sends == 0 and call.answers[0].outcome == Outcome.REFUSED
+    rig.finish()
+    rig.check(final=True)
+
+
+def test_round2_22_3_found_a_request_between_a_late_heartbeat_and_a_reboot_is_void():
+    """Found by the 20,000-sequence search once it generated D3's late heartbeats (kept as it
+    shrank it): the module rebooted, the reader took its first heartbeat and stalled 0.6 s;
+    meanwhile the module asked, and rebooted again (its first heartbeat seen, its second lost).
+    The stall ended: the late second heartbeat (a possible reboot), the request, and the next
+    power-up's first heartbeat within 0.2 s of the late one, which the rule took for the same
+    power-up: the confirmation, after the release gate, went to a module rebooted since."""
+    rig = TriggerRig('confirm', 0.2)
+    rig.reboot(late_s=0.6)
+    rig.wait(0.01)
+    rig.wait(0.3)
+    assert rig.ask()
+    rig.gate_on, rig.gate_delay = True, 0.0
+    rig.reboot(again_s=0.3)
+    rig.finish()
+    rig.check(final=True)
+    (seen,) = rig.seen.values()
+    assert seen.sent_at is None and seen.decisions[0].decision == 'denied'
+
+
+def test_round2_22_3_found_a_request_between_late_heartbeats_of_three_power_ups_is_void():
+    """Found by the 20,000-sequence search after the rule above: the reader stalled twice; the
+    heartbeat taken 0.6 s after a burst of late ones was taken for a sure first, and the next
+    power-up's first, taken with it and a request of the power-up before, for its second."""
+    rig = TriggerRig('confirm', 0.2)
+    assert rig.ask()
+    rig.reboot(late_s=0.3)
+    rig.reboot(late_s=0.6)
+    rig.gate_on, rig.gate_delay = True, 0.0
+    rig.model.armed = True  # (by its switch: it asks at its next instant)
+    rig.unseen = True
+    rig.reboot(again_s=0.6)
+    rig.finish()
+    rig.check(final=True)
+    late = [s for s in rig.seen.values() if s.t > START]
+    assert late and all(s.sent_at is None for s in late), late
+
+
 def test_round2_22_7_a_driver_stopping_leaves_a_held_request_not_answered():
     core = TriggerCore('defer')
     core.know(True, '', False, True, True)
@@ -518,9 +683,13 @@ class TriggerPolicyModel(RuleBasedStateMachine):
     def a_gate_returns(self, index: int) -> None:
         self.rig.pass_gate(index)
 
-    @rule(quiet=st.booleans())
-    def module_reboots(self, quiet: bool) -> None:
-        self.rig.reboot(quiet)
+    @rule(kind=st.sampled_from(['seen', 'quiet', 'late', 'lost_second_then_reboot']),
+          after=st.sampled_from([0.3, 0.6, 1.5, 1.9]))
+    def module_reboots(self, kind: str, after: float) -> None:
+        """The module reboots: its heartbeats seen or lost, or (D3) its second taken `after`
+        the first by a reader that stalled, or lost and another reboot `after` the first."""
+        self.rig.reboot(quiet=kind == 'quiet', late_s=after if kind == 'late' else 0.0,
+                        again_s=after if kind == 'lost_second_then_reboot' else None)
 
     @rule(armed=st.booleans())
     def someone_else_arms_or_locks(self, armed: bool) -> None:
