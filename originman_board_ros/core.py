@@ -197,6 +197,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
                          'asr': 0}
         self._status = 'port not open yet'
         self._settings_due: Optional[float] = None
+        self._settings_asked = 0  # how many times they were asked for (_ask_settings)
         self._settings_ok = False
         self._settings_message = 'not written yet'
         self._check_at: Optional[float] = None
@@ -275,9 +276,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
                 self._expected_offsets = {
                     i + 1: v for i, v in enumerate(new.pwm_servo_offsets_us)}
                 if self._plan.online:
-                    self._settings_due = self._clock()
-                    self._settings_ok = False
-                    self._settings_message = 'writing'
+                    self._ask_settings(self._clock())
         self._step(Reconfigure(self._clock(), new.motor_timeout_s, new.offline_timeout_s))
         self._wake.set()
         self._timer.wake()
@@ -352,9 +351,7 @@ class OriginManCore(Commands, Services, SettingsAtConnect, BusServoPoll):
             self._status = why
             if online:
                 # Written at connect and after every return (a reboot loses them, §4).
-                self._settings_due = now
-                self._settings_ok = False
-                self._settings_message = 'writing'
+                self._ask_settings(now)
                 self._expected_offsets = {
                     i + 1: v for i, v in enumerate(self.config.pwm_servo_offsets_us)}
                 self._next_poll = now

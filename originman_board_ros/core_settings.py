@@ -10,8 +10,10 @@ Threads:
   ``settings_check_period_s`` and has them all written again when they differ (O37). It owns
   ``_check_at`` (worker only, no lock).
 
-Owns, under ``_lock``: ``_settings_due``, ``_settings_ok``, ``_settings_message``; reads
-``_expected_offsets`` (and resets it to the desired offsets when the check finds them lost).
+Owns, under ``_lock``: ``_settings_due``, ``_settings_ok``, ``_settings_message``,
+``_settings_asked`` (each request counts: a write that a newer request overtook does not settle
+it); reads ``_expected_offsets`` (and resets it to the desired offsets when the check finds them
+lost).
 """
 
 from __future__ import annotations
@@ -27,13 +29,21 @@ SETTINGS_RETRY_S = 1.0
 class SettingsAtConnect:
     """The settings duties of :class:`~originman_board_ros.core.OriginManCore`."""
 
+    def _ask_settings(self, now: float) -> None:
+        """Have the desired settings written (again) from ``now`` (``_lock`` held)."""
+        self._settings_due = now
+        self._settings_ok = False
+        self._settings_message = 'writing'
+        self._settings_asked += 1
+
     def _apply_settings(self, now: float) -> None:
-        if self._settings_due is None or now < self._settings_due:
-            return
-        cfg = self.config
-        problems = []
         with self._lock:
+            if self._settings_due is None or now < self._settings_due:
+                return
+            cfg = self.config
             expected = dict(self._expected_offsets)
+            asked = self._settings_asked
+        problems = []
         try:
             if cfg.low_battery_mv != -1:
                 self._write(p.encode_battery_limit(cfg.low_battery_mv))
@@ -49,6 +59,10 @@ class SettingsAtConnect:
         except LinkError as exc:
             problems.append(f'could not write the settings: {exc}')
         with self._lock:
+            if self._settings_asked != asked:
+                # Asked for again while these were written (a parameter changed, the board
+                # came back): what was written may be the old; the newer request stands.
+                return
             if problems:
                 self._settings_ok = False
                 self._settings_message = '; '.join(problems)
@@ -93,7 +107,7 @@ class SettingsAtConnect:
                                   f'{offset} us: the board was reset? writing the desired '
                                   'settings again')
                 with self._lock:
-                    self._settings_due = now
+                    self._ask_settings(now)
                     self._expected_offsets = {
                         i + 1: v for i, v in enumerate(self.config.pwm_servo_offsets_us)}
                 return

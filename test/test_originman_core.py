@@ -171,6 +171,28 @@ def test_settings_are_written_at_connect_and_after_the_board_comes_back(make_rig
     assert r.model.pwm_servos[2].offset_us == -20 and r.core.snapshot().settings_ok
 
 
+def test_round2_22_a_setting_changed_while_the_settings_are_written_is_written_after_them(
+        make_rig):
+    """A parameter set while the worker writes the settings (at a connect, reading the PWM
+    offsets back) is written next: that write ended by calling the settings done, and the new
+    threshold never reached the board."""
+    r = make_rig(low_battery_mv=7000, pwm_servo_offsets_us=(10,))
+    real_read = r.core.link.read_pwm_offset
+    changed = []
+
+    def read_pwm_offset(servo_id, *args, **kwargs):
+        if not changed:  # the parameter comes in while the connect's write reads back
+            changed.append(True)
+            r.core.reconfigure(replace(r.core.config, low_battery_mv=6800))
+        return real_read(servo_id, *args, **kwargs)
+    r.core.link.read_pwm_offset = read_pwm_offset
+    r.online()  # the connect's settings, with the change in the middle
+    assert changed and not r.core.snapshot().settings_ok  # not done: the change is due
+    r.core.poll()
+    wait_for(lambda: r.model.battery_limit_mv == 6800, 5, what='the new threshold on the board')
+    assert r.core.snapshot().settings_ok and '6800 mV' in r.core.snapshot().settings_message
+
+
 def test_keep_and_minus_1_write_nothing(rig):
     snap = rig.core.snapshot()
     assert snap.settings_ok and snap.settings_message == 'no desired settings'
