@@ -226,6 +226,13 @@ class DeployCore(DeployKnowledge):
             self._answer('refused', f"deploy refused: confirm must be exactly '{DEPLOY_TOKEN}' "
                          f'(got {call.token!r}); nothing sent')
             return
+        if not (yield from self._judge(call)):
+            return
+        yield from self._attempts(call, t0)
+        self._save()
+
+    def _judge(self, call: DeployCall) -> Generator[Union[Request, PassGate], Event, bool]:
+        """Decide on what is known, read afresh where it is old (D15); False: answered."""
         if not self.online or not self.fresh or not self.boot_current:
             # (The boot count too: a reboot after the frame left must be told from none.)
             yield from self._reread()
@@ -238,29 +245,28 @@ class DeployCore(DeployKnowledge):
             else:
                 self._answer('refused', f'deploy refused: module offline '
                              f'({self.offline_reason}); nothing sent')
-            return
+            return False
         if self.fresh and self.triggered:
             self._answer('already deployed', 'already deployed: the module reports triggered; '
                          'nothing sent', ok=True)
-            return
+            return False
         if not self.fresh:
             self._answer('refused', 'deploy refused: the module may have rebooted and has not '
                          'been re-read (it did not answer the status, armed or triggered query), '
                          'so whether it is armed is not known; nothing sent. Try again in a '
                          'moment.')
-            return
+            return False
         if self.armed is not True:
             if not call.arm_if_locked:
                 self._answer('refused', 'deploy refused: the module is locked (a locked module '
                              'cannot deploy); arm it with ~/arm or set arm_if_locked; nothing '
                              'sent')
-                return
+                return False
             problem = yield from self._arm()
             if problem:
                 self._answer('refused', f'deploy refused: arming failed: {problem}')
-                return
-        yield from self._attempts(call, t0)
-        self._save()
+                return False
+        return True
 
     def _attempts(self, call: DeployCall, t0: float) -> _Wait:
         attempts = 0
@@ -334,8 +340,15 @@ class DeployCore(DeployKnowledge):
                 return
             if not attempts and call.gate:
                 yield PassGate('deploy')  # every refusal is decided above...
-                if self._changed_at_gate(reboots):
-                    return  # ...on what was known before it: judged again after it
+                if self._changed_since(reboots):
+                    # ...on what was known before the gate: what came in while it was passed
+                    # (a reboot or a late heartbeat, a lock, a deployment, a silence) is judged
+                    # as before it: read afresh, then sent, or answered (D15).
+                    if not (yield from self._judge(call)):
+                        return
+                    reboots = self.reboots
+                    frame_boot = self.boot_count if self.boot_current else None
+                    known = set(self._reported)
             attempts += 1
             # The decision is on disk before the frame leaves: a crash between the two must
             # not leave a deployment the black box never heard of.
@@ -396,28 +409,11 @@ class DeployCore(DeployKnowledge):
                 return
             said_not_triggered = triggered is False
 
-    def _changed_at_gate(self, reboots: int) -> bool:
-        """Answer the call if the module changed while the release gate was passed.
-
-        What was taken meanwhile (a reboot or a late heartbeat, a lock, a deployment, a
-        silence) is judged before the frame leaves, as it was before the gate (D15): the frame
-        goes only on an armed state read since the last reboot the driver knows of.
-        """
-        if self.fresh and self.triggered:
-            self._answer('already deployed', 'already deployed: the module reported triggered '
-                         'while the release gate was passed; nothing sent', ok=True)
-            return True
-        if self.reboots != reboots or not self.fresh:
-            what = 'may have rebooted and has not been re-read'
-        elif not self.online:
-            what = f'went offline ({self.offline_reason})'
-        elif self.armed is not True:
-            what = 'was locked'
-        else:
-            return False
-        self._answer('refused', f'deploy refused: while the release gate was passed the module '
-                     f'{what}; nothing sent. Try again in a moment.')
-        return True
+    def _changed_since(self, reboots: int) -> bool:
+        """Whether what the deploy was decided on may have changed (a reboot, a lock, ...)."""
+        return (self.reboots != reboots or not self.online or not self.fresh
+                or not self.boot_current or self.triggered is not False
+                or self.armed is not True)
 
     def _answered(self, ack: p.DeployAck, attempts: int, t0: float) -> _Wait:
         hexed = ack.raw.hex(' ')
