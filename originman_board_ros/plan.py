@@ -487,7 +487,9 @@ class BoardPlan:
         if not self.sending:
             paced = self.scheduler.next_time(pace)
             if paced is not None:
-                dues.append(now + (paced - pace))
+                # On one clock, the time itself: now + (paced - now) rounds, and a timer set
+                # 2e-18 s after the frame is ready was found late (the 20,000-sequence search).
+                dues.append(paced if pace == now else now + (paced - pace))
         return min(dues, default=None)
 
     def _watchdog(self, now: float, out: List[Action]) -> None:

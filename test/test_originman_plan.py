@@ -230,6 +230,20 @@ def test_round2_22_2_set_timer_is_the_watchdog_deadline():
     assert plan.step(Tick(2.0))[-1] == SetTimer(2.0 + MOTOR_TIMEOUT_S)
 
 
+def test_round2_22_2_found_the_paced_moves_timer_is_their_time_not_a_rounding_after_it():
+    # Found by the 20,000-sequence search: the timer for a paced move was set at
+    # now + (ready - now), which rounds: 0.001 + (0.009776736111111113 - 0.001) is
+    # 0.009776736111111115, 2e-18 s after the move is ready ("nothing ready waits without a
+    # writer or a timer" failed).
+    plan = online_plan()
+    plan.step(SendDone(0.001))
+    ready = 0.009776736111111113
+    plan.scheduler.board_free_at = ready + plan.scheduler.ahead_s / 2
+    actions = plan.step(Move(0.001, 100, ((1, 500),)))
+    assert not sends(actions)
+    assert actions[-1] == SetTimer(plan.scheduler.next_time(0.001)) == SetTimer(ready)
+
+
 def test_round2_22_2_every_thread_that_steps_may_write_but_never_two_at_once():
     plan = online_plan()
     assert sends(plan.step(Command(0.0, LED_FRAME, 1)))
