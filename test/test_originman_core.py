@@ -62,6 +62,11 @@ class Rig:
         self.frame_arrives()
         self.core.poll()
         assert self.core.online
+        # The reader thread judges the board online with the frame, then calls
+        # on_online_change: `online` may be seen before the callback has run (beside a busy
+        # loop it was).
+        wait_for(lambda: self.events['online'] and self.events['online'][-1][0], 5,
+                 what='the online callback')
 
     def silence(self):
         """Switch the board off and wait until everything it sent has been read."""
