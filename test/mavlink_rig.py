@@ -26,7 +26,7 @@ from parachute_rig import Rig
 from rcl_interfaces.msg import Parameter
 from rcl_interfaces.srv import SetParameters
 from std_msgs.msg import String
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 os.environ.setdefault('MAVLINK20', '1')
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
@@ -161,7 +161,12 @@ class Hub:
 
     def wait(self, mark: int, side: str, kind: str, where: Callable[[Any], bool] = lambda m: True,
              timeout: float = 10.0, what: str = '') -> Tuple[float, Any]:
-        """Wait for a message from `side` of type `kind` matching `where`; return it."""
+        """Wait for a message from `side` of type `kind` matching `where`; return it.
+
+        `timeout` is stretched by `wait_scale()`, as every wait of the suite (beside a busy
+        loop a STATUSTEXT came later than an unstretched 10 s).
+        """
+        timeout *= wait_scale()
         deadline = time.monotonic() + timeout
         with self._cond:
             while True:
@@ -171,7 +176,7 @@ class Hub:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     last = [m for _, s, m in self.records[-5:]]
-                    raise AssertionError(f'timed out after {timeout} s waiting for {kind} from '
+                    raise AssertionError(f'timed out after {timeout:g} s waiting for {kind} from '
                                          f'{side} {what}; last: {last}')
                 self._cond.wait(left)
 
