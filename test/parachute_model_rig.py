@@ -48,6 +48,19 @@ FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 
 with the reply, its second is lost, and it reboots again 0.3 s later (within the 2 s of a late
 heartbeat: the second power-up's first heartbeat looks like the first's late second)."""
 HEARTBEAT = p.encode_module_heartbeat()
+REBOOT_KINDS = ('seen', 'quiet', 'late', 'lost_second_then_reboot')
+"""How a generated reboot reaches the driver (D3): its heartbeats seen or lost, its second taken
+late by a reader that stalled, or lost and another reboot following."""
+REBOOT_AFTER_S = (0.3, 0.6, 1.5, 1.9)
+"""When the late second heartbeat, or the second reboot, comes after the first heartbeat."""
+
+
+def reboot_faults(kind: str, after: float) -> Dict[str, Any]:
+    """Return a rig's reboot arguments (``quiet``, ``late_s``, ``again_s``) for `kind`."""
+    return dict(quiet=kind == 'quiet', late_s=after if kind == 'late' else 0.0,
+                again_s=after if kind == 'lost_second_then_reboot' else None)
+
+
 GARBAGE = bytes([0x00, 0x13, 0x99, 0xFE, 0x37])  # no header byte: it completes no frame
 
 

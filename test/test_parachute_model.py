@@ -46,7 +46,8 @@ from dps_parachute_ros.deploy_core import DeployCore, MAX_FAILED_DEPLOYS
 from dps_parachute_ros.deploy_knowledge import LATE_HEARTBEAT_EVENT
 from model_runs import search
 from dps_parachute_ros.release_gate import GateDone
-from parachute_model_rig import Call, FAULTS, HEARTBEAT, ModelRig, REBOOT_S
+from parachute_model_rig import (Call, FAULTS, HEARTBEAT, ModelRig, REBOOT_AFTER_S,
+                                 REBOOT_KINDS, REBOOT_S, reboot_faults)
 from uav_serial_common.core_events import Record
 
 
@@ -527,13 +528,11 @@ class ParachuteDeployModel(RuleBasedStateMachine):
     def replug(self) -> None:
         self.rig.replug()
 
-    @rule(kind=st.sampled_from(['seen', 'quiet', 'late', 'lost_second_then_reboot']),
-          after=st.sampled_from([0.3, 0.6, 1.5, 1.9]))
+    @rule(kind=st.sampled_from(REBOOT_KINDS), after=st.sampled_from(REBOOT_AFTER_S))
     def module_reboots(self, kind: str, after: float) -> None:
         """The module reboots: its heartbeats seen or lost, or (D3) its second taken `after`
         the first by a reader that stalled, or lost and another reboot `after` the first."""
-        self.rig.power_cycle(quiet=kind == 'quiet', late_s=after if kind == 'late' else 0.0,
-                             again_s=after if kind == 'lost_second_then_reboot' else None)
+        self.rig.power_cycle(**reboot_faults(kind, after))
 
     @rule()
     def driver_restarts(self) -> None:

@@ -49,6 +49,7 @@ from dps_parachute_ros.trigger_core import (
     AnswerCall, Decide, NotSent, Pending, PolicyChanged, RequestReceived, Sent, SetTimer, Stopped,
     Tick, TriggerCore, Write)
 from model_runs import EXAMPLES, search
+from parachute_model_rig import REBOOT_AFTER_S, REBOOT_KINDS, reboot_faults
 from uav_serial_common.core_events import Answer, LinkDown, LinkUp, Log, Rebooted, Record
 from uav_serial_common.core_runner import run_core
 from uav_serial_common.result import Outcome, Result
@@ -683,13 +684,11 @@ class TriggerPolicyModel(RuleBasedStateMachine):
     def a_gate_returns(self, index: int) -> None:
         self.rig.pass_gate(index)
 
-    @rule(kind=st.sampled_from(['seen', 'quiet', 'late', 'lost_second_then_reboot']),
-          after=st.sampled_from([0.3, 0.6, 1.5, 1.9]))
+    @rule(kind=st.sampled_from(REBOOT_KINDS), after=st.sampled_from(REBOOT_AFTER_S))
     def module_reboots(self, kind: str, after: float) -> None:
         """The module reboots: its heartbeats seen or lost, or (D3) its second taken `after`
         the first by a reader that stalled, or lost and another reboot `after` the first."""
-        self.rig.reboot(quiet=kind == 'quiet', late_s=after if kind == 'late' else 0.0,
-                        again_s=after if kind == 'lost_second_then_reboot' else None)
+        self.rig.reboot(**reboot_faults(kind, after))
 
     @rule(armed=st.booleans())
     def someone_else_arms_or_locks(self, armed: bool) -> None:
