@@ -1,7 +1,8 @@
 """Test harness: real rclpy, a private ROS domain per session, nodes as real processes.
 
 - Every pytest session claims its own ``ROS_DOMAIN_ID`` (with a lock file, so parallel sessions on
-  one machine never share one) and keeps discovery on localhost.
+  one machine never share one) and keeps discovery on localhost; its services wait for a new
+  caller to be discovered before they answer (``fastdds_profiles.xml``).
 - `ros` gives a test its own rclpy Context, a node in it and an executor spinning in a thread,
   with helpers to wait for messages and call services with timeouts.
 - `launch` starts an installed executable as a subprocess with parameters, waits for a topic or
@@ -31,6 +32,10 @@ settings.register_profile('uav', deadline=None,
 settings.load_profile('uav')
 
 
+FASTDDS_PROFILES = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'fastdds_profiles.xml')
+"""The session's Fast DDS profiles: a service waits for its client's response reader."""
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Isolate this session's ROS traffic before anything imports rclpy."""
     config.addinivalue_line('markers', 'core: the fast tier (no process, pty or ROS graph)')
@@ -42,6 +47,9 @@ def pytest_configure(config: pytest.Config) -> None:
     # Virtual devices keep their device's time on a busy host (process.device_process).
     os.environ.setdefault('UAV_DEVICE_NICE', '-10')
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    # Every service of the session waits for its caller's response reader before it answers,
+    # instead of dropping the answer after 100 ms (fastdds_profiles.xml says why).
+    os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', FASTDDS_PROFILES)
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
     os.environ.setdefault('PYTHONUNBUFFERED', '1')

@@ -1,12 +1,16 @@
 """The test harness itself: private ROS domain, rclpy context, processes, in-process drivers."""
 
 import os
+import subprocess
 import sys
 import threading
+import time
 
 import pytest
 from rcl_interfaces.srv import GetParameters
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from uav_serial_common.process import executable_path, wait_for
 
@@ -60,3 +64,68 @@ def test_issue22_6_a_driver_in_the_test_process_is_its_own_participant_and_leave
              what='the driver threads to end')
     assert ros.context.ok()
     test_messages_flow_inside_the_test_context(ros)
+
+
+RESPONSE_WAIT_SERVER = r"""
+import sys
+import time
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
+
+rclpy.init()
+node = Node('response_wait_server')
+# Best effort: its response writer never matches a reliable caller's response reader.
+service = node.create_service(Trigger, sys.argv[1], lambda request, response: response,
+                              qos_profile=QoSProfile(
+                                  depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+send = service.send_response
+
+
+def timed_send(response, header):
+    print('sending', flush=True)
+    start = time.monotonic()
+    send(response, header)
+    print(f'gave up after {time.monotonic() - start:.3f} s', flush=True)
+
+
+service.send_response = timed_send
+executor = SingleThreadedExecutor()
+executor.add_node(node)
+executor.spin()
+"""
+
+
+def test_issue22_6_a_service_waits_for_its_callers_response_reader_instead_of_dropping(ros):
+    # A server answers before it has discovered the caller's response reader when the caller
+    # was made just before the call (a node process started a moment before, a loaded host):
+    # rmw_fastrtps waits 100 ms for the reader, then drops the answer, and the caller waits in
+    # vain (a MAVLink test's call, 60 s). Here the reader is never matched (incompatible QoS),
+    # so the server's wait shows: in the session's processes it still waits long after 100 ms.
+    name = f'/response_wait_{os.getpid()}'
+    server = subprocess.Popen([sys.executable, '-c', RESPONSE_WAIT_SERVER, name],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    threading.Thread(target=lambda: lines.extend(server.stdout), daemon=True).start()
+    try:
+        ros.wait_for_service(name)
+        client = ros.node.create_client(
+            Trigger, name, callback_group=ros.group,
+            qos_profile=QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+
+        def request_arrived():
+            # Sent again until one arrives (the server takes the first and blocks): this client
+            # is never ready (its response reader never matches), and a request sent before its
+            # writer matched the server's reader goes nowhere.
+            client.call_async(Trigger.Request())
+            return 'sending\n' in lines
+        wait_for(request_arrived, 15, interval=0.2, what='a request at the server')
+        # 20 times rmw_fastrtps's default wait (the session's is 10 s).
+        time.sleep(2.0)
+        assert not any(line.startswith('gave up') for line in lines), lines
+    finally:
+        server.kill()
+        server.wait(10)

@@ -408,11 +408,6 @@ def test_round2_23_system_id_zero_waits_for_the_autopilot_and_bad_ports_never_cr
         launch.start('virtual_autopilot', node_name='autopilot42', parameters=dict(
             mavlink_url=f'udpout:127.0.0.1:{hub.ap_port}', system_id=42), ros=ros,
             wait_service='/autopilot42/parachute_release')
-        # The client made now, not at the call: a server drops its response to a client whose
-        # response reader it has not discovered yet (rmw_fastrtps waits only briefly for it);
-        # the inferred cause of one call, made with a fresh client beside a busy loop, that got
-        # no answer in 60 s (the autopilot answers within its 10-s command timeout in any case).
-        ros.client(Trigger, '/autopilot42/parachute_release')
         _, beat = hub.wait(0, 'node', 'HEARTBEAT', timeout=15)
         assert beat.get_srcSystem() == 42 and beat.system_status == mavlink.MAV_STATE_UNINIT
         mark = hub.mark()

@@ -116,7 +116,14 @@ class RosHarness:
         return pub
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
-        """Call a service and return its response; fail the test on timeout (x `wait_scale()`)."""
+        """Call a service and return its response; fail the test on timeout (x `wait_scale()`).
+
+        The request is sent once (a call may act on a device), when this client has matched
+        the server both ways (``wait_for_service``: its request writer and its response
+        reader). Whether the server has matched this client's response reader no client API
+        tells; a server under test/conftest.py waits for it (test/fastdds_profiles.xml), where
+        rmw_fastrtps's default drops the response of a client it discovers 100 ms too late.
+        """
         timeout *= wait_scale()
         client = self.client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout):
@@ -125,7 +132,10 @@ class RosHarness:
         done = threading.Event()
         future.add_done_callback(lambda _f: done.set())
         if not done.wait(timeout):
-            raise AssertionError(f'service {name} did not answer within {timeout:.0f} s')
+            client.remove_pending_request(future)
+            raise AssertionError(
+                f'service {name} did not answer within {timeout:.0f} s (a response the server '
+                'dropped shows in its stderr: "failed to send response (timeout)")')
         return future.result()
 
     def client(self, srv_type: Any, name: str) -> Any:
