@@ -15,6 +15,7 @@ import time
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
+from uav_serial_common.process import wait_scale
 from uav_serial_drivers.msg import ServoCommand
 
 # How long the publisher waits for the driver to acknowledge its last samples.
@@ -28,7 +29,7 @@ def main() -> None:
     node = Node('command_flood')
     pub = node.create_publisher(ServoCommand, '/servo_bus/command', 10)
     # Wait for the driver's subscription, so no command is lost to discovery.
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 10 * wait_scale()
     while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
         time.sleep(0.01)
     count = int(rate * seconds)

@@ -27,7 +27,7 @@ from typing import Any, List, Optional, Tuple
 
 from originman_board_ros import protocol as p
 from originman_board_ros.virtual_node import VirtualOriginManBoard
-from uav_serial_common.process import device_process
+from uav_serial_common.process import device_process, wait_scale
 
 
 class VirtualBoard(VirtualOriginManBoard):
@@ -94,7 +94,7 @@ class BoardProcess:
             preexec_fn=device_process)
         self._lock = threading.Lock()
         self._conn = None
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + timeout_s * wait_scale()
         try:
             while True:
                 try:  # the socket's file exists from its bind, a moment before it listens

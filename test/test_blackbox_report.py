@@ -38,7 +38,8 @@ from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_blackbox.report import analyse, build_report, main as report_main
 from support import FakeClock
-from uav_serial_common.process import executable_path, LaunchedProcesses, wait_for
+from uav_serial_common.process import (executable_path, LaunchedProcesses, wait_for,
+                                       wait_scale)
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
 from uav_serial_drivers.srv import Deploy
@@ -233,7 +234,7 @@ def deployment_run(bench):
     bench.status.wait(lambda m: m.armed, 1, what='armed')
     # The request comes about 0.3 s (freefall_time_s) into the fall; answer it in time.
     answered = None
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 5 * wait_scale()
     while answered is None and time.monotonic() < deadline:
         reply = bench.call(SetBool, 'answer_trigger_request', SetBool.Request(data=True))
         if reply.success:

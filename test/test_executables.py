@@ -13,7 +13,7 @@ import socket
 import subprocess
 
 import pytest
-from uav_serial_common.process import executable_path, wait_for
+from uav_serial_common.process import executable_path, wait_for, wait_scale
 
 NS = '/smoke'
 BAD_PORT = '/nonexistent/dir/tty'
@@ -51,7 +51,7 @@ def ctrl_c_twice(proc):
             os.kill(proc.pid, signal.SIGINT)
         except ProcessLookupError:
             break
-    proc.popen.wait(30)
+    proc.popen.wait(30 * wait_scale())
     return proc.popen.returncode
 
 

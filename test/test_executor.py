@@ -20,7 +20,7 @@ from rclpy.node import Node
 from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 from uav_serial_common.executor import DriverExecutor, InlineCallbackGroup
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 
 class _Driver:
@@ -105,7 +105,7 @@ def test_an_inline_callback_is_taken_while_every_pool_thread_is_blocked(ros, dri
     futures = []
     for k in range(2):
         client = ros.client(Trigger, f'/executor_under_test/slow_{k}')
-        assert client.wait_for_service(timeout_sec=10.0)
+        assert client.wait_for_service(timeout_sec=10.0 * wait_scale())
         futures.append(client.call_async(Trigger.Request()))
     wait_for(lambda: driver.blocked == 2, 5, what='both pool threads blocked in a service')
     _publish_until_seen(ros, driver, 7)
@@ -186,11 +186,11 @@ def test_round2_23_a_done_callback_of_a_client_call_keeps_the_executor_spinning(
     # release gate and parachute_mavlink wait on call_async this way.
     driver.release.set()
     client = driver.node.create_client(Trigger, '/executor_under_test/slow_0')
-    assert client.wait_for_service(timeout_sec=10.0)
+    assert client.wait_for_service(timeout_sec=10.0 * wait_scale())
     done = threading.Event()
     future = client.call_async(Trigger.Request())
     future.add_done_callback(lambda _: done.set())
-    assert done.wait(10.0), 'the done callback never ran'
+    assert done.wait(10.0 * wait_scale()), 'the done callback never ran'
     _publish_until_seen(ros, driver, 11)
     assert driver.errors == []
 

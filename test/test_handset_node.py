@@ -17,7 +17,7 @@ from uav_serial_drivers.msg import Failsafe, HandsetAuxiliary, HandsetLink, Hand
 from uav_serial_drivers.srv import SendRaw
 
 from handset_link_ros import protocol as p
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 T = p.CommandType
 STICKS = {'yaw_deg', 'pitch_deg', 'roll_deg', 'altitude_m'}
@@ -294,7 +294,7 @@ def test_double_sigint_exits_cleanly(ros, launch, tmp_path):
         proc.popen.send_signal(signal.SIGINT)
         proc.popen.send_signal(signal.SIGINT)  # ros2 launch's Ctrl-C arrives twice
     for proc in (h.driver, h.handset):
-        assert proc.popen.wait(10) == 0, proc.output()
+        assert proc.popen.wait(10 * wait_scale()) == 0, proc.output()
     assert 'Traceback' not in h.driver.output() + h.handset.output()
 
 

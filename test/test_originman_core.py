@@ -19,7 +19,7 @@ from originman_board_ros.protocol import BusSub
 from originman_rig import VirtualBoard
 import pytest
 from support import FakeClock
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 
 class Rig:
@@ -41,7 +41,7 @@ class Rig:
             on_bus_servo_states=self.events['states'].append,
             on_online_change=lambda online, why: self.events['online'].append((online, why)))
         self.core.start(worker=False)
-        assert self.core.link.wait_port_open(5), 'the core did not open the port'
+        assert self.core.link.wait_port_open(5 * wait_scale()), 'the core did not open the port'
         with self.board.locked():
             self.model.power_on()
 
@@ -321,7 +321,7 @@ def test_round2_22_2_a_failing_log_line_after_the_watchdog_stop_leaves_the_sendi
                                          read_timeout_s=0.25), clock=clock, logger=log)
     try:
         core.start(worker=False)
-        assert core.link.wait_port_open(5)
+        assert core.link.wait_port_open(5 * wait_scale())
         wait_for(lambda: core.link.decoder.frames_decoded > 0, 5, what='a frame')
         core.poll()
         assert core.online

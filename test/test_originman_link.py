@@ -8,7 +8,7 @@ from originman_board_ros.link import (BusServoFailure, LinkDown, LinkTimeout, Or
 from originman_board_ros.protocol import BusSub
 from originman_rig import VirtualBoard
 import pytest
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 # The board model shares this process (and its GIL) with the test: a wide reply window keeps
 # a scheduling hiccup from looking like a lost reply. Timeout tests set their own.
@@ -23,7 +23,7 @@ def rig(tmp_path):
         (threading.current_thread().name, m)), timeout_s=RIG_TIMEOUT_S)
     link.start()
     try:
-        assert link.wait_port_open(5)
+        assert link.wait_port_open(5 * wait_scale())
         yield board, link, reports
     finally:
         link.stop()

@@ -29,7 +29,7 @@ from dps_parachute_ros.virtual_node import create_runner
 from parachute_rig import blackbox_records, Wire
 from model_runs import EXAMPLES, PHASES
 from support import FakeClock
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 DEPLOY = p.encode_deploy()
 CONFIRM = p.encode_trigger_confirm()
@@ -1116,7 +1116,7 @@ def gated(rig):
 
 def rebooted_while_held(rig, gate):
     """Power-cycle the module while `gate` holds a release; return when the driver saw it."""
-    assert gate.entered.wait(5.0), 'the release gate was never called'
+    assert gate.entered.wait(5.0 * wait_scale()), 'the release gate was never called'
     logs = len(rig.heard.logs)
     boot = rig.power_cycle()
     wait_for(lambda: any('rebooted' in text for _, text in rig.heard.logs[logs:]), 5,
@@ -1147,7 +1147,7 @@ def test_round2_22_7_a_change_to_deny_while_the_gate_is_passed_confirms_nothing(
     gate = gated(rig)
     mark = rig.wire.mark()
     ask(rig)
-    assert gate.entered.wait(5.0)
+    assert gate.entered.wait(5.0 * wait_scale())
     policy(rig, 'deny')
     gate.go.set()
     wait_for(lambda: rig.heard.decisions, 5, what='a decision')
@@ -1161,7 +1161,7 @@ def test_round2_22_7_a_gate_that_outlasts_the_modules_window_confirms_nothing(ri
     gate = gated(rig)
     mark = rig.wire.mark()
     ask(rig)
-    assert gate.entered.wait(5.0)
+    assert gate.entered.wait(5.0 * wait_scale())
     rig.clock.advance(1.0)
     gate.go.set()
     wait_for(lambda: rig.heard.decisions, 5, what='a decision')
@@ -1202,7 +1202,7 @@ def test_round2_22_7_a_policy_change_never_waits_for_the_release_gate(rig):
     gate = gated(rig)
     done = []
     threading.Thread(target=lambda: done.append(policy(rig, 'confirm')), daemon=True).start()
-    assert gate.entered.wait(5.0)
+    assert gate.entered.wait(5.0 * wait_scale())
     wait_for(lambda: done, 5, what='the parameter change to return while the gate waits')
     assert not rig.heard.decisions  # (decided when the gate is passed)
     gate.go.set()

@@ -13,7 +13,7 @@ from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkTimeout, ParachuteLink, RECORDS_QUIET_S
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.virtual_node import create_runner
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 
 @pytest.fixture
@@ -26,7 +26,7 @@ def rig(tmp_path):
     box = BlackBox(str(tmp_path / 'bb'))
     link = ParachuteLink(runner.path, 115200, unsolicited.append, blackbox=box)
     link.start()
-    assert link.serial.wait_port_open(5)
+    assert link.serial.wait_port_open(5 * wait_scale())
     yield sim, runner, link, unsolicited, wire, box
     link.stop()
     runner.stop()
@@ -157,7 +157,7 @@ def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_r
     link = ParachuteLink(os.ttyname(slave), 115200, on_message)
     link.start()
     try:
-        assert link.serial.wait_port_open(5)
+        assert link.serial.wait_port_open(5 * wait_scale())
         records = [p.encode_trigger_record(1, k, p.SOURCE_SERIAL, 60, 5, 30, True, False, 20,
                                            180) for k in range(1, 9)]
         answer = b''.join(records[:7]) + p.encode_status_frame(3, 10, True, True) + records[7]
@@ -169,7 +169,7 @@ def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_r
         while p.encode_trigger_records_query() not in asked:
             asked += os.read(master, 64)
         os.write(master, answer)
-        assert held.wait(5), 'the status frame never reached its handler'
+        assert held.wait(5 * wait_scale()), 'the status frame never reached its handler'
         query.join(4 * RECORDS_QUIET_S)  # a list ended behind the reader's back ends now
         release.set()
         query.join(10)
@@ -215,7 +215,7 @@ def test_issue22_a_record_query_lets_the_tail_of_an_answer_cut_short_pass_first(
 
     device = threading.Thread(target=module, daemon=True)
     try:
-        assert link.serial.wait_port_open(5)
+        assert link.serial.wait_port_open(5 * wait_scale())
         device.start()
         first = link.query_records()
         second = link.query_records()

@@ -18,7 +18,7 @@ import pytest
 from rcl_interfaces.msg import Parameter
 from rcl_interfaces.srv import GetParameters, SetParametersAtomically
 from std_srvs.srv import SetBool, Trigger
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_drivers.msg import TriggerRequest
 from uav_serial_drivers.srv import Deploy, SetThresholds
 
@@ -118,7 +118,7 @@ def deploy_then_interrupt(rig):
     rig.runner.faults.reply_delay_s = 3.0  # the module deploys; its answer is late
     mark = rig.wire.mark()
     client = rig.ros.client(Deploy, f'{NODE}/deploy')
-    assert client.wait_for_service(timeout_sec=5)
+    assert client.wait_for_service(timeout_sec=5 * wait_scale())
     client.call_async(Deploy.Request(confirm='DEPLOY'))
     wait_for(lambda: rig.wire.since(mark, p.CMD_DEPLOY), 5, what='the deploy frame')
     return interrupt_twice(rig)

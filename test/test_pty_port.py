@@ -6,6 +6,7 @@ import time
 import pytest
 import serial
 
+from uav_serial_common.process import wait_scale
 from uav_serial_common.pty_port import VirtualSerialPort, wire_time
 
 ALL_BYTES = bytes(range(256))
@@ -13,7 +14,7 @@ ALL_BYTES = bytes(range(256))
 
 def read_exactly(reader, n, timeout=2.0):
     data = b''
-    deadline = time.monotonic() + timeout
+    deadline = time.monotonic() + timeout * wait_scale()
     while len(data) < n and time.monotonic() < deadline:
         data += reader(n - len(data))
     return data
@@ -27,7 +28,7 @@ def test_every_byte_value_passes_unchanged_both_ways(tmp_path):
             # Control characters (XON/XOFF, ^C, CR/LF) are where a cooked tty would interfere.
             driver.write(ALL_BYTES)
             got = b''
-            deadline = time.monotonic() + 2
+            deadline = time.monotonic() + 2 * wait_scale()
             while len(got) < 256 and time.monotonic() < deadline:
                 got += port.read(timeout=0.2)
             assert got == ALL_BYTES

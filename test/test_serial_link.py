@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_common.pty_port import PortUnplugged, VirtualSerialPort
 from uav_serial_common.serial_link import LinkDown, LinkTimeout, SerialLink
 
@@ -508,7 +508,7 @@ def test_issue22_a_reply_the_reader_has_read_but_not_handed_on_is_no_timeout(dev
         asking = threading.Thread(target=lambda: answered.append(
             link.request(b'ask 5\n', lambda f: f == b're 5', timeout=1.0)))
         asking.start()
-        assert held.wait(5)
+        assert held.wait(5 * wait_scale())
         # Past the request's 1-s deadline, the reader still holding the reply (a wait of
         # one more timeout at most is what a late reader is given).
         time.sleep(max(0.0, sent + 1.2 - time.monotonic()))

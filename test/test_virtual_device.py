@@ -6,7 +6,7 @@ import time
 import pytest
 import serial
 
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.virtual_device import VirtualDeviceRunner
 
@@ -27,7 +27,7 @@ def device(tmp_path):
 
 def read_n(driver, n, timeout=2.0):
     data = b''
-    deadline = time.monotonic() + timeout
+    deadline = time.monotonic() + timeout * wait_scale()
     while len(data) < n and time.monotonic() < deadline:
         data += driver.read(n - len(data))
     return data

@@ -8,7 +8,7 @@ from rclpy.parameter import Parameter
 import serial
 from std_srvs.srv import SetBool, Trigger
 
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 
 # (module, node class, node name, whether the device replies, its extra next-reply services)
 VIRTUAL_NODES = [
@@ -22,7 +22,7 @@ VIRTUAL_NODES = [
 
 def _read_until(port, wanted: bytes, timeout: float) -> bytes:
     seen = b''
-    deadline = time.monotonic() + timeout
+    deadline = time.monotonic() + timeout * wait_scale()
     while wanted not in seen and time.monotonic() < deadline:
         seen += port.read(4096)
     return seen

@@ -142,14 +142,14 @@ class LaunchedProcess:
         return self.popen.poll() is None
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> Optional[int]:
-        """Send `sig`, wait up to `timeout` s, then kill; returns the exit code."""
+        """Send `sig`, wait `timeout` s (x `wait_scale()`), then kill; return the exit code."""
         if self.popen.poll() is None:
             try:
                 os.kill(self.popen.pid, sig)
             except ProcessLookupError:
                 pass
             try:
-                self.popen.wait(timeout)
+                self.popen.wait(timeout * wait_scale())
             except subprocess.TimeoutExpired:
                 self.popen.kill()
                 self.popen.wait(5)
