@@ -27,7 +27,7 @@ from rclpy.parameter import Parameter as RclpyParameter
 from sensor_msgs.msg import BatteryState, Imu, JointState
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
-from uav_serial_common.process import wait_for
+from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_drivers.msg import (BusServoCommand, BusServoStateArray, ButtonEvent,
                                     BuzzerPattern, LedPattern, MotorSpeeds, OledText,
                                     PwmServoCommand, RgbPixels, SbusFrame)
@@ -76,6 +76,23 @@ class Rig:
 
     def call(self, srv_type, name, **fields):
         return self.ros.call(srv_type, name, srv_type.Request(**fields))
+
+    def answered(self, srv_type, name, **fields):
+        """Call the driver's ``~/name`` until the board answered what the service reads back.
+
+        The board here is a process on a loaded host, not a microcontroller: now and then it
+        (or the driver's reader) is stalled past a read's 2 x 100 ms, and the driver rightly
+        answers that it got no reply, the outcome unknown (never a success); a user asks again.
+        """
+        replies = []
+
+        def board_answered():
+            replies.append(self.call(srv_type, f'{self.driver_name}/{name}', **fields))
+            # The link's timeout, not the board's 'no reply within 5 ms' from the servo.
+            return not re.search(r'no reply within \d+ ms after', replies[-1].message)
+        wait_for(board_answered, 30, interval=0.0, what=f'{name} answered by the board')
+        assert not any(r.success for r in replies[:-1]), (name, [r.message for r in replies])
+        return replies[-1]
 
     def board_call(self, srv_type, name, **fields):
         reply = self.call(srv_type, f'{BOARD}/{name}', **fields)
@@ -213,22 +230,7 @@ def test_a_servo_sweep_shows_in_joint_states_and_every_service_answers(ros, laun
         assert any(min(path[0], want) < v < max(path[0], want) for v in path), path
     assert [s.online for s in states.last.servos] == [True, True, True]
 
-    def answered(srv_type, name, **fields):
-        """Call ``~/name`` until the board answered what the service reads back.
-
-        The board here is a process on a loaded host, not a microcontroller: now and then it
-        (or the driver's reader) is stalled past a read's 2 x 100 ms, and the driver rightly
-        answers that it got no reply, the outcome unknown (never a success); a user asks again.
-        """
-        replies = []
-
-        def board_answered():
-            replies.append(rig.call(srv_type, f'{DRIVER}/{name}', **fields))
-            # The link's timeout, not the board's 'no reply within 5 ms' from the servo.
-            return not re.search(r'no reply within \d+ ms after', replies[-1].message)
-        wait_for(board_answered, 30, interval=0.0, what=f'{name} answered by the board')
-        assert not any(r.success for r in replies[:-1]), (name, [r.message for r in replies])
-        return replies[-1]
+    answered = rig.answered
 
     # O14: a read the board answers with success -1 is a failure with its reason.
     reply = answered(GetBusServoState, 'bus_servo/get_state', ids=[1, 9])
@@ -474,9 +476,11 @@ def test_bad_values_are_refused_with_nothing_on_the_wire_and_counted(ros, launch
     assert int(values['refused commands']) == total
     for cause in {c for *_, c in BAD_TOPICS}:
         assert int(values[f'refused: {cause}']) >= sum(1 for *_, c in BAD_TOPICS if c == cause)
-    # A read after them all: whatever the driver wrote before it has reached the board.
-    assert rig.call(GetPwmServoState, f'{DRIVER}/pwm_servo/get_state', ids=[1]).success
-    # (Two reads, pulse and offset; a loaded host may send one of them again.)
+    # A read after them all: whatever the driver wrote before it has reached the board. (Two
+    # reads, pulse and offset; a loaded host may send one again, or stall the board past both
+    # tries, answered as no reply: asked again.)
+    reply = rig.answered(GetPwmServoState, 'pwm_servo/get_state', ids=[1])
+    assert reply.success, reply.message
     after = rig.board_state(lambda s: s['wire']['counts'].get('PwmRead', 0) >= 2, 5,
                             'the read at the board')['wire']
     assert set(after['counts']) == {'PwmRead'} and before['recent'] == after['recent'] == []
@@ -537,7 +541,7 @@ def test_a_double_sigint_exits_0_and_the_last_motor_frame_is_a_stop(ros, launch,
     # ros2 launch's Ctrl-C: the terminal's SIGINT and launch's own, close together.
     os.kill(rig.driver.pid, signal.SIGINT)
     os.kill(rig.driver.pid, signal.SIGINT)
-    assert rig.driver.popen.wait(10) == 0, rig.driver.output()
+    assert rig.driver.popen.wait(10 * wait_scale()) == 0, rig.driver.output()
     state = rig.board_state(lambda s: s['motor_set_points'] == [0.0] * 4, 5, 'motors stopped')
     assert state['wire']['last_motor'] == {'kind': 'StopMotors', 'sub': 3,
                                            'wire_ids': [0, 1, 2, 3]}
