@@ -2,17 +2,25 @@
 
 :class:`BusSchedule` composes the parts of ``schedule.py`` (the read cycles, the online
 judgement, the command queue and its budget, what goes first at a READ boundary, the set_id
-rule, the shutdown sequence) into a whole bus: events with their time in, actions out, one
-transaction on the half-duplex bus at a time. ``test/test_servo_model.py`` drives it against the
-device model in virtual time and checks the bus's safety invariants after every step; the
-threaded driver calls the same parts on its threads.
+rule, the shutdown sequence) into a whole bus, with one entry: :meth:`BusSchedule.step` takes
+one event with its time and returns the actions to carry out (issue 22 item 1), one
+transaction on the half-duplex bus at a time, so ``core_runner.run_core`` can drive it.
+
+Events: :class:`Command` (a ``~/command``), :class:`Call` (a service call, answered once by an
+:class:`Answer` with its token), :class:`Shutdown`, and the shared ``core_events`` ``Reply``
+(a reply decoded off the wire), ``LinkUp``/``LinkDown`` (the port) and ``Tick`` (time passed).
+Actions: :class:`Send` (a frame, when it goes and until when it holds the bus), :class:`Answer`,
+and last a shared ``SetTimer`` (when the next ``Tick`` is due; a step without one has no
+deadline). ``test/test_servo_model.py`` steps it against the device model in virtual time and
+checks the bus's safety invariants after every step; the threaded driver calls the same parts
+of ``schedule.py`` on its threads.
 """
 
 from __future__ import annotations
 
 from collections import deque
 import math
-from typing import Any, Deque, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Deque, Hashable, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
@@ -24,6 +32,7 @@ from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge
                                         Target, TORQUE_OFF_ALL, YIELD)
 from desheng_servo_ros.state import (ID, POSITION, READ_STATE, READ_WIDE, ServoRecord, TORQUE)
 from desheng_servo_ros.units import Joint
+from uav_serial_common.core_events import LinkDown, LinkUp, Reply, SetTimer, Tick
 from uav_serial_common.pty_port import wire_time
 
 
@@ -43,11 +52,41 @@ class Send(NamedTuple):
 
 
 class Answer(NamedTuple):
-    """A service call's answer."""
+    """A service call's answer: the `token` of its :class:`Call`."""
 
-    token: int
+    token: Hashable
     ok: bool
     text: str
+
+
+class Command(NamedTuple):
+    """A ``~/command`` taken at `now`: its (id, ticks, ms) targets; the newest of a servo wins."""
+
+    now: float
+    targets: Tuple[Target, ...]
+
+
+class Call(NamedTuple):
+    """A service call at `now`: `name` with `args`; its :class:`Answer` carries `token`.
+
+    Names: ``emergency_stop``, ``write_positions`` (targets), ``read_register`` (id, address,
+    length), ``set_torque`` (ids, enable), ``scan`` (first, last), ``set_id`` (old, new).
+    """
+
+    now: float
+    token: Hashable
+    name: str
+    args: Tuple[Any, ...] = ()
+
+
+class Shutdown(NamedTuple):
+    """Stop at `now`: pending commands and calls dropped, torque off the last frame."""
+
+    now: float
+
+
+Event = Union[Command, Call, Shutdown, Reply, LinkUp, LinkDown, Tick]
+Action = Union[Send, Answer, SetTimer]
 
 
 class _Tx:
@@ -69,11 +108,11 @@ class _Tx:
 class BusSchedule:
     """The servo bus as a state machine: events with their time in, actions out.
 
-    Events: :meth:`command` (a ``~/command``), :meth:`call` (a service: ``emergency_stop``,
-    ``write_positions``, ``read_register``, ``set_torque``, ``scan``, ``set_id``),
-    :meth:`received` (a reply decoded off the wire), :meth:`link` (port up/down),
-    :meth:`shutdown`; :meth:`poll` at :meth:`wake_at` (or any time) lets time pass. Each returns
-    the :class:`Send` and :class:`Answer` actions to carry out, in order. One transaction on the
+    :meth:`step` takes each event (module doc) and returns the :class:`Send` and
+    :class:`Answer` actions to carry out, in order, then the ``SetTimer`` of the next
+    deadline. The methods it calls (:meth:`command`, :meth:`received`, :meth:`link`,
+    :meth:`shutdown`, :meth:`poll` at :meth:`wake_at`) and :meth:`call` (which numbers the
+    calls) are its parts, kept public for the cases that name one moment. One transaction on the
     bus at a time: nothing is sent while a reply is awaited or a frame is on the wire.
     """
 
@@ -105,6 +144,35 @@ class BusSchedule:
         self.cycles_done = 0
         self.read_cycles_done = 0  # cycles that had READs in them
 
+    # -- the one entry ---------------------------------------------------------------------------
+
+    def step(self, event: Event) -> List[Action]:
+        """Take one event; return the actions to carry out, in order (``SetTimer`` last).
+
+        A ``SetTimer(at)`` ends every step that leaves something due (a reply's deadline, the
+        next READ, a command batch the budget holds back, a frame still on the line): step a
+        ``Tick`` by then. A step without one has nothing due until the next event.
+        """
+        now = event.now
+        if isinstance(event, Reply):
+            out = self.received(now, event.message)
+        elif isinstance(event, Tick):
+            out = self.poll(now)
+        elif isinstance(event, Command):
+            out = self.command(now, event.targets)
+        elif isinstance(event, Call):
+            out = self._call(now, event.token, event.name, event.args)
+        elif isinstance(event, (LinkUp, LinkDown)):
+            out = self.link(now, isinstance(event, LinkUp))
+        elif isinstance(event, Shutdown):
+            out = self.shutdown(now)
+        else:
+            raise TypeError(f'not an event of the servo bus: {event!r}')
+        due = self.wake_at()
+        if due < math.inf:
+            out.append(SetTimer(due))
+        return out
+
     # -- events ---------------------------------------------------------------------------------
 
     def command(self, now: float, targets: Sequence[Target]) -> List[Any]:
@@ -116,9 +184,12 @@ class BusSchedule:
     def call(self, now: float, name: str, *args: Any) -> Tuple[int, List[Any]]:
         """Take a service call; return its token (its :class:`Answer` carries it), the actions."""
         self._tokens += 1
-        token = self._tokens
+        return self._tokens, self._call(now, self._tokens, name, args)
+
+    def _call(self, now: float, token: Hashable, name: str,
+              args: Sequence[Any]) -> List[Any]:
         if self.closed:
-            return token, [Answer(token, False, 'shutting down; nothing sent')]
+            return [Answer(token, False, 'shutting down; nothing sent')]
         if name == 'emergency_stop':
             # Ahead of everything queued; queued commands must not follow it.
             self.commands.drop()
@@ -129,9 +200,9 @@ class BusSchedule:
                 self.commands.drop([t[0] for t in args[0]])
             refusal = set_id_refusal(self.servos, *args) if name == 'set_id' else None
             if refusal is not None:
-                return token, [Answer(token, False, 'refused: ' + refusal)]
+                return [Answer(token, False, 'refused: ' + refusal)]
             self.services.append(_Service(self, token, name, args))
-        return token, self.poll(now)
+        return self.poll(now)
 
     def received(self, now: float, reply: proto.Reply) -> List[Any]:
         """Take a reply decoded off the wire; the one awaited completes its transaction."""
@@ -352,7 +423,8 @@ class BusSchedule:
 class _Service:
     """A service call as a sequence of transactions (the model's version of the core's)."""
 
-    def __init__(self, bus: BusSchedule, token: int, name: str, args: Tuple[Any, ...]) -> None:
+    def __init__(self, bus: BusSchedule, token: Hashable, name: str,
+                 args: Tuple[Any, ...]) -> None:
         self.bus = bus
         self.token = token
         self.name = name

@@ -2,7 +2,9 @@
 
 Issue 22 items 1 and 3. The bus's scheduling decisions (``desheng_servo_ros/schedule.py``,
 composed into a state machine without I/O, thread, lock or clock by
-``desheng_servo_ros/bus_schedule.BusSchedule``) drive the device model
+``desheng_servo_ros/bus_schedule.BusSchedule``, driven by its one entry ``step(event)`` alone:
+every call, reply, port change and tick is an event, and the next tick is when its last
+``SetTimer`` says) drive the device model
 (``desheng_servo_ros/simulation.ServoBusSim``) over a wire in virtual time: a request reaches
 the servos when its last byte would have, a reply arrives after its own wire time. Random
 interleavings of ``~/command`` (single ones and floods), ``~/write_positions``, ``~/set_id``,
@@ -31,10 +33,12 @@ cycles and a shutdown; after every step:
 
 from __future__ import annotations
 
+import itertools
+import math
 import random
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.bus_schedule import Answer, BusSchedule, Send
+from desheng_servo_ros.bus_schedule import Answer, BusSchedule, Call, Command, Send, Shutdown
 from desheng_servo_ros.schedule import (COMMAND_SPACING, sync_write_frames,
                                         TORQUE_OFF_ALL)
 from desheng_servo_ros.simulation import ServoBusSim
@@ -43,6 +47,7 @@ from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import (initialize, invariant, precondition, rule,
                                  RuleBasedStateMachine, run_state_machine_as_test)
 from model_runs import EXAMPLES, MIN_MEAN_STEPS, PHASES
+from uav_serial_common.core_events import LinkDown, LinkUp, Rebooted, Reply, SetTimer, Tick
 from uav_serial_common.pty_port import wire_time
 
 STEPS = 50
@@ -55,6 +60,14 @@ IDS = st.integers(1, 6)
 # the wire. The rule's own figure, not the driver's COMMAND_BURST: a driver whose burst grew
 # would starve the reads for that long, and this must catch it.
 ALLOWANCE_BATCHES = 3
+
+
+_TOKENS = itertools.count(1)
+
+
+def call(bus: BusSchedule, now: float, name: str, *args: object) -> list:
+    """Step a service call `name` at `now`; return the actions."""
+    return bus.step(Call(now, next(_TOKENS), name, args))
 
 
 class Wire:
@@ -80,6 +93,8 @@ class Wire:
         self.cut = 0  # frames before this index were cut off by an unplug
         self.cycle_ends: list = []  # when the read loop completed a cycle with READs
         self._cycles = 0
+        self.timer_at = math.inf  # the last step's SetTimer (none: nothing due)
+        self.do(bus.step(Tick(START)))
 
     # -- time -----------------------------------------------------------------------------------
 
@@ -87,14 +102,14 @@ class Wire:
         """Let virtual time pass to `t_end`, carrying out every action on the way."""
         stalls = 0
         while True:
-            t_next = min([self.bus.wake_at()] + [a[0] for a in self.arrivals])
+            t_next = min([self.timer_at] + [a[0] for a in self.arrivals])
             if t_next > t_end:
                 break
-            before = (len(self.log), len(self.arrivals), self.bus.wake_at())
+            before = (len(self.log), len(self.arrivals), self.timer_at)
             self.now = max(self.now, t_next)
             self._deliver()
-            self.do(self.bus.poll(self.now))
-            if (len(self.log), len(self.arrivals), self.bus.wake_at()) == before:
+            self.do(self.bus.step(Tick(self.now)))
+            if (len(self.log), len(self.arrivals), self.timer_at) == before:
                 stalls += 1
                 assert stalls < 1000, f'the schedule asks to wake at {t_next} and does nothing'
                 self.now += 1e-6
@@ -102,7 +117,7 @@ class Wire:
                 stalls = 0
         self.now = max(self.now, t_end)
         self._deliver()
-        self.do(self.bus.poll(self.now))
+        self.do(self.bus.step(Tick(self.now)))
 
     def _deliver(self) -> None:
         due = sorted(a for a in self.arrivals if a[0] <= self.now)
@@ -117,15 +132,18 @@ class Wire:
                     self.busy_until = t
                     self.ends[self._out_k] = t
                     self.outstanding = None
-                self.do(self.bus.received(t, reply))
+                self.do(self.bus.step(Reply(t, reply)))
 
     # -- actions --------------------------------------------------------------------------------
 
     def do(self, actions: list) -> None:
-        """Carry out the schedule's actions: frames onto the wire, answers kept."""
+        """Carry out one step's actions: frames onto the wire, answers kept, the timer set."""
+        self.timer_at = math.inf
         for action in actions:
             if isinstance(action, Answer):
                 self.answers.append(action)
+            elif isinstance(action, SetTimer):
+                self.timer_at = action.at
             else:
                 self._send(action)
         if self.bus.read_cycles_done != self._cycles:
@@ -226,7 +244,7 @@ class ServoBusModel(RuleBasedStateMachine):
         ids = self._ids()
         targets = [(ids[k % len(ids)], ticks, 0) for k in which]
         targets = list({t[0]: t for t in targets}.values())
-        self.wire.do(self.bus.command(self.wire.now, targets))
+        self.wire.do(self.bus.step(Command(self.wire.now, tuple(targets))))
         self._accept(targets)
         self._step(ms)
 
@@ -235,14 +253,14 @@ class ServoBusModel(RuleBasedStateMachine):
         ids = self._ids()
         for k in range(count):
             targets = [(i, (first + k) % 4096, 0) for i in ids]
-            self.wire.do(self.bus.command(self.wire.now, targets))
+            self.wire.do(self.bus.step(Command(self.wire.now, tuple(targets))))
             self._accept(targets)
             self._step(spacing_ms)
 
     @rule(ticks=st.integers(0, 4095), ms=st.floats(0.0, 20.0))
     def write_positions(self, ticks: int, ms: float) -> None:
         targets = [(i, ticks, 0) for i in self._ids()]
-        _, actions = self.bus.call(self.wire.now, 'write_positions', targets)
+        actions = call(self.bus, self.wire.now, 'write_positions', targets)
         self.wire.do(actions)
         for servo_id, _, _ in targets:
             self.newest.pop(servo_id, None)  # the service's move is newer than any command
@@ -250,25 +268,25 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @rule(enable=st.booleans(), ms=st.floats(0.0, 30.0))
     def set_torque(self, enable: bool, ms: float) -> None:
-        _, actions = self.bus.call(self.wire.now, 'set_torque', self._ids(), enable)
+        actions = call(self.bus, self.wire.now, 'set_torque', self._ids(), enable)
         self.wire.do(actions)
         self._step(ms)
 
     @rule(servo_id=IDS, ms=st.floats(0.0, 30.0))
     def read_register(self, servo_id: int, ms: float) -> None:
-        _, actions = self.bus.call(self.wire.now, 'read_register', servo_id, 0x38, 2)
+        actions = call(self.bus, self.wire.now, 'read_register', servo_id, 0x38, 2)
         self.wire.do(actions)
         self._step(ms)
 
     @rule(ms=st.floats(5.0, 40.0))
     def scan(self, ms: float) -> None:
-        _, actions = self.bus.call(self.wire.now, 'scan', 1, 7)
+        actions = call(self.bus, self.wire.now, 'scan', 1, 7)
         self.wire.do(actions)
         self._step(ms)
 
     @rule(old=IDS, new=IDS, ms=st.floats(5.0, 60.0))
     def set_id(self, old: int, new: int, ms: float) -> None:
-        _, actions = self.bus.call(self.wire.now, 'set_id', old, new)
+        actions = call(self.bus, self.wire.now, 'set_id', old, new)
         self.wire.do(actions)
         self._step(ms)
 
@@ -286,7 +304,7 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @rule(ms=st.floats(0.0, 10.0))
     def emergency_stop(self, ms: float) -> None:
-        _, actions = self.bus.call(self.wire.now, 'emergency_stop')
+        actions = call(self.bus, self.wire.now, 'emergency_stop')
         if not self.bus.closed and self.bus.port_open:
             self.stop_sent_at = len(self.wire.log)
         self.newest.clear()  # queued commands are dropped by the stop
@@ -315,11 +333,11 @@ class ServoBusModel(RuleBasedStateMachine):
         # The time the port is closed is neither the READs' nor the commands' (the budget counts
         # it as time, and its burst is back at the reconnect): the stretch starts over.
         self.stretch_starts.add(len(self.wire.log))
-        self.wire.do(self.bus.link(self.wire.now, False))
+        self.wire.do(self.bus.step(LinkDown(self.wire.now)))
         self.newest.clear()  # nothing reaches a bus that is not there
         self._step(down_ms)
         self.wire.plugged = True
-        self.wire.do(self.bus.link(self.wire.now, True))
+        self.wire.do(self.bus.step(LinkUp(self.wire.now)))
 
     @rule(servo_id=IDS)
     def disconnect_or_connect_a_servo(self, servo_id: int) -> None:
@@ -344,7 +362,7 @@ class ServoBusModel(RuleBasedStateMachine):
     def shutdown(self, ms: float) -> None:
         self.shutdown_at = len(self.wire.log)
         self.newest.clear()
-        self.wire.do(self.bus.shutdown(self.wire.now))
+        self.wire.do(self.bus.step(Shutdown(self.wire.now)))
         self._step(ms)
 
     # -- invariants -----------------------------------------------------------------------------
@@ -460,36 +478,68 @@ def _read_reply(servo_id: int, nparams: int) -> proto.Reply:
     return proto.StreamDecoder('reply').feed(proto.encode_reply(servo_id, 0, bytes(nparams)))[0]
 
 
+def _timer(actions: list) -> float:
+    """When a step's SetTimer asks for the next Tick (none: nothing due)."""
+    return next((a.at for a in actions if isinstance(a, SetTimer)), math.inf)
+
+
+def _sends(actions: list) -> list:
+    return [a for a in actions if isinstance(a, Send)]
+
+
 def test_round2_22_found_a_reply_before_its_request_left_is_not_its_answer() -> None:
     # A late reply of the attempt before a retry arrived while the retry was still being sent;
     # taken as the retry's answer, the next request went out over the retry's own frame.
     bus = BusSchedule([Joint(1, 'a')], now=START, baud=BAUD, publish_rate_hz=50.0,
                       max_retries=1)
-    first = bus.poll(START)[0]
-    retry = bus.poll(first.deadline)[0]
+    first = bus.step(Tick(START))[0]
+    retry = bus.step(Tick(first.deadline))[0]
     assert retry.frame == first.frame and retry.at == first.deadline
     left = retry.at + wire_time(len(retry.frame), BAUD)
-    actions = bus.received(left - 0.0001, _read_reply(1, retry.nparams))
-    assert not [a for a in actions if isinstance(a, Send)], actions
-    assert bus.wake_at() == retry.deadline  # still awaiting the retry's reply
+    actions = bus.step(Reply(left - 0.0001, _read_reply(1, retry.nparams)))
+    assert not _sends(actions), actions
+    assert _timer(actions) == retry.deadline  # still awaiting the retry's reply
 
 
 def test_round2_22_found_an_emergency_stop_goes_before_a_service_retry() -> None:
     # A service request that got no reply held the bus through its retries; the stop waited.
     bus = BusSchedule([Joint(1, 'a')], now=START, baud=BAUD, publish_rate_hz=50.0,
                       max_retries=2)
-    bus.poll(START)
-    bus.received(bus.wake_at() - 0.0001, _read_reply(1, 4))  # the read loop's first READ
-    _, actions = bus.call(bus.wake_at(), 'read_register', 9, 0x38, 2)  # 9 never answers
-    ask = [a for a in actions if isinstance(a, Send)]
+    at = _timer(bus.step(Tick(START)))
+    # The read loop's first READ answered, then a call for 9, which never answers.
+    at = _timer(bus.step(Reply(at - 0.0001, _read_reply(1, 4))))
+    actions = call(bus, at, 'read_register', 9, 0x38, 2)
+    ask = _sends(actions)
     if not ask:
-        ask = [a for a in bus.poll(bus.wake_at()) if isinstance(a, Send)]
+        ask = _sends(bus.step(Tick(_timer(actions))))
     assert ask[0].kind == 'read_register'
-    _, actions = bus.call(ask[0].at + 0.0005, 'emergency_stop')
-    assert not [a for a in actions if isinstance(a, Send)]  # the READ is on the wire
-    actions = bus.poll(ask[0].deadline)
-    sends = [a for a in actions if isinstance(a, Send)]
+    actions = call(bus, ask[0].at + 0.0005, 'emergency_stop')
+    assert not _sends(actions)  # the READ is on the wire
+    assert _timer(actions) == ask[0].deadline
+    sends = _sends(bus.step(Tick(ask[0].deadline)))
     assert sends and sends[0].frame == TORQUE_OFF_ALL, [s.kind for s in sends]
+
+
+def test_round2_22_servo_step_is_the_one_entry_and_ends_with_the_next_deadline() -> None:
+    # Issue 22 item 1: the bus steps one event at a time; every step that leaves something
+    # due says when (its last action), and an event it does not know is refused, not dropped.
+    bus = BusSchedule([Joint(1, 'a')], now=START, baud=BAUD, publish_rate_hz=50.0)
+    actions = bus.step(Tick(START))
+    assert isinstance(actions[0], Send) and actions[0].kind == 'read'
+    assert isinstance(actions[-1], SetTimer) and actions[-1].at == actions[0].deadline
+    actions = bus.step(LinkDown(START + 0.0001))
+    assert not [a for a in actions if isinstance(a, SetTimer)]  # the port is closed
+    answers = [a for a in call(bus, START + 0.0002, 'read_register', 1, 0x38, 2)
+               if isinstance(a, Answer)]
+    assert not answers  # waits for the port
+    actions = bus.step(Shutdown(START + 0.0003))
+    assert [a.ok for a in actions if isinstance(a, Answer)] == [False]
+    try:
+        bus.step(Rebooted(START + 0.0004))
+    except TypeError:
+        pass
+    else:
+        raise AssertionError('an unknown event was taken')
 
 
 def test_round2_22_servo_found_commands_beside_services_are_not_the_reads_loss() -> None:
