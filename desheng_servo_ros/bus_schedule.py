@@ -27,12 +27,13 @@ from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge
                                         judge_link, judge_reply, next_on_bus, NOT_DUE,
                                         OFFLINE_AFTER_FAILURES,
                                         plan_telemetry, POSTED,
-                                        ReadSchedule, renamed, REPLY_OVERHEAD, RETRY,
+                                        ReadSchedule, renamed, REPLY_OVERHEAD,
+                                        REPROBE_PERIOD_S, RETRY,
                                         set_id_refusal, shutdown_frames, sync_write_frames,
                                         Target, TORQUE_OFF_ALL, YIELD)
 from desheng_servo_ros.state import (ID, POSITION, READ_STATE, READ_WIDE, ServoRecord, TORQUE)
 from desheng_servo_ros.units import Joint
-from uav_serial_common.core_events import LinkDown, LinkUp, Reply, SetTimer, Tick
+from uav_serial_common.core_events import LinkDown, LinkUp, Log, Reply, SetTimer, Tick
 from uav_serial_common.pty_port import wire_time
 
 
@@ -52,11 +53,34 @@ class Send(NamedTuple):
 
 
 class Answer(NamedTuple):
-    """A service call's answer: the `token` of its :class:`Call`."""
+    """A service call's answer: the `token` of its :class:`Call` (a ``transact``: its reply)."""
 
     token: Hashable
     ok: bool
     text: str
+    reply: Optional[proto.Reply] = None
+
+
+class ReadDone(NamedTuple):
+    """A READ of the read loop is done: its `reply`, or None after its retries.
+
+    `kind` (``state.READ_POSITION``, ``READ_WIDE``, ``READ_STATE``) says what it read;
+    `started`: when its cycle started. The schedule judged the servo already (online,
+    failures, torque); the driver takes the values (position, telemetry) and publishes.
+    """
+
+    now: float
+    servo_id: int
+    kind: int
+    started: float
+    reply: Optional[proto.Reply]
+
+
+class CycleDone(NamedTuple):
+    """A read cycle is complete (`reads` False: every servo offline, none due for a probe)."""
+
+    now: float
+    reads: bool
 
 
 class Command(NamedTuple):
@@ -70,13 +94,22 @@ class Call(NamedTuple):
     """A service call at `now`: `name` with `args`; its :class:`Answer` carries `token`.
 
     Names: ``emergency_stop``, ``write_positions`` (targets), ``read_register`` (id, address,
-    length), ``set_torque`` (ids, enable), ``scan`` (first, last), ``set_id`` (old, new).
+    length), ``set_torque`` (ids, enable), ``scan`` (first, last), ``set_id`` (old, new); and
+    the parts a service procedure of the driver is made of: ``transact`` (frame, reply id,
+    reply params, retries: one request, answered with its reply), ``send`` (frames without a
+    reply), ``hold`` (the read loop stops at the next READ boundary; answered when it has: the
+    bus is the holder's and the other callers', with an emergency stop still first) and
+    ``release`` (the token of the hold: the read loop goes on).
     """
 
     now: float
     token: Hashable
     name: str
     args: Tuple[Any, ...] = ()
+
+
+QUIET_CALLS = frozenset({'scan', 'set_id', 'hold'})
+"""Calls that need a quiet bus: the read loop stops at the next READ boundary meanwhile."""
 
 
 class Shutdown(NamedTuple):
@@ -86,7 +119,7 @@ class Shutdown(NamedTuple):
 
 
 Event = Union[Command, Call, Shutdown, Reply, LinkUp, LinkDown, Tick]
-Action = Union[Send, Answer, SetTimer]
+Action = Union[Send, Answer, ReadDone, CycleDone, Log, SetTimer]
 
 
 class _Tx:
@@ -141,6 +174,8 @@ class BusSchedule:
         self._retry: Optional[_Tx] = None  # a READ to send again at the next boundary
         self._free_at = now  # a frame without a reply holds the bus until then
         self._tokens = 0
+        self.held: set = set()  # tokens of the holds granted and not released
+        self._notes: List[Any] = []  # ReadDone, CycleDone and Log actions of this step
         self.cycles_done = 0
         self.read_cycles_done = 0  # cycles that had READs in them
 
@@ -168,6 +203,9 @@ class BusSchedule:
             out = self.shutdown(now)
         else:
             raise TypeError(f'not an event of the servo bus: {event!r}')
+        # What the reads brought come after the step's frames: the next READ leaves first.
+        out.extend(self._notes)
+        self._notes.clear()
         due = self.wake_at()
         if due < math.inf:
             out.append(SetTimer(due))
@@ -190,6 +228,14 @@ class BusSchedule:
               args: Sequence[Any]) -> List[Any]:
         if self.closed:
             return [Answer(token, False, 'shutting down; nothing sent')]
+        if name == 'release':
+            # Also of a hold not granted yet (its caller gave up waiting): it never will be.
+            self.held.discard(args[0])
+            out = [Answer(svc.token, False, 'released before the bus was held')
+                   for svc in self.services if svc.token == args[0]]
+            self.services = deque(svc for svc in self.services if svc.token != args[0])
+            self.reads.reset(now)  # the servo list may have changed
+            return out + [Answer(token, True, 'released')] + self.poll(now)
         if name == 'emergency_stop':
             # Ahead of everything queued; queued commands must not follow it.
             self.commands.drop()
@@ -239,16 +285,25 @@ class BusSchedule:
         self.commands.drop()
         for svc in list(self.services) + ([self.service] if self.service else []):
             actions.append(Answer(svc.token, False, 'shutting down'))
+        stops = [token for _, token in self.urgent]
+        self.urgent.clear()
         self.services.clear()
         self.service = None
+        self.held.clear()
         # The transaction on the wire ends first (its reply or its deadline).
         at = max(now, self._free_at, self._tx_deadline if self._tx is not None else now)
         self._tx = self._retry = None
         self._tx_deadline = math.inf
+        sent = False
         for frame in shutdown_frames(self.torque_off_on_shutdown):
             if self.port_open:
                 actions.append(self._send_noreply(at, frame, 'shutdown'))
                 at = self._free_at
+                sent = True
+        # A stop still queued (a transaction was on the wire): the shutdown's torque off is it.
+        actions.extend(Answer(token, sent, 'torque off broadcast as the shutdown\'s last frame'
+                              if sent else 'shutting down; torque off NOT sent')
+                       for token in stops)
         return actions
 
     # -- time -----------------------------------------------------------------------------------
@@ -306,9 +361,9 @@ class BusSchedule:
             s.failures < OFFLINE_AFTER_FAILURES or now >= s.next_probe for s in self.servos)
 
     def _reading(self) -> bool:
-        """Whether the read loop runs (a scan or an id change holds it)."""
+        """Whether the read loop runs (a scan, an id change or a hold stops it)."""
         svc = self.service
-        return not (svc is not None and svc.quiet)
+        return not (self.held or (svc is not None and svc.quiet))
 
     def _next(self, now: float, actions: List[Any]) -> bool:
         """Put the next thing on the bus at `now`; False when nothing is due."""
@@ -351,6 +406,7 @@ class BusSchedule:
                 return False
             if started == EMPTY:
                 self.cycles_done += 1
+                self._notes.append(CycleDone(now, False))
                 return False
         frame, servo_id, nparams, retries, tag = reads.take()
         self._start(now, _Tx(frame, servo_id, nparams, retries, 'read', tag), actions)
@@ -379,7 +435,9 @@ class BusSchedule:
         if step is None:
             actions.append(svc.answer())
             self.service = None
-            if svc.quiet:
+            if svc.name == 'hold':
+                self.held.add(svc.token)
+            elif svc.quiet:
                 self.reads.reset(now)  # the servo list may have changed
         elif isinstance(step, _Tx):
             self._start(now, step, actions)
@@ -407,17 +465,23 @@ class BusSchedule:
             return
         s, kind, started, last = tx.tag
         if reply is None:
-            judge_failure(s, now)
+            if judge_failure(s, now):
+                self._notes.append(Log('warning', (
+                    f'{s.name} (id {s.id}) stopped answering: offline, probing it every '
+                    f'{REPROBE_PERIOD_S:g} s (check its power and cable; ~/scan lists the bus)')))
         elif kind == READ_STATE:
             s.failures = 0
             s.set_torque(reply.params[0] != 0)
         else:
             if kind == READ_WIDE:
                 plan_telemetry(s, started, self.telemetry_period_s, len(self.servos))
-            judge_reply(s)
+            if judge_reply(s):
+                self._notes.append(Log('info', f'{s.name} (id {s.id}) is back online'))
+        self._notes.append(ReadDone(now, s.id, kind, started, reply))
         if last:
             self.cycles_done += 1
             self.read_cycles_done += 1
+            self._notes.append(CycleDone(now, True))
 
 
 class _Service:
@@ -429,13 +493,14 @@ class _Service:
         self.token = token
         self.name = name
         self.args = args
-        # A scan and an id change hold the read loop: they need a quiet bus.
-        self.quiet = name in ('scan', 'set_id')
+        # A scan, an id change and a hold stop the read loop: they need a quiet bus.
+        self.quiet = name in QUIET_CALLS
         self.ok = True
         self.text = ''
         self.retry: Optional[_Tx] = None  # its transaction to send again
         self._steps = self._run()
         self._reply: Optional[proto.Reply] = None
+        self._answer_reply: Optional[proto.Reply] = None
 
     def next(self) -> Any:
         """Return the next step: a transaction, a frame without a reply, or None (done)."""
@@ -450,7 +515,7 @@ class _Service:
 
     def answer(self) -> Answer:
         """Return the call's answer."""
-        return Answer(self.token, self.ok, self.text)
+        return Answer(self.token, self.ok, self.text, self._answer_reply)
 
     def _tx(self, frame: bytes, servo_id: int, nparams: int, retries: int) -> _Tx:
         return _Tx(frame, servo_id, nparams, retries, self)
@@ -461,6 +526,17 @@ class _Service:
             for frame in sync_write_frames(args[0]):
                 yield frame
             self.text = 'SYNC WRITE sent'
+        elif name == 'transact':
+            frame, servo_id, nparams, retries = args
+            yield self._tx(frame, servo_id, nparams, retries)
+            self.ok, self._answer_reply = self._reply is not None, self._reply
+            self.text = 'answered' if self.ok else 'no reply'
+        elif name == 'send':
+            for frame in args[0]:
+                yield frame
+            self.text = 'sent'
+        elif name == 'hold':
+            self.text = 'the read loop holds'
         elif name == 'read_register':
             servo_id, address, length = args
             yield self._tx(proto.encode_read(servo_id, address, length), servo_id, length,
