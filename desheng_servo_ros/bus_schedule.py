@@ -6,12 +6,13 @@ rule, the shutdown sequence) into a whole bus, with one entry: :meth:`BusSchedul
 one event with its time and returns the actions to carry out (issue 22 item 1), one
 transaction on the half-duplex bus at a time, so ``core_runner.run_core`` can drive it.
 
-Events: :class:`Command` (a ``~/command``), :class:`Call` (a service call, answered once by an
-:class:`Answer` with its token), :class:`Shutdown`, and the shared ``core_events`` ``Reply``
-(a reply decoded off the wire), ``LinkUp``/``LinkDown`` (the port) and ``Tick`` (time passed).
-Actions: :class:`Send` (a frame, when it goes and until when it holds the bus), :class:`Answer`,
-and last a shared ``SetTimer`` (when the next ``Tick`` is due; a step without one has no
-deadline). ``test/test_servo_model.py`` steps it against the device model in virtual time and
+Events (``bus_events.py``): :class:`Command` (a ``~/command``), :class:`Call` (a service call,
+answered once by an :class:`Answer` with its token), :class:`Shutdown`, and the shared
+``core_events`` ``Reply`` (a reply decoded off the wire), ``LinkUp``/``LinkDown`` (the port) and
+``Tick`` (time passed). Actions: :class:`Send` (a frame, when it goes and until when it holds
+the bus), :class:`Answer`, :class:`ReadDone` and :class:`CycleDone` (what the reads brought),
+``Log``, and last a shared ``SetTimer`` (when the next ``Tick`` is due; a step without one has
+no deadline). ``test/test_servo_model.py`` steps it against the device model in virtual time and
 checks the bus's safety invariants after every step; the threaded driver calls the same parts
 of ``schedule.py`` on its threads.
 """
@@ -20,9 +21,11 @@ from __future__ import annotations
 
 from collections import deque
 import math
-from typing import Any, Deque, Hashable, List, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Any, Deque, Hashable, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.bus_events import (  # noqa: F401 - the types, re-exported
+    Action, Answer, Call, Command, CycleDone, Event, QUIET_CALLS, ReadDone, Send, Shutdown)
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
                                         judge_link, judge_reply, next_on_bus, NOT_DUE,
                                         OFFLINE_AFTER_FAILURES,
@@ -35,91 +38,6 @@ from desheng_servo_ros.state import (ID, POSITION, READ_STATE, READ_WIDE, ServoR
 from desheng_servo_ros.units import Joint
 from uav_serial_common.core_events import LinkDown, LinkUp, Log, Reply, SetTimer, Tick
 from uav_serial_common.pty_port import wire_time
-
-
-class Send(NamedTuple):
-    """Put `frame` on the bus at `at`; the bus is taken until `deadline`.
-
-    A reply of `reply_id` with `nparams` params is awaited until `deadline`; `reply_id` None:
-    no reply, the bus is free again at `deadline` (the frame's wire time and a guard).
-    """
-
-    at: float
-    frame: bytes
-    kind: str
-    reply_id: Optional[int]
-    nparams: int
-    deadline: float
-
-
-class Answer(NamedTuple):
-    """A service call's answer: the `token` of its :class:`Call` (a ``transact``: its reply)."""
-
-    token: Hashable
-    ok: bool
-    text: str
-    reply: Optional[proto.Reply] = None
-
-
-class ReadDone(NamedTuple):
-    """A READ of the read loop is done: its `reply`, or None after its retries.
-
-    `kind` (``state.READ_POSITION``, ``READ_WIDE``, ``READ_STATE``) says what it read;
-    `started`: when its cycle started. The schedule judged the servo already (online,
-    failures, torque); the driver takes the values (position, telemetry) and publishes.
-    """
-
-    now: float
-    servo_id: int
-    kind: int
-    started: float
-    reply: Optional[proto.Reply]
-
-
-class CycleDone(NamedTuple):
-    """A read cycle is complete (`reads` False: every servo offline, none due for a probe)."""
-
-    now: float
-    reads: bool
-
-
-class Command(NamedTuple):
-    """A ``~/command`` taken at `now`: its (id, ticks, ms) targets; the newest of a servo wins."""
-
-    now: float
-    targets: Tuple[Target, ...]
-
-
-class Call(NamedTuple):
-    """A service call at `now`: `name` with `args`; its :class:`Answer` carries `token`.
-
-    Names: ``emergency_stop``, ``write_positions`` (targets), ``read_register`` (id, address,
-    length), ``set_torque`` (ids, enable), ``scan`` (first, last), ``set_id`` (old, new); and
-    the parts a service procedure of the driver is made of: ``transact`` (frame, reply id,
-    reply params, retries: one request, answered with its reply), ``send`` (frames without a
-    reply), ``hold`` (the read loop stops at the next READ boundary; answered when it has: the
-    bus is the holder's and the other callers', with an emergency stop still first) and
-    ``release`` (the token of the hold: the read loop goes on).
-    """
-
-    now: float
-    token: Hashable
-    name: str
-    args: Tuple[Any, ...] = ()
-
-
-QUIET_CALLS = frozenset({'scan', 'set_id', 'hold'})
-"""Calls that need a quiet bus: the read loop stops at the next READ boundary meanwhile."""
-
-
-class Shutdown(NamedTuple):
-    """Stop at `now`: pending commands and calls dropped, torque off the last frame."""
-
-    now: float
-
-
-Event = Union[Command, Call, Shutdown, Reply, LinkUp, LinkDown, Tick]
-Action = Union[Send, Answer, ReadDone, CycleDone, Log, SetTimer]
 
 
 class _Tx:
