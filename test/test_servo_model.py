@@ -591,6 +591,38 @@ def test_round2_22_servo_a_hold_stops_the_reads_until_released() -> None:
     assert [a.kind for a in _sends(again)] == ['read']
 
 
+def test_round2_22_servo_each_read_brings_one_result_and_the_judgement_says_so() -> None:
+    # What the driver publishes comes from the schedule's ReadDone and CycleDone: one result
+    # per READ (after its retries), a cycle's end after its last READ, and a Log when a servo
+    # goes offline or comes back (once each, not per READ).
+    bus = BusSchedule([Joint(1, 'a'), Joint(2, 'b')], now=START, baud=BAUD,
+                      publish_rate_hz=200.0, max_retries=1)
+    sim = ServoBusSim([1, 2], now=START, seed=1)
+    wire = Wire(bus, sim, 1)
+    results: list = []
+    logs: list = []
+    do = wire.do
+
+    def keep(actions: list) -> None:
+        results.extend(a for a in actions if isinstance(a, ReadDone))
+        logs.extend(a for a in actions if isinstance(a, Log))
+        do(actions)
+    wire.do = keep
+    wire.run_until(START + 0.1)
+    sim.remove_servo(2)
+    wire.run_until(START + 0.3)
+    reads = [s for s in wire.log if s.kind == 'read']
+    retries = sum(1 for a, b in zip(reads, reads[1:]) if a.frame == b.frame
+                  and a.reply_id == 2)
+    assert len(results) == len(reads) - retries
+    assert {r.servo_id for r in results if r.reply is None} == {2}
+    assert [x.level for x in logs] == ['warning'] and '(id 2)' in logs[0].text
+    assert len(wire.cycle_ends) >= 50  # 200 Hz for 0.3 s, give or take the first cycles
+    sim.add_servo(2)
+    wire.run_until(START + 1.8)  # its re-probe comes within REPROBE_PERIOD_S
+    assert [x.level for x in logs] == ['warning', 'info'] and '(id 2)' in logs[1].text
+
+
 def test_round2_22_servo_step_is_the_one_entry_and_ends_with_the_next_deadline() -> None:
     # Issue 22 item 1: the bus steps one event at a time; every step that leaves something
     # due says when (its last action), and an event it does not know is refused, not dropped.
