@@ -45,8 +45,9 @@ class ReadDone(NamedTuple):
     """A READ of the read loop is done: its `reply`, or None after its retries.
 
     `kind` (``state.READ_POSITION``, ``READ_WIDE``, ``READ_STATE``) says what it read;
-    `started`: when its cycle started. The schedule judged the servo already (online,
-    failures, torque); the driver takes the values (position, telemetry) and publishes.
+    `started`: when its cycle started, on the read loop's clock (``step``'s ``pace_now``).
+    The schedule judged the servo already (online, failures, torque); the driver takes the
+    values (position, telemetry) and publishes.
     """
 
     now: float

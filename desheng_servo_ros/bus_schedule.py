@@ -70,7 +70,8 @@ class BusSchedule:
     def __init__(self, joints: Sequence[Joint], *, now: float, baud: int = 115200,
                  publish_rate_hz: float = 1000.0, telemetry_period_s: float = 1.0,
                  max_retries: int = 1, margin_s: float = 0.002,
-                 torque_off_on_shutdown: bool = True) -> None:
+                 torque_off_on_shutdown: bool = True,
+                 pace_now: Optional[float] = None) -> None:
         self.servos: Tuple[ServoRecord, ...] = tuple(ServoRecord(j, k)
                                                      for k, j in enumerate(joints))
         self.baud = baud
@@ -79,7 +80,8 @@ class BusSchedule:
         self.margin_s = margin_s
         self.torque_off_on_shutdown = torque_off_on_shutdown
         self.max_retries = max_retries
-        self.reads = ReadSchedule(1.0 / publish_rate_hz, max_retries, now)
+        pace = now if pace_now is None else pace_now  # the read loop's clock (step)
+        self.reads = ReadSchedule(1.0 / publish_rate_hz, max_retries, pace)
         self.commands = CommandQueue()
         self.port_open = True
         self.closed = False
@@ -94,19 +96,27 @@ class BusSchedule:
         self._tokens = 0
         self.held: set = set()  # tokens of the holds granted and not released
         self._notes: List[Any] = []  # ReadDone, CycleDone and Log actions of this step
+        self._pace_offset = pace - now  # the read loop's clock less the events' (step)
         self.cycles_done = 0
         self.read_cycles_done = 0  # cycles that had READs in them
 
     # -- the one entry ---------------------------------------------------------------------------
 
-    def step(self, event: Event) -> List[Action]:
+    def step(self, event: Event, pace_now: Optional[float] = None) -> List[Action]:
         """Take one event; return the actions to carry out, in order (``SetTimer`` last).
 
         A ``SetTimer(at)`` ends every step that leaves something due (a reply's deadline, the
         next READ, a command batch the budget holds back, a frame still on the line): step a
         ``Tick`` by then. A step without one has nothing due until the next event.
+
+        ``pace_now``: the read loop's clock, when it is not the events' (a test's clock that
+        the test moves, as the driver's ``clock``): the cycles, re-probes and telemetry are
+        paced on it, while replies' deadlines and the commands' budget run on the events'
+        clock. Default ``event.now``. The times of the actions are on the events' clock (but
+        ``ReadDone.started``).
         """
         now = event.now
+        self._pace_offset = 0.0 if pace_now is None else pace_now - now
         if isinstance(event, Reply):
             out = self.received(now, event.message)
         elif isinstance(event, Tick):
@@ -152,7 +162,7 @@ class BusSchedule:
             out = [Answer(svc.token, False, 'released before the bus was held')
                    for svc in self.services if svc.token == args[0]]
             self.services = deque(svc for svc in self.services if svc.token != args[0])
-            self.reads.reset(now)  # the servo list may have changed
+            self.reads.reset(self._pace(now))  # the servo list may have changed
             return out + [Answer(token, True, 'released')] + self.poll(now)
         if name == 'emergency_stop':
             # Ahead of everything queued; queued commands must not follow it.
@@ -185,7 +195,7 @@ class BusSchedule:
         """Take the port opening or closing; a transaction in flight is lost with it."""
         self.port_open = up
         judge_link(self.servos, up)
-        self.reads.reset(now)
+        self.reads.reset(self._pace(now))
         for tx in (self._tx, self._retry):
             if tx is not None:
                 self._done(now, tx, None)
@@ -238,7 +248,8 @@ class BusSchedule:
         if self.commands.pending:
             nxt = self.commands.free_at()
         if self._reading():
-            nxt = min(nxt, self._free_at if self.reads.in_cycle else self.reads.next_cycle)
+            nxt = min(nxt, self._free_at if self.reads.in_cycle
+                      else self.reads.next_cycle - self._pace_offset)
         return max(self._free_at, nxt)
 
     def poll(self, now: float) -> List[Any]:
@@ -275,8 +286,13 @@ class BusSchedule:
             return False
         if reads.in_cycle or self._retry is not None:
             return True
-        return reads.due(now) and any(
-            s.failures < OFFLINE_AFTER_FAILURES or now >= s.next_probe for s in self.servos)
+        pace = self._pace(now)
+        return reads.due(pace) and any(
+            s.failures < OFFLINE_AFTER_FAILURES or pace >= s.next_probe for s in self.servos)
+
+    def _pace(self, now: float) -> float:
+        """`now` (the events' clock) on the read loop's clock (``step``'s ``pace_now``)."""
+        return now + self._pace_offset
 
     def _reading(self) -> bool:
         """Whether the read loop runs (a scan, an id change or a hold stops it)."""
@@ -319,7 +335,7 @@ class BusSchedule:
             return False
         reads = self.reads
         if not reads.in_cycle:
-            started = reads.start_cycle(now, self.servos)
+            started = reads.start_cycle(self._pace(now), self.servos)
             if started == NOT_DUE:
                 return False
             if started == EMPTY:
@@ -347,7 +363,7 @@ class BusSchedule:
         if self.service is None:
             self.service = self.services.popleft()
             if self.service.quiet:
-                self.reads.reset(now)
+                self.reads.reset(self._pace(now))
         svc = self.service
         step = svc.next()
         if step is None:
@@ -356,7 +372,7 @@ class BusSchedule:
             if svc.name == 'hold':
                 self.held.add(svc.token)
             elif svc.quiet:
-                self.reads.reset(now)  # the servo list may have changed
+                self.reads.reset(self._pace(now))  # the servo list may have changed
         elif isinstance(step, _Tx):
             self._start(now, step, actions)
         else:
@@ -383,7 +399,7 @@ class BusSchedule:
             return
         s, kind, started, last = tx.tag
         if reply is None:
-            if judge_failure(s, now):
+            if judge_failure(s, self._pace(now)):
                 self._notes.append(Log('warning', (
                     f'{s.name} (id {s.id}) stopped answering: offline, probing it every '
                     f'{REPROBE_PERIOD_S:g} s (check its power and cable; ~/scan lists the bus)')))

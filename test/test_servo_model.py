@@ -40,7 +40,7 @@ import random
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, CycleDone,
                                             ReadDone, Send, Shutdown)
-from desheng_servo_ros.schedule import (COMMAND_SPACING, sync_write_frames,
+from desheng_servo_ros.schedule import (COMMAND_SPACING, REPROBE_PERIOD_S, sync_write_frames,
                                         TORQUE_OFF_ALL)
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
@@ -75,8 +75,12 @@ def call(bus: BusSchedule, now: float, name: str, *args: object) -> list:
 class Wire:
     """The schedule and the device model joined by a half-duplex wire in virtual time."""
 
-    def __init__(self, bus: BusSchedule, sim: ServoBusSim, seed: int) -> None:
+    def __init__(self, bus: BusSchedule, sim: ServoBusSim, seed: int,
+                 pace_offset: float = 0.0) -> None:
         self.bus = bus
+        # The read loop's clock less the events' (BusSchedule.step's pace_now): nothing may
+        # depend on the two coinciding.
+        self.pace_offset = pace_offset
         self.sim = sim
         self.rng = random.Random(seed)
         self.now = START
@@ -96,7 +100,7 @@ class Wire:
         self.cycle_ends: list = []  # when the read loop completed a cycle with READs
         self.read_results = 0  # ReadDone actions
         self.timer_at = math.inf  # the last step's SetTimer (none: nothing due)
-        self.do(bus.step(Tick(START)))
+        self.step(Tick(START))
 
     # -- time -----------------------------------------------------------------------------------
 
@@ -110,7 +114,7 @@ class Wire:
             before = (len(self.log), len(self.arrivals), self.timer_at)
             self.now = max(self.now, t_next)
             self._deliver()
-            self.do(self.bus.step(Tick(self.now)))
+            self.step(Tick(self.now))
             if (len(self.log), len(self.arrivals), self.timer_at) == before:
                 stalls += 1
                 assert stalls < 1000, f'the schedule asks to wake at {t_next} and does nothing'
@@ -119,7 +123,7 @@ class Wire:
                 stalls = 0
         self.now = max(self.now, t_end)
         self._deliver()
-        self.do(self.bus.step(Tick(self.now)))
+        self.step(Tick(self.now))
 
     def _deliver(self) -> None:
         due = sorted(a for a in self.arrivals if a[0] <= self.now)
@@ -134,9 +138,15 @@ class Wire:
                     self.busy_until = t
                     self.ends[self._out_k] = t
                     self.outstanding = None
-                self.do(self.bus.step(Reply(t, reply)))
+                self.step(Reply(t, reply))
 
     # -- actions --------------------------------------------------------------------------------
+
+    def step(self, event: object) -> list:
+        """Step the schedule with `event` (the read loop's clock beside it); carry it out."""
+        actions = self.bus.step(event, pace_now=event.now + self.pace_offset)
+        self.do(actions)
+        return actions
 
     def do(self, actions: list) -> None:
         """Carry out one step's actions: frames onto the wire, answers kept, the timer set."""
@@ -203,17 +213,19 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @initialize(n=st.integers(1, 4), rate=st.sampled_from([50.0, 200.0, 1000.0]),
                 retries=st.integers(0, 2), telemetry=st.sampled_from([0.05, 1.0]),
-                extra=st.booleans(), seed=st.integers(0, 2 ** 16))
+                extra=st.booleans(), seed=st.integers(0, 2 ** 16),
+                pace=st.sampled_from([0.0, -START, 12345.6]))
     def start(self, n: int, rate: float, retries: int, telemetry: float, extra: bool,
-              seed: int) -> None:
+              seed: int, pace: float = 0.0) -> None:
         ServoBusModel.sequences += 1
         ids = list(range(1, n + 1))
         self.joints = [Joint(i, f'j{i}') for i in ids]
         self.bus = BusSchedule(self.joints, now=START, baud=BAUD, publish_rate_hz=rate,
-                               telemetry_period_s=telemetry, max_retries=retries)
+                               telemetry_period_s=telemetry, max_retries=retries,
+                               pace_now=START + pace)
         # An unconfigured servo at 6 gives set_id and scan something to find.
         sim = ServoBusSim(ids + ([6] if extra else []), now=START, seed=seed)
-        self.wire = Wire(self.bus, sim, seed)
+        self.wire = Wire(self.bus, sim, seed, pace)
         self.rate = rate
         self.newest: dict = {}  # servo id -> (ticks, accepted at, cycles completed then)
         self.stop_sent_at = None  # the emergency stop awaited as the next frame (log index)
@@ -239,9 +251,10 @@ class ServoBusModel(RuleBasedStateMachine):
         return [s.id for s in self.bus.servos]
 
     def _call(self, name: str, *args: object) -> list:
+        """Step a call (a token of its own) and carry out its actions."""
         token = next(_TOKENS)
         self.calls.add(token)
-        return self.bus.step(Call(self.wire.now, token, name, args))
+        return self.wire.step(Call(self.wire.now, token, name, args))
 
     def _accept(self, targets: list) -> None:
         """Record targets the bus took as the newest of their servos."""
@@ -258,7 +271,7 @@ class ServoBusModel(RuleBasedStateMachine):
         ids = self._ids()
         targets = [(ids[k % len(ids)], ticks, 0) for k in which]
         targets = list({t[0]: t for t in targets}.values())
-        self.wire.do(self.bus.step(Command(self.wire.now, tuple(targets))))
+        self.wire.step(Command(self.wire.now, tuple(targets)))
         self._accept(targets)
         self._step(ms)
 
@@ -267,29 +280,26 @@ class ServoBusModel(RuleBasedStateMachine):
         ids = self._ids()
         for k in range(count):
             targets = [(i, (first + k) % 4096, 0) for i in ids]
-            self.wire.do(self.bus.step(Command(self.wire.now, tuple(targets))))
+            self.wire.step(Command(self.wire.now, tuple(targets)))
             self._accept(targets)
             self._step(spacing_ms)
 
     @rule(ticks=st.integers(0, 4095), ms=st.floats(0.0, 20.0))
     def write_positions(self, ticks: int, ms: float) -> None:
         targets = [(i, ticks, 0) for i in self._ids()]
-        actions = self._call('write_positions', targets)
-        self.wire.do(actions)
+        self._call('write_positions', targets)
         for servo_id, _, _ in targets:
             self.newest.pop(servo_id, None)  # the service's move is newer than any command
         self._step(ms)
 
     @rule(enable=st.booleans(), ms=st.floats(0.0, 30.0))
     def set_torque(self, enable: bool, ms: float) -> None:
-        actions = self._call('set_torque', self._ids(), enable)
-        self.wire.do(actions)
+        self._call('set_torque', self._ids(), enable)
         self._step(ms)
 
     @rule(servo_id=IDS, ms=st.floats(0.0, 30.0))
     def read_register(self, servo_id: int, ms: float) -> None:
-        actions = self._call('read_register', servo_id, 0x38, 2)
-        self.wire.do(actions)
+        self._call('read_register', servo_id, 0x38, 2)
         self._step(ms)
 
     @rule(servo_id=IDS, wait_ms=st.floats(0.0, 10.0), ms=st.floats(0.0, 20.0))
@@ -299,24 +309,21 @@ class ServoBusModel(RuleBasedStateMachine):
         # granted, too: a caller that gave up waiting).
         hold = next(_TOKENS)
         self.calls.add(hold)
-        self.wire.do(self.bus.step(Call(self.wire.now, hold, 'hold')))
+        self.wire.step(Call(self.wire.now, hold, 'hold'))
         self._step(wait_ms)
-        self.wire.do(self._call('transact', proto.encode_read(servo_id, 0x38, 2), servo_id, 2,
-                                1))
-        self.wire.do(self._call('send', [proto.encode_action()]))
+        self._call('transact', proto.encode_read(servo_id, 0x38, 2), servo_id, 2, 1)
+        self._call('send', [proto.encode_action()])
         self._step(ms)
-        self.wire.do(self._call('release', hold))
+        self._call('release', hold)
 
     @rule(ms=st.floats(5.0, 40.0))
     def scan(self, ms: float) -> None:
-        actions = self._call('scan', 1, 7)
-        self.wire.do(actions)
+        self._call('scan', 1, 7)
         self._step(ms)
 
     @rule(old=IDS, new=IDS, ms=st.floats(5.0, 60.0))
     def set_id(self, old: int, new: int, ms: float) -> None:
-        actions = self._call('set_id', old, new)
-        self.wire.do(actions)
+        self._call('set_id', old, new)
         self._step(ms)
 
     @rule(joint=st.integers(0, 3), other=st.integers(0, 6), ms=st.floats(30.0, 80.0))
@@ -333,11 +340,10 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @rule(ms=st.floats(0.0, 10.0))
     def emergency_stop(self, ms: float) -> None:
-        actions = self._call('emergency_stop')
         if not self.bus.closed and self.bus.port_open:
             self.stop_sent_at = len(self.wire.log)
         self.newest.clear()  # queued commands are dropped by the stop
-        self.wire.do(actions)
+        self._call('emergency_stop')
         self._step(ms)
 
     # -- rules: the wire and the servos ---------------------------------------------------------
@@ -362,11 +368,11 @@ class ServoBusModel(RuleBasedStateMachine):
         # The time the port is closed is neither the READs' nor the commands' (the budget counts
         # it as time, and its burst is back at the reconnect): the stretch starts over.
         self.stretch_starts.add(len(self.wire.log))
-        self.wire.do(self.bus.step(LinkDown(self.wire.now)))
+        self.wire.step(LinkDown(self.wire.now))
         self.newest.clear()  # nothing reaches a bus that is not there
         self._step(down_ms)
         self.wire.plugged = True
-        self.wire.do(self.bus.step(LinkUp(self.wire.now)))
+        self.wire.step(LinkUp(self.wire.now))
 
     @rule(servo_id=IDS)
     def disconnect_or_connect_a_servo(self, servo_id: int) -> None:
@@ -391,7 +397,7 @@ class ServoBusModel(RuleBasedStateMachine):
     def shutdown(self, ms: float) -> None:
         self.shutdown_at = len(self.wire.log)
         self.newest.clear()
-        self.wire.do(self.bus.step(Shutdown(self.wire.now)))
+        self.wire.step(Shutdown(self.wire.now))
         self._step(ms)
 
     # -- invariants -----------------------------------------------------------------------------
@@ -621,6 +627,35 @@ def test_round2_22_servo_each_read_brings_one_result_and_the_judgement_says_so()
     sim.add_servo(2)
     wire.run_until(START + 1.8)  # its re-probe comes within REPROBE_PERIOD_S
     assert [x.level for x in logs] == ['warning', 'info'] and '(id 2)' in logs[1].text
+
+
+def test_round2_22_servo_the_reads_pace_on_their_own_clock_and_deadlines_on_the_events() -> None:
+    # The driver paces its read cycles on a clock a test can hold still, while a reply's
+    # deadline passes in real time: a silent servo's READ times out on the events' clock, and
+    # the next cycle waits for the read loop's clock.
+    bus = BusSchedule([Joint(1, 'a')], now=START, baud=BAUD, publish_rate_hz=50.0,
+                      max_retries=0, pace_now=0.0)
+    sends = _sends(bus.step(Tick(START), pace_now=0.0))
+    results: list = []
+    while sends:  # the first cycle's READs (with telemetry), each timing out
+        assert [s.kind for s in sends] == ['read']
+        at = sends[0].deadline
+        done = bus.step(Tick(at), pace_now=0.0)
+        results += [(r.reply, r.started) for r in done if isinstance(r, ReadDone)]
+        sends = _sends(done)
+        assert any(isinstance(a, CycleDone) for a in done) == (not sends)
+    assert len(results) >= 1 and set(results) == {(None, 0.0)}
+    for _ in range(3):  # a second of the events' clock, the read loop's held still
+        at += 0.3
+        actions = bus.step(Tick(at), pace_now=0.0)
+        assert not _sends(actions) and _timer(actions) > at
+    assert _timer(actions) == at + 0.02  # the next cycle: 20 ms on the read loop's clock
+    # Offline now; its re-probe is due REPROBE_PERIOD_S later on the read loop's clock too
+    # (the second of the events' clock that passed is not the read loop's).
+    assert not bus.servos[0].online
+    assert not _sends(bus.step(Tick(at + 0.001), pace_now=0.02))
+    later = _sends(bus.step(Tick(at + 0.002), pace_now=REPROBE_PERIOD_S))
+    assert [s.kind for s in later] == ['read'] and later[0].at == at + 0.002
 
 
 def test_round2_22_servo_step_is_the_one_entry_and_ends_with_the_next_deadline() -> None:
