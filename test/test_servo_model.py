@@ -2,9 +2,10 @@
 
 Issue 22 items 1 and 3. The bus's scheduling decisions (``desheng_servo_ros/schedule.py``,
 composed into a state machine without I/O, thread, lock or clock by
-``desheng_servo_ros/bus_schedule.BusSchedule``, driven by its one entry ``step(event)`` alone:
-every call, reply, port change and tick is an event, and the next tick is when its last
-``SetTimer`` says) drive the device model
+``desheng_servo_ros/bus_schedule.BusSchedule``, stepped by the shared runner
+``core_runner.run_core`` alone, one event at a time: every call, reply, port change and tick is
+an event, each action goes to its handler, and the next tick is when the last ``SetTimer``
+says) drive the device model
 (``desheng_servo_ros/simulation.ServoBusSim``) over a wire in virtual time: a request reaches
 the servos when its last byte would have, a reply arrives after its own wire time. Random
 interleavings of ``~/command`` (single ones and floods), ``~/write_positions``, ``~/set_id``,
@@ -50,6 +51,7 @@ from hypothesis.stateful import (initialize, invariant, precondition, rule,
 from model_runs import EXAMPLES, MIN_MEAN_STEPS, PHASES
 from uav_serial_common.core_events import (LinkDown, LinkUp, Log, Rebooted, Reply, SetTimer,
                                            Tick)
+from uav_serial_common.core_runner import run_core
 from uav_serial_common.pty_port import wire_time
 
 STEPS = 50
@@ -70,6 +72,17 @@ _TOKENS = itertools.count(1)
 def call(bus: BusSchedule, now: float, name: str, *args: object) -> list:
     """Step a service call `name` at `now`; return the actions."""
     return bus.step(Call(now, next(_TOKENS), name, args))
+
+
+class _Paced:
+    """The schedule as ``run_core`` steps it, with the read loop's clock beside each event."""
+
+    def __init__(self, bus: BusSchedule, offset: float) -> None:
+        self.bus = bus
+        self.offset = offset
+
+    def step(self, event: object) -> list:
+        return self.bus.step(event, pace_now=event.now + self.offset)
 
 
 class Wire:
@@ -98,7 +111,12 @@ class Wire:
         self.violations: list = []
         self.cut = 0  # frames before this index were cut off by an unplug
         self.cycle_ends: list = []  # when the read loop completed a cycle with READs
-        self.read_results = 0  # ReadDone actions
+        self.results: list = []  # ReadDone actions
+        self.logs: list = []  # Log actions
+        self._cycle = False  # a cycle with READs completed in this step
+        self.handlers = {Send: self._send, Answer: self.answers.append,
+                         ReadDone: self.results.append, CycleDone: self._cycle_done,
+                         Log: self.logs.append, SetTimer: self._set_timer}
         self.timer_at = math.inf  # the last step's SetTimer (none: nothing due)
         self.step(Tick(START))
 
@@ -143,28 +161,23 @@ class Wire:
     # -- actions --------------------------------------------------------------------------------
 
     def step(self, event: object) -> list:
-        """Step the schedule with `event` (the read loop's clock beside it); carry it out."""
-        actions = self.bus.step(event, pace_now=event.now + self.pace_offset)
-        self.do(actions)
-        return actions
+        """Step the schedule with `event` through the shared runner; its handlers carry it out.
 
-    def do(self, actions: list) -> None:
-        """Carry out one step's actions: frames onto the wire, answers kept, the timer set."""
+        Frames go onto the wire, answers, results and log lines are kept, the timer is the
+        step's ``SetTimer`` (none: nothing due).
+        """
         self.timer_at = math.inf
-        cycle = False
-        for action in actions:
-            if isinstance(action, Answer):
-                self.answers.append(action)
-            elif isinstance(action, SetTimer):
-                self.timer_at = action.at
-            elif isinstance(action, CycleDone):
-                cycle = cycle or action.reads
-            elif isinstance(action, (ReadDone, Log)):
-                self.read_results += isinstance(action, ReadDone)
-            else:
-                self._send(action)
-        if cycle:
+        self._cycle = False
+        done = run_core(_Paced(self.bus, self.pace_offset), [event], self.handlers)
+        if self._cycle:
             self.cycle_ends.append(self.now)
+        return done
+
+    def _set_timer(self, action: SetTimer) -> None:
+        self.timer_at = action.at
+
+    def _cycle_done(self, action: CycleDone) -> None:
+        self._cycle = self._cycle or action.reads
 
     def _send(self, send: Send) -> None:
         previous = self.log[-1] if len(self.log) > self.cut else None
@@ -512,7 +525,7 @@ def test_the_wire_counts_a_reply_as_a_transaction_end() -> None:
     sends = [s for s in wire.log if s.kind == 'read']
     assert sends and not wire.violations
     assert bus.servos[0].online and wire.busy_until < sends[0].deadline
-    assert wire.read_results >= 1 and wire.cycle_ends  # each READ's result, each cycle's end
+    assert wire.results and wire.cycle_ends  # each READ's result, each cycle's end
 
 
 # -- what the search found, kept as named cases (fixed in the schedule and the driver) ----------
@@ -605,15 +618,7 @@ def test_round2_22_servo_each_read_brings_one_result_and_the_judgement_says_so()
                       publish_rate_hz=200.0, max_retries=1)
     sim = ServoBusSim([1, 2], now=START, seed=1)
     wire = Wire(bus, sim, 1)
-    results: list = []
-    logs: list = []
-    do = wire.do
-
-    def keep(actions: list) -> None:
-        results.extend(a for a in actions if isinstance(a, ReadDone))
-        logs.extend(a for a in actions if isinstance(a, Log))
-        do(actions)
-    wire.do = keep
+    results, logs = wire.results, wire.logs  # the handlers' ReadDone and Log actions
     wire.run_until(START + 0.1)
     sim.remove_servo(2)
     wire.run_until(START + 0.3)
