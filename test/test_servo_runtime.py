@@ -84,3 +84,35 @@ def test_round2_22_servo_runtime_torque_off_is_the_last_frame_of_its_stop(bus):
     assert sent and sent[-1].servo_id == proto.BROADCAST_ID
     runtime.command([(1, 200, 0)])  # after the stop: nothing more
     assert wire.requests()[-1].servo_id == proto.BROADCAST_ID
+
+
+def test_round2_22_servo_runtime_reads_again_after_an_unplug(bus):
+    dev, _, runtime, reads, cycles = bus
+    wait_for(lambda: cycles, 20, what='a read cycle')
+    dev.runner.unplug()
+    wait_for(lambda: not runtime.port_open, 20, what='the port closed')
+    assert not any(s.online for s in runtime.schedule.servos)
+    dev.runner.replug()
+    wait_for(lambda: runtime.port_open, 20, what='the port open again')
+    mark = len(reads)
+    wait_for(lambda: {r.servo_id for r in reads[mark:] if r.reply is not None} == {1, 2, 3},
+             20, what='every servo read again')
+
+
+def test_round2_22_servo_runtime_a_stop_goes_ahead_of_a_command_flood(bus):
+    _, wire, runtime, _, cycles = bus
+    wait_for(lambda: cycles, 20, what='a read cycle')
+    mark = wire.mark()
+    for k in range(50):
+        runtime.command([(i, 1000 + k, 0) for i in (1, 2, 3)])
+    answer = runtime.emergency_stop(timeout=10)
+    assert answer is not None and answer.ok
+
+    def stops() -> list:
+        return [k for k, r in enumerate(wire.commands(mark))
+                if r.instruction == Instruction.WRITE and r.servo_id == proto.BROADCAST_ID]
+    stop = wait_for(stops, 10, what='the torque off on the wire')
+    # What of the flood was still queued was dropped by the stop: none of it follows it.
+    time.sleep(0.1)
+    after = wire.commands(mark)[stop[0] + 1:]
+    assert not [r for r in after if r.instruction == Instruction.SYNC_WRITE]
