@@ -288,6 +288,27 @@ def test_two_clean_replies_to_one_request_are_a_duplicate_id_too(tmp_path):
         rig.stop()
 
 
+def test_round2_22_5_late_replies_owed_at_a_check_are_no_second_servo(rig):
+    # The device falls behind (a loaded host stalls its thread) across a duplicate-id check:
+    # the READs of a cycle go unanswered (each sent twice), the check runs while their replies
+    # are still owed, then the device answers every request, late. One servo per id gives one
+    # reply per request: no "more than one servo answers" (beside a busy loop the health said
+    # so for ids 1, 2 in test_a_silent_servo_goes_offline_...).
+    bus = rig.core.bus
+    rig.cycle()
+    with rig.dev.runner.locked():
+        rig.cycle()
+        rig.cycle(CHECK_PERIOD_S)
+    wait_for(lambda: all(bus.replies_by_id[i] == bus.requests_by_id[i] for i in (1, 2, 3)),
+             10.0, what='every request answered, late')
+    for _ in range(3):
+        rig.cycle(CHECK_PERIOD_S)
+    assert 'two servos answer' not in rig.log.text('error')
+    for servo_id in (1, 2, 3):
+        assert rig.core.servo_health(servo_id).level == OK, rig.core.servo_health(servo_id)
+    assert rig.core.bus_health().level == OK, rig.core.bus_health()
+
+
 def test_a_failing_read_loop_is_reported_and_restarts(tmp_path):
     rig = Rig(tmp_path, loop=True, clock=FakeClock())
     try:
