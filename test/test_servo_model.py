@@ -21,7 +21,9 @@ cycles and a shutdown; after every step:
   READ would have gone instead, not a service, hold the bus at most as long as READs over any
   stretch of a connection, give or take three batches: the budget's burst and the batch on the
   wire);
-- ``~/set_id`` never makes two joints share an id;
+- ``~/set_id`` never makes two joints share an id, and one answered as done never makes two
+  servos on the bus share an id (the bus probe's rule, ``schedule.judge_probe``; the bus may hold
+  servos not in the servo list and two servos at one id, whose replies collide or come apart);
 - an emergency stop is the next frame on the wire;
 - torque off is the last frame of a shutdown, and nothing follows it.
 
@@ -72,7 +74,7 @@ class Wire:
         self.log: list = []  # every Send, in order
         self.read_wanted: list = []  # per Send: whether a READ was ready to go instead
         self.ends: list = []  # per Send: when its reply came, else its deadline
-        self.answers: list = []
+        self.answers: list = []  # (answer, the ids on the bus when it was given)
         self.outstanding = None  # the Send awaiting its reply
         self._out_k = 0  # its index in the log
         self.busy_until = START
@@ -108,6 +110,7 @@ class Wire:
         due = sorted(a for a in self.arrivals if a[0] <= self.now)
         self.arrivals = [a for a in self.arrivals if a[0] > self.now]
         for t, data in due:
+            self.bus.received_bytes(len(data))
             for reply in self.decoder.feed(data):
                 out = self.outstanding
                 # A reply can answer a request only once the request has left the line.
@@ -125,7 +128,7 @@ class Wire:
         """Carry out the schedule's actions: frames onto the wire, answers kept."""
         for action in actions:
             if isinstance(action, Answer):
-                self.answers.append(action)
+                self.answers.append((action, self.sim.ids))
             else:
                 self._send(action)
         if self.bus.read_cycles_done != self._cycles:
@@ -151,16 +154,19 @@ class Wire:
         if not self.plugged:
             return
         end = send.at + wire_time(len(send.frame), BAUD)
+        # A fault of the line hits the answer to a request, whoever gives it: the replies of
+        # two servos at one id (kept apart, S24) are lost, corrupted or late together.
+        r = self.rng.random()
+        late = self.rng.random() < self.late
         for reply in self.sim.feed(send.frame, end):
-            r = self.rng.random()
             if r < self.drop:
                 continue
             if r < self.drop + self.corrupt:
                 k = self.rng.randrange(len(reply))
                 reply = reply[:k] + bytes([reply[k] ^ 0x5A]) + reply[k + 1:]
             at = end + wire_time(len(reply), BAUD)
-            if self.rng.random() < self.late:
-                at = send.deadline + self.rng.uniform(0.0, 0.01)  # after its deadline
+            if late:
+                at = max(at, send.deadline + self.rng.uniform(0.0, 0.01))  # after its deadline
             self.arrivals.append((at, reply))
             end = at
 
@@ -201,6 +207,11 @@ class ServoBusModel(RuleBasedStateMachine):
         self.worst_debt = 0.0
         self.stretch_starts: set = set()  # log indexes where the port had closed
         self._counted = 0
+        self.set_ids: dict = {}  # token of a ~/set_id call not answered yet -> (old, new)
+        # Calls during which a servo was connected: one plugged in at the new id after the
+        # probe found it free is beyond what any probe can see.
+        self.disturbed: set = set()
+        self._answers_seen = 0
         self.wire.run_until(START + 0.01)
 
     # -- helpers --------------------------------------------------------------------------------
@@ -268,9 +279,18 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @rule(old=IDS, new=IDS, ms=st.floats(5.0, 60.0))
     def set_id(self, old: int, new: int, ms: float) -> None:
-        _, actions = self.bus.call(self.wire.now, 'set_id', old, new)
+        token, actions = self.bus.call(self.wire.now, 'set_id', old, new)
+        self.set_ids[token] = (old, new)
         self.wire.do(actions)
         self._step(ms)
+
+    @rule(new=IDS, ms=st.floats(5.0, 60.0))
+    def set_id_of_a_servo_not_in_the_list(self, new: int, ms: float) -> None:
+        # The bus probe's own case: a servo the driver was not told about (at 6, or connected
+        # at an id no joint has) moved onto another id.
+        strangers = [i for i in self.wire.sim.ids if i not in self._ids()]
+        if strangers:
+            self.set_id(strangers[0], new, ms)
 
     @rule(joint=st.integers(0, 3), other=st.integers(0, 6), ms=st.floats(30.0, 80.0))
     def set_id_onto_a_joint_whose_servo_is_silent(self, joint: int, other: int,
@@ -329,6 +349,16 @@ class ServoBusModel(RuleBasedStateMachine):
             self.wire.sim.remove_servo(servo_id)
         else:
             self.wire.sim.add_servo(servo_id)
+            self.disturbed.update(self.set_ids)
+
+    @rule(servo_id=IDS, position=st.sampled_from([1000, 2048, 3000]), collisions=st.booleans())
+    def connect_a_second_servo_at_an_id(self, servo_id: int, position: int,
+                                        collisions: bool) -> None:
+        # S24: two servos at one id, whose replies collide (mostly garbled) or, on a bus that
+        # keeps them apart, come one after the other.
+        self.wire.sim.add_servo(servo_id, position_ticks=position, allow_duplicate=True)
+        self.wire.sim.collisions = collisions
+        self.disturbed.update(self.set_ids)
 
     @rule(servo_id=IDS)
     def power_cycle(self, servo_id: int) -> None:
@@ -409,6 +439,21 @@ class ServoBusModel(RuleBasedStateMachine):
     def set_id_never_makes_two_joints_share_an_id(self) -> None:
         ids = self._ids()
         assert len(set(ids)) == len(ids), f'joints share an id: {ids}'
+
+    @invariant()
+    def set_id_done_never_makes_two_servos_share_an_id(self) -> None:
+        # After any ~/set_id answered as done, one servo answers at its new id: the bus probe
+        # found the new id free and one servo at the old one (also one not in the servo list),
+        # unless a servo was connected while the call ran.
+        answers = self.wire.answers
+        for answer, ids in answers[self._answers_seen:]:
+            call = self.set_ids.pop(answer.token, None)
+            if call is not None and answer.ok and answer.token not in self.disturbed:
+                old, new = call
+                assert ids.count(new) == 1, (
+                    f'set_id {old} -> {new} answered done ({answer.text}) with the bus at ids '
+                    f'{sorted(ids)}: {ids.count(new)} servos at {new}')
+        self._answers_seen = len(answers)
 
     @invariant()
     def an_emergency_stop_is_the_next_frame(self) -> None:
