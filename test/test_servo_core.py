@@ -309,6 +309,30 @@ def test_round2_22_5_late_replies_owed_at_a_check_are_no_second_servo(rig):
     assert rig.core.bus_health().level == OK, rig.core.bus_health()
 
 
+def test_round2_22_5_a_second_servo_after_unanswered_requests_is_still_reported(tmp_path):
+    # Requests that went unanswered explain as many late replies, no more: a second servo
+    # that answers apart (a bus that keeps replies apart) right after a stalled cycle is
+    # still a duplicate id.
+    rig = Rig(tmp_path)
+    try:
+        bus = rig.core.bus
+        rig.cycle()
+        with rig.dev.runner.locked():
+            rig.cycle()
+        wait_for(lambda: bus.replies_by_id[2] == bus.requests_by_id[2], 10.0,
+                 what='the stalled cycle answered, late')
+        with rig.dev.runner.locked():
+            rig.sim.collisions = False
+            rig.sim.add_servo(2, allow_duplicate=True)
+        for _ in range(12):
+            rig.cycle(CHECK_PERIOD_S / 4)
+        assert 'duplicate id' in rig.core.servo_health(2).message
+        assert rig.core.servo_health(1).level == OK
+        assert 'replies more than requests' in rig.log.text('error')
+    finally:
+        rig.stop()
+
+
 def test_a_failing_read_loop_is_reported_and_restarts(tmp_path):
     rig = Rig(tmp_path, loop=True, clock=FakeClock())
     try:
