@@ -495,5 +495,10 @@ class _Service:
         if now_at_new != 'yes':
             self.ok, self.text = False, f'UNKNOWN whether servo {old} now has id {new}'
             return
+        # Done only if it is alone there (a servo at the new id whose PINGs were lost).
+        after, why = yield from self._how_many_answer(new)
         bus.servos = renamed(bus.servos, old, new)
+        if after != 'one':
+            self.ok, self.text = False, f'servo {old} took id {new}, not alone there? ({why})'
+            return
         self.text = f'servo {old} now answers at id {new}'

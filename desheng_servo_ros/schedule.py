@@ -327,14 +327,16 @@ def probe_quiet_s(baud: int) -> float:
 
 def judge_probe(values: Sequence[int], garbled: int, unsolicited: int,
                 values_differ: bool = True) -> Tuple[str, str]:
-    """Return ('none' | 'one' | 'several', why) after ``~/set_id``'s PROBE_READS READs of an id.
+    """Return ('none' | 'one' | 'unsure' | 'several', why) after PROBE_READS READs of an id.
 
     `values`: the positions of the READs answered; `garbled`: READs answered by bytes that made
     no frame; `unsolicited`: replies of that id and size no READ took, while they ran. Two
     servos at one id collide (garbled replies) or, on a bus that keeps their replies apart,
     answer twice (a READ without a reply of its own may be answered late, once: beyond those,
     more than one servo answers); their positions also rarely agree (`values_differ`: count
-    that as a sign too, at the price of a moving servo looking like two).
+    that as a sign too, at the price of a moving servo looking like two). 'one' only when every
+    READ was answered: on a bus that loses replies a second servo's may be among those lost,
+    and the PINGs that found the new id free may have missed a servo there ('unsure').
     """
     extra = unsolicited - (PROBE_READS - len(values))
     if garbled:
@@ -344,7 +346,12 @@ def judge_probe(values: Sequence[int], garbled: int, unsolicited: int,
     if values_differ and len(set(values)) > 1:
         return 'several', (f'its present position read {few(sorted(set(values)))}: two '
                            'servos, or one that is moving (stop it first)')
-    return ('one', '') if values else ('none', '')
+    if not values:
+        return 'none', ''
+    if len(values) < PROBE_READS:
+        return 'unsure', (f'{PROBE_READS - len(values)} of {PROBE_READS} READs unanswered: the '
+                          'bus loses replies, and a servo may go unheard')
+    return 'one', ''
 
 
 def renamed(servos: Sequence[ServoRecord], old: int, new: int) -> Tuple[ServoRecord, ...]:

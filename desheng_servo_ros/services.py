@@ -293,6 +293,10 @@ class ServoServices:
                     f'more than one servo answers at id {old} ({why}): a new id would go to '
                     'all of them. Disconnect or power off all but one, then try again; nothing '
                     'changed'))
+            if count == 'unsure':
+                return Result.refused('lossy_bus', (
+                    f'servo {old} answers, but {why}: whether it is alone at id {old} and id '
+                    f'{new} is free cannot be told; nothing changed. Try again'))
             what = f'servo {old} now has id {new}'
             lost = self._send_unacknowledged(
                 lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
@@ -308,9 +312,22 @@ class ServoServices:
                                              f'still answers at id {old}; nothing changed')
                     return _unknown(what, lost, f'neither id {old} nor {new} answers now; '
                                                 'check with ~/scan')
+                # Done only if it is alone there: a servo at the new id whose PING replies
+                # were lost would now share it (the same probe as before the change).
+                after, why = self._how_many_answer(new)
             except LinkError as exc:
                 return _unknown(what, exc, f'~/scan tells (id {new} answers if it did)')
             self._rename(old, new)
+            if after == 'several':
+                message = (f'servo {old} took id {new}, and more than one servo answers there '
+                           f'now ({why}): id {new} was taken by a servo the probe did not hear. '
+                           'Connect them one at a time and give each its own id')
+                self.log_error(message)
+                return Result.failed(message, 'shared_id')
+            if after != 'one':
+                return Result.unknown(f'servo {old} answers at id {new}, but whether it is alone '
+                                      f'there was not seen ({why or "no reply"}); check with '
+                                      '~/scan', 'lossy_bus')
         message = f'servo {old} now answers at id {new}' + (
             '' if lost is None else f' (its acknowledgement was lost: {lost})')
         self.log_info(message)

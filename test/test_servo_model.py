@@ -582,3 +582,38 @@ def test_round2_22_servo_found_the_port_closed_is_no_stretch_of_the_reads() -> N
     state.the_newest_target_reaches_the_wire_within_one_read_cycle()
     state.reads_keep_at_least_half_their_rate()
     state.teardown()
+
+
+def test_round2_22_5_found_set_id_onto_an_id_whose_pings_were_lost_is_not_done() -> None:
+    # The 20,000-sequence search found this once set_id's bus probe was searched: a servo not
+    # in the list (at 6) given id 4, where another servo not in the list answers; the bus lost
+    # a tenth of the replies, both PINGs of 4 went unanswered, 4 looked free, 6 answered all
+    # its READs, and set_id 6 -> 4 was answered done with two servos at 4. Now the change is
+    # done only if the same probe finds one servo at the new id after it (and the probe of
+    # the old id has every READ answered: a bus that loses replies may hide a servo).
+    state = ServoBusModel()
+    state.start(n=3, rate=200.0, retries=1, telemetry=0.05, extra=True, seed=1115)
+    state.emergency_stop(ms=0.0)
+    state.emergency_stop(ms=1.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=57.0, new=1)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.disconnect_or_connect_a_servo(servo_id=4)
+    state.emergency_stop(ms=7.0)
+    state.emergency_stop(ms=9.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=19.0, new=1)
+    state.flood(count=36, first=4, spacing_ms=1.0)
+    state.flood(count=39, first=0, spacing_ms=0.90625)
+    state.set_id(ms=12.0, new=1, old=1)
+    state.wire_faults(corrupt=0.0, drop=0.0, late=0.0)
+    state.flood(count=45, first=2, spacing_ms=2.0)
+    state.set_id_onto_a_joint_whose_servo_is_silent(joint=0, ms=49.0, other=0)
+    state.set_id_of_a_servo_not_in_the_list(ms=60.0, new=4)
+    state.wire_faults(corrupt=0.0, drop=0.1, late=0.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=5.0, new=4)
+    state.scan(ms=23.0)
+    state.wait(ms=100.0)
+    state.set_id_done_never_makes_two_servos_share_an_id()
+    state.set_id_never_makes_two_joints_share_an_id()
+    state.one_transaction_at_a_time()
+    state.teardown()
