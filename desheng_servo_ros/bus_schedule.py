@@ -21,15 +21,15 @@ from __future__ import annotations
 
 from collections import deque
 import math
-from typing import Any, Deque, Hashable, List, Optional, Sequence, Tuple
+from typing import Any, Deque, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_events import (  # noqa: F401 - the types, re-exported
     Action, Answer, Call, Command, CycleDone, Event, QUIET_CALLS, ReadDone, Send, Shutdown)
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
-                                        judge_link, judge_reply, next_on_bus, NOT_DUE,
-                                        OFFLINE_AFTER_FAILURES,
-                                        plan_telemetry, POSTED,
+                                        judge_link, judge_probe, judge_reply, next_on_bus,
+                                        NOT_DUE, OFFLINE_AFTER_FAILURES,
+                                        plan_telemetry, POSTED, PROBE_READS, probe_quiet_s,
                                         ReadSchedule, renamed, REPLY_OVERHEAD,
                                         REPROBE_PERIOD_S, RETRY,
                                         set_id_refusal, shutdown_frames, sync_write_frames,
@@ -43,7 +43,7 @@ from uav_serial_common.pty_port import wire_time
 class _Tx:
     """One transaction of a service or of the read loop that waits for a reply."""
 
-    __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts')
+    __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts', 'mark')
 
     def __init__(self, frame: bytes, reply_id: int, nparams: int, retries: int, owner: Any,
                  tag: Any = None) -> None:
@@ -54,6 +54,7 @@ class _Tx:
         self.owner = owner
         self.tag = tag
         self.attempts = 0
+        self.mark = (0, 0)  # (bytes, frames) received when it was first sent
 
 
 class BusSchedule:
@@ -99,6 +100,11 @@ class BusSchedule:
         self._pace_offset = pace - now  # the read loop's clock less the events' (step)
         self.cycles_done = 0
         self.read_cycles_done = 0  # cycles that had READs in them
+        # What came off the wire: bytes, frames, and replies no request took, by (id, params)
+        # (a request answered by bytes and no frame at all was answered garbled: S24).
+        self.bytes_in = 0
+        self.frames_in = 0
+        self.unsolicited: Dict[Tuple[int, int], int] = {}
 
     # -- the one entry ---------------------------------------------------------------------------
 
@@ -178,8 +184,13 @@ class BusSchedule:
             self.services.append(_Service(self, token, name, args))
         return self.poll(now)
 
+    def received_bytes(self, count: int) -> None:
+        """Count bytes off the wire, before the frames they make go to :meth:`received`."""
+        self.bytes_in += count
+
     def received(self, now: float, reply: proto.Reply) -> List[Any]:
         """Take a reply decoded off the wire; the one awaited completes its transaction."""
+        self.frames_in += 1
         tx = self._tx
         # A reply that came before the request had left the line answers an earlier one (a
         # late reply of the attempt before a retry): it ends nothing.
@@ -189,6 +200,9 @@ class BusSchedule:
             self._tx_deadline = math.inf
             self._free_at = max(self._free_at, now)
             self._done(now, tx, reply)
+        else:
+            kind = (reply.servo_id, len(reply.params))
+            self.unsolicited[kind] = self.unsolicited.get(kind, 0) + 1
         return self.poll(now)
 
     def link(self, now: float, up: bool) -> List[Any]:
@@ -381,6 +395,8 @@ class BusSchedule:
 
     def _start(self, at: float, tx: _Tx, actions: List[Any]) -> None:
         tx.attempts += 1
+        if tx.attempts == 1:
+            tx.mark = (self.bytes_in, self.frames_in)
         timeout = wire_time(len(tx.frame) + tx.nparams + REPLY_OVERHEAD, self.baud) + \
             self.margin_s
         self._tx = tx
@@ -395,7 +411,9 @@ class BusSchedule:
 
     def _done(self, now: float, tx: _Tx, reply: Optional[proto.Reply]) -> None:
         if tx.owner != 'read':
-            tx.owner.result(reply)
+            garbled = reply is None and self.bytes_in > tx.mark[0] and \
+                self.frames_in == tx.mark[1]
+            tx.owner.result(now, reply, garbled)
             return
         s, kind, started, last = tx.tag
         if reply is None:
@@ -435,6 +453,8 @@ class _Service:
         self._steps = self._run()
         self._reply: Optional[proto.Reply] = None
         self._answer_reply: Optional[proto.Reply] = None
+        self._garbled = False
+        self._at = 0.0
 
     def next(self) -> Any:
         """Return the next step: a transaction, a frame without a reply, or None (done)."""
@@ -443,9 +463,14 @@ class _Service:
         except StopIteration:
             return None
 
-    def result(self, reply: Optional[proto.Reply]) -> None:
-        """Take the reply of the step's transaction (None: none after its retries)."""
+    def result(self, now: float, reply: Optional[proto.Reply], garbled: bool = False) -> None:
+        """Take the reply of the step's transaction (None: none after its retries).
+
+        `garbled`: bytes and no frame came while it was awaited.
+        """
         self._reply = reply
+        self._garbled = garbled
+        self._at = now
 
     def answer(self) -> Answer:
         """Return the call's answer."""
@@ -504,26 +529,42 @@ class _Service:
             yield from self._set_id(*args)
 
     def _answers(self, servo_id: int) -> Any:
+        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
+        garbled = False
         for _ in range(2):
             yield self._tx(proto.encode_ping(servo_id), servo_id, 0, 0)
             if self._reply is not None:
-                return True
-        return False
+                return 'yes'
+            garbled = garbled or self._garbled
+        return 'garbled' if garbled else 'no'
+
+    def _how_many_answer(self, servo_id: int) -> Any:
+        """Probe as the live driver does (ServoServices._how_many_answer), with judge_probe."""
+        bus = self.bus
+        kind = (servo_id, POSITION.size)
+        unsolicited = bus.unsolicited.get(kind, 0)
+        values, garbled = [], 0
+        for _ in range(PROBE_READS):
+            yield self._tx(proto.encode_read(servo_id, POSITION.address, POSITION.size),
+                           servo_id, POSITION.size, 0)
+            if self._reply is not None:
+                values.append(int.from_bytes(self._reply.params, 'big'))
+                # A second servo's whole reply would follow at once: wait for it to end.
+                bus._free_at = max(bus._free_at, self._at + probe_quiet_s(bus.baud))
+            elif self._garbled:
+                garbled += 1
+        return judge_probe(values, garbled, bus.unsolicited.get(kind, 0) - unsolicited)
 
     def _set_id(self, old: int, new: int) -> Any:
         bus = self.bus
         taken = yield from self._answers(new)
-        if taken:
-            self.ok, self.text = False, f'id {new} already answers'
+        if taken != 'no':
+            self.ok, self.text = False, f'id {new} already answers ({taken})'
             return
-        values = []
-        for _ in range(5):
-            yield self._tx(proto.encode_read(old, POSITION.address, POSITION.size), old,
-                           POSITION.size, 0)
-            if self._reply is not None:
-                values.append(bytes(self._reply.params))
-        if not values:
-            self.ok, self.text = False, f'servo {old} does not answer'
+        count, why = yield from self._how_many_answer(old)
+        if count != 'one':
+            self.ok, self.text = False, (f'servo {old} does not answer' if count == 'none'
+                                         else f'more than one servo answers at id {old} ({why})')
             return
         # A refusal checked again where the list could have changed meanwhile.
         refusal = set_id_refusal(bus.servos, old, new)
@@ -533,8 +574,13 @@ class _Service:
         yield self._tx(proto.encode_write(old, ID.address, bytes([new])), old, 0,
                        bus.max_retries)
         now_at_new = yield from self._answers(new)
-        if not now_at_new:
+        if now_at_new != 'yes':
             self.ok, self.text = False, f'UNKNOWN whether servo {old} now has id {new}'
             return
+        # Done only if it is alone there (a servo at the new id whose PINGs were lost).
+        after, why = yield from self._how_many_answer(new)
         bus.servos = renamed(bus.servos, old, new)
+        if after != 'one':
+            self.ok, self.text = False, f'servo {old} took id {new}, not alone there? ({why})'
+            return
         self.text = f'servo {old} now answers at id {new}'

@@ -57,6 +57,10 @@ BUS_LOCK_TIMEOUT_S = 2.0
 # raises it, a clean one lowers it): four garbled replies in a row take it past one half, which
 # random line noise on one id practically never does, two servos answering at once (S24) soon.
 GARBLE_WEIGHT = 0.2
+# A request that got no reply may still be answered, late (the device or the host stalled): its
+# reply is then no second servo. Such a late reply is expected for LATE_REPLY_S after the wait
+# for it ended; one that comes later counts as a reply no request explains.
+LATE_REPLY_S = 2.0
 
 
 class ServoBusLink:
@@ -105,6 +109,10 @@ class ServoBusLink:
         self.requests_by_id = [0] * 256
         self.replies_by_id = [0] * 256
         self._unsolicited: Dict[Tuple[int, int], int] = {}
+        # Per id: until when each request that went unanswered may still be answered late
+        # (oldest first), and the replies that no request explains (S24: a second servo).
+        self._owed: List[Deque[float]] = [deque() for _ in range(256)]
+        self.surplus_by_id = [0] * 256
         # Requests of an id answered by bytes that made no frame: a garbled reply, the sign of
         # two servos answering at once (S24) when it keeps happening to one id. garble_level is
         # a moving average of garbled (1) and clean (0) replies per id.
@@ -282,6 +290,7 @@ class ServoBusLink:
                     if attempt >= retries:
                         self._note_silence(servo_id, mark)
                         raise
+                    self._note_silence(servo_id, None)
                 attempt += 1
                 stats.timeouts -= 1  # one per request, as SerialLink counts them
                 stats.retries += 1
@@ -316,7 +325,11 @@ class ServoBusLink:
             return None, self.garbled_by_id[servo_id] > garbled
 
     def _note_silence(self, servo_id: int, mark: Optional[Tuple[int, int]]) -> None:
-        """Count an unanswered request of `servo_id` as garbled if bytes but no frame came."""
+        """Note an unanswered request of `servo_id`, which may still be answered late.
+
+        Counted as garbled if bytes but no frame came since `mark` (None: not judged).
+        """
+        self._owed[servo_id].append(time.monotonic() + LATE_REPLY_S)
         stats = self.link.stats
         if mark is not None and stats.bytes_in > mark[0] and stats.frames_in == mark[1]:
             self.garbled_by_id[servo_id] += 1
@@ -528,6 +541,8 @@ class ServoBusLink:
         self.replies_by_id[servo_id] += 1
         kind = (servo_id, len(frame.params))
         self._unsolicited[kind] = self._unsolicited.get(kind, 0) + 1
+        if not self._late_reply(servo_id):
+            self.surplus_by_id[servo_id] += 1
         if self.sent_at[servo_id]:
             needed = self._reply_margin(servo_id, len(frame.raw))
             if needed > self.margin_for(servo_id):
@@ -535,6 +550,19 @@ class ServoBusLink:
         sink = self._late_sink
         if sink is not None:
             sink.setdefault(servo_id, time.monotonic())
+
+    def _late_reply(self, servo_id: int) -> bool:
+        """Whether an unanswered request of `servo_id` may explain a reply no one waited for.
+
+        It then has had its reply (a request is answered at most once). The reply another
+        request took early is the same: that request's own reply comes unsolicited after it.
+        """
+        owed = self._owed[servo_id]
+        now = time.monotonic()
+        while owed:
+            if owed.popleft() >= now:
+                return True
+        return False
 
     def _on_tx(self, data: bytes) -> None:
         # Every unicast instruction is answered (S13), broadcast ones never.
@@ -550,10 +578,12 @@ class ServoBusLink:
         return self._unsolicited.get((servo_id, nparams), 0)
 
     def surplus_replies(self, servo_id: int) -> int:
-        """Return replies minus requests of ``servo_id`` so far; growing means a duplicate id.
+        """Return the replies of ``servo_id`` that no request explains; growing: a duplicate id.
 
-        Lost replies make it smaller; a reply comes late at most once per request. So when it
-        grows, more than one servo answers to this id (S24): on a real bus their replies
-        collide, and no reading of that id can be trusted.
+        A reply that no request waited for is a late one when a request of that id went
+        unanswered (within LATE_REPLY_S): each such request explains one reply. Beyond those,
+        more than one servo answers to this id (S24): on a real bus their replies collide, and
+        no reading of that id can be trusted. (Replies minus requests would not do: replies
+        owed when it is looked at, and answered after, would make it grow with one servo.)
         """
-        return self.replies_by_id[servo_id] - self.requests_by_id[servo_id]
+        return self.surplus_by_id[servo_id]

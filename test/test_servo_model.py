@@ -24,7 +24,9 @@ cycles and a shutdown; after every step:
   READ would have gone instead, not a service, hold the bus at most as long as READs over any
   stretch of a connection, give or take three batches: the budget's burst and the batch on the
   wire);
-- ``~/set_id`` never makes two joints share an id;
+- ``~/set_id`` never makes two joints share an id, and one answered as done never makes two
+  servos on the bus share an id (the bus probe's rule, ``schedule.judge_probe``; the bus may hold
+  servos not in the servo list and two servos at one id, whose replies collide or come apart);
 - an emergency stop is the next frame on the wire;
 - torque off is the last frame of a shutdown, and nothing follows it.
 
@@ -105,6 +107,7 @@ class Wire:
         self.read_wanted: list = []  # per Send: whether a READ was ready to go instead
         self.ends: list = []  # per Send: when its reply came, else its deadline
         self.answers: list = []
+        self.answer_ids: list = []  # per answer: the ids on the bus when it was given
         self.outstanding = None  # the Send awaiting its reply
         self._out_k = 0  # its index in the log
         self.busy_until = START
@@ -114,7 +117,7 @@ class Wire:
         self.results: list = []  # ReadDone actions
         self.logs: list = []  # Log actions
         self._cycle = False  # a cycle with READs completed in this step
-        self.handlers = {Send: self._send, Answer: self.answers.append,
+        self.handlers = {Send: self._send, Answer: self._answer,
                          ReadDone: self.results.append, CycleDone: self._cycle_done,
                          Log: self.logs.append, SetTimer: self._set_timer}
         self.timer_at = math.inf  # the last step's SetTimer (none: nothing due)
@@ -147,6 +150,7 @@ class Wire:
         due = sorted(a for a in self.arrivals if a[0] <= self.now)
         self.arrivals = [a for a in self.arrivals if a[0] > self.now]
         for t, data in due:
+            self.bus.received_bytes(len(data))
             for reply in self.decoder.feed(data):
                 out = self.outstanding
                 # A reply can answer a request only once the request has left the line.
@@ -172,6 +176,10 @@ class Wire:
         if self._cycle:
             self.cycle_ends.append(self.now)
         return done
+
+    def _answer(self, action: Answer) -> None:
+        self.answers.append(action)
+        self.answer_ids.append(self.sim.ids)
 
     def _set_timer(self, action: SetTimer) -> None:
         self.timer_at = action.at
@@ -200,16 +208,19 @@ class Wire:
         if not self.plugged:
             return
         end = send.at + wire_time(len(send.frame), BAUD)
+        # A fault of the line hits the answer to a request, whoever gives it: the replies of
+        # two servos at one id (kept apart, S24) are lost, corrupted or late together.
+        r = self.rng.random()
+        late = self.rng.random() < self.late
         for reply in self.sim.feed(send.frame, end):
-            r = self.rng.random()
             if r < self.drop:
                 continue
             if r < self.drop + self.corrupt:
                 k = self.rng.randrange(len(reply))
                 reply = reply[:k] + bytes([reply[k] ^ 0x5A]) + reply[k + 1:]
             at = end + wire_time(len(reply), BAUD)
-            if self.rng.random() < self.late:
-                at = send.deadline + self.rng.uniform(0.0, 0.01)  # after its deadline
+            if late:
+                at = max(at, send.deadline + self.rng.uniform(0.0, 0.01))  # after its deadline
             self.arrivals.append((at, reply))
             end = at
 
@@ -253,6 +264,11 @@ class ServoBusModel(RuleBasedStateMachine):
         self.stretch_starts: set = set()  # log indexes where the port had closed
         self.calls: set = set()  # the tokens of every call
         self._counted = 0
+        self.set_ids: dict = {}  # token of a ~/set_id call not answered yet -> (old, new)
+        # Calls during which a servo was connected: one plugged in at the new id after the
+        # probe found it free is beyond what any probe can see.
+        self.disturbed: set = set()
+        self._answers_seen = 0
         self.wire.run_until(START + 0.01)
 
     # -- helpers --------------------------------------------------------------------------------
@@ -336,8 +352,19 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @rule(old=IDS, new=IDS, ms=st.floats(5.0, 60.0))
     def set_id(self, old: int, new: int, ms: float) -> None:
-        self._call('set_id', old, new)
+        token = next(_TOKENS)
+        self.calls.add(token)
+        self.set_ids[token] = (old, new)
+        self.wire.step(Call(self.wire.now, token, 'set_id', (old, new)))
         self._step(ms)
+
+    @rule(new=IDS, ms=st.floats(5.0, 60.0))
+    def set_id_of_a_servo_not_in_the_list(self, new: int, ms: float) -> None:
+        # The bus probe's own case: a servo the driver was not told about (at 6, or connected
+        # at an id no joint has) moved onto another id.
+        strangers = [i for i in self.wire.sim.ids if i not in self._ids()]
+        if strangers:
+            self.set_id(strangers[0], new, ms)
 
     @rule(joint=st.integers(0, 3), other=st.integers(0, 6), ms=st.floats(30.0, 80.0))
     def set_id_onto_a_joint_whose_servo_is_silent(self, joint: int, other: int,
@@ -395,6 +422,16 @@ class ServoBusModel(RuleBasedStateMachine):
             self.wire.sim.remove_servo(servo_id)
         else:
             self.wire.sim.add_servo(servo_id)
+            self.disturbed.update(self.set_ids)
+
+    @rule(servo_id=IDS, position=st.sampled_from([1000, 2048, 3000]), collisions=st.booleans())
+    def connect_a_second_servo_at_an_id(self, servo_id: int, position: int,
+                                        collisions: bool) -> None:
+        # S24: two servos at one id, whose replies collide (mostly garbled) or, on a bus that
+        # keeps them apart, come one after the other.
+        self.wire.sim.add_servo(servo_id, position_ticks=position, allow_duplicate=True)
+        self.wire.sim.collisions = collisions
+        self.disturbed.update(self.set_ids)
 
     @rule(servo_id=IDS)
     def power_cycle(self, servo_id: int) -> None:
@@ -482,6 +519,21 @@ class ServoBusModel(RuleBasedStateMachine):
     def set_id_never_makes_two_joints_share_an_id(self) -> None:
         ids = self._ids()
         assert len(set(ids)) == len(ids), f'joints share an id: {ids}'
+
+    @invariant()
+    def set_id_done_never_makes_two_servos_share_an_id(self) -> None:
+        # After any ~/set_id answered as done, one servo answers at its new id: the bus probe
+        # found the new id free and one servo at the old one (also one not in the servo list),
+        # unless a servo was connected while the call ran.
+        answers = self.wire.answers
+        for answer, ids in list(zip(answers, self.wire.answer_ids))[self._answers_seen:]:
+            call = self.set_ids.pop(answer.token, None)
+            if call is not None and answer.ok and answer.token not in self.disturbed:
+                old, new = call
+                assert ids.count(new) == 1, (
+                    f'set_id {old} -> {new} answered done ({answer.text}) with the bus at ids '
+                    f'{sorted(ids)}: {ids.count(new)} servos at {new}')
+        self._answers_seen = len(answers)
 
     @invariant()
     def an_emergency_stop_is_the_next_frame(self) -> None:
@@ -729,4 +781,39 @@ def test_round2_22_servo_found_the_port_closed_is_no_stretch_of_the_reads() -> N
     state.one_transaction_at_a_time()
     state.the_newest_target_reaches_the_wire_within_one_read_cycle()
     state.reads_keep_at_least_half_their_rate()
+    state.teardown()
+
+
+def test_round2_22_5_found_set_id_onto_an_id_whose_pings_were_lost_is_not_done() -> None:
+    # The 20,000-sequence search found this once set_id's bus probe was searched: a servo not
+    # in the list (at 6) given id 4, where another servo not in the list answers; the bus lost
+    # a tenth of the replies, both PINGs of 4 went unanswered, 4 looked free, 6 answered all
+    # its READs, and set_id 6 -> 4 was answered done with two servos at 4. Now the change is
+    # done only if the same probe finds one servo at the new id after it (and the probe of
+    # the old id has every READ answered: a bus that loses replies may hide a servo).
+    state = ServoBusModel()
+    state.start(n=3, rate=200.0, retries=1, telemetry=0.05, extra=True, seed=1115)
+    state.emergency_stop(ms=0.0)
+    state.emergency_stop(ms=1.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=57.0, new=1)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.disconnect_or_connect_a_servo(servo_id=4)
+    state.emergency_stop(ms=7.0)
+    state.emergency_stop(ms=9.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=19.0, new=1)
+    state.flood(count=36, first=4, spacing_ms=1.0)
+    state.flood(count=39, first=0, spacing_ms=0.90625)
+    state.set_id(ms=12.0, new=1, old=1)
+    state.wire_faults(corrupt=0.0, drop=0.0, late=0.0)
+    state.flood(count=45, first=2, spacing_ms=2.0)
+    state.set_id_onto_a_joint_whose_servo_is_silent(joint=0, ms=49.0, other=0)
+    state.set_id_of_a_servo_not_in_the_list(ms=60.0, new=4)
+    state.wire_faults(corrupt=0.0, drop=0.1, late=0.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=5.0, new=4)
+    state.scan(ms=23.0)
+    state.wait(ms=100.0)
+    state.set_id_done_never_makes_two_servos_share_an_id()
+    state.set_id_never_makes_two_joints_share_an_id()
+    state.one_transaction_at_a_time()
     state.teardown()
