@@ -77,7 +77,8 @@ class Call(NamedTuple):
     Names: ``emergency_stop``, ``write_positions`` (targets), ``read_register`` (id, address,
     length), ``set_torque`` (ids, enable), ``scan`` (first, last), ``set_id`` (old, new); and
     the parts a service procedure of the driver is made of: ``transact`` (frame, reply id,
-    reply params, retries: one request, answered with its reply), ``send`` (frames without a
+    reply params, retries[, the wait of an attempt]: one request, answered with its reply),
+    ``send`` (frames without a
     reply), ``hold`` (the read loop stops at the next READ boundary; answered when it has: the
     bus is the holder's and the other callers', with an emergency stop still first) and
     ``release`` (the token of the hold: the read loop goes on).

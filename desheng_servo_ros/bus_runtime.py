@@ -35,6 +35,7 @@ import time
 from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.link import ServoBusLink
 from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, CycleDone,
                                             ReadDone, Send, Shutdown)
 from desheng_servo_ros.units import Joint
@@ -42,7 +43,7 @@ from uav_serial_common import core_events as ev
 from uav_serial_common.core_runner import run_core
 from uav_serial_common.deadline_timer import DeadlineTimer
 from uav_serial_common.logs import log_at
-from uav_serial_common.serial_link import LinkError, SerialLink
+from uav_serial_common.serial_link import LinkError
 from uav_serial_common.ticket import Ticket
 
 CALL_TIMEOUT_S = 2.0
@@ -62,7 +63,15 @@ class _Locked:
 
 
 class BusRuntime:
-    """A servo bus on a serial port, its decisions the schedule's (module doc)."""
+    """A servo bus on a serial port, its decisions the schedule's (module doc).
+
+    `bus`: the port and its counters (a ``ServoBusLink``; one is made for `port` and `baud`
+    when None). Callbacks: `on_read` (each ``ReadDone``, on the stepping thread under the
+    lock: quick), `on_cycle` (each ``CycleDone``, after the lock is let go), `on_log` (each
+    ``Log``), `on_failure` (a step from the reader or the timer that raised: the bus goes on),
+    `on_idle` (from the timer thread, about every ``TIMER_IDLE_S``: returns when it wants to be
+    called again, or None).
+    """
 
     def __init__(self, port: str, baud: int, joints: Sequence[Joint], *,
                  publish_rate_hz: float = 50.0, telemetry_period_s: float = 1.0,
@@ -71,22 +80,42 @@ class BusRuntime:
                  clock: Callable[[], float] = time.monotonic,
                  on_read: Optional[Callable[[ReadDone], None]] = None,
                  on_cycle: Optional[Callable[[CycleDone], None]] = None,
+                 on_log: Optional[Callable[[str, str], None]] = None,
+                 on_failure: Optional[Callable[[BaseException], None]] = None,
+                 on_idle: Optional[Callable[[], Optional[float]]] = None,
+                 bus: Optional[ServoBusLink] = None,
                  logger: Optional[Any] = None) -> None:
         self.clock = clock
+        if bus is None:
+            bus = ServoBusLink(port, baud, response_timeout_ms=margin_s * 1000.0,
+                               max_retries=max_retries, logger=logger)
+        self.bus = bus
         self.schedule = BusSchedule(joints, now=time.monotonic(), baud=baud,
                                     publish_rate_hz=publish_rate_hz,
                                     telemetry_period_s=telemetry_period_s,
-                                    max_retries=max_retries, margin_s=margin_s,
+                                    max_retries=max_retries, margin_s=bus.margin_s,
                                     torque_off_on_shutdown=torque_off_on_shutdown,
                                     pace_now=clock())
+        self.schedule.slow_margin = bus.slow_margin
+        self.schedule.silences = []
         self._stepper = _Locked(self.schedule, clock)
         self._lock = threading.RLock()  # a callback may command: the same thread steps again
+        self._depth = 0  # steps in progress on the thread that holds the lock
+        self._deferred: List[Callable[[], None]] = []  # run after the lock is let go
         self._log = logger
         self._on_read = on_read
         self._on_cycle = on_cycle
-        self.link = SerialLink(port, baud, proto.StreamDecoder('reply'),
-                               on_frame=self._on_frame, on_connection=self._on_connection,
-                               logger=logger)
+        self._on_log = on_log
+        self._on_failure = on_failure
+        self._on_idle = on_idle
+        self._idle_due = 0.0
+        self._reads_hold: Optional[Ticket] = None  # the hold of hold_reads (read_cycle)
+        self._one_cycle: Optional[Ticket] = None  # settled by the cycle read_cycle waits for
+        bus.on_reply = self._on_frame
+        bus.on_bytes = self._on_bytes
+        bus.on_link = self._on_connection
+        bus.runtime = self
+        self.link = bus.link
         self._timer = DeadlineTimer(self._duty, name='servo-bus-timer', idle_s=TIMER_IDLE_S,
                                     min_sleep_s=0.0002, on_error=self._timer_failed)
         self._handlers = {Send: self._send, Answer: self._answer, ReadDone: self._read,
@@ -105,18 +134,60 @@ class BusRuntime:
         self.link.start()
         self._timer.start()
 
-    def stop(self) -> None:
-        """Step the shutdown (torque off the last frame), let it leave, close the port."""
+    def stop(self) -> List[bytes]:
+        """Step the shutdown (torque off the last frame), let it leave, close the port.
+
+        Returns the frames the shutdown sent (none when the port was not open).
+        """
         sent = [a for a in self._step(Shutdown(time.monotonic())) if isinstance(a, Send)]
         self._timer.stop()
         if sent:  # the torque off leaves the line before the port closes
             time.sleep(max(0.0, sent[-1].deadline - time.monotonic()))
         self.link.stop()
+        return [a.frame for a in sent]
 
     @property
     def port_open(self) -> bool:
         """Whether the port is open."""
         return self.link.port_open
+
+    @property
+    def closed(self) -> bool:
+        """Whether the shutdown was stepped (the bus takes nothing any more)."""
+        return self.schedule.closed
+
+    def locked(self) -> Any:
+        """The step lock: the schedule's state, read or changed between two steps."""
+        return self._lock
+
+    def hold_reads(self) -> Ticket:
+        """Hold the read loop from the next READ boundary (start-up, or tests: read_cycle)."""
+        ticket = self._reads_hold = Ticket()
+        self._step(Call(time.monotonic(), ticket, 'hold', ()))
+        return ticket
+
+    def release(self, ticket: Ticket) -> None:
+        """Release a hold (hold_reads' or held's): the read loop goes on."""
+        with self._lock:
+            if ticket is self._reads_hold:
+                self._reads_hold = None
+            self._step(Call(time.monotonic(), Ticket(), 'release', (ticket,)))
+
+    def read_cycle(self, timeout: float = 5.0) -> bool:
+        """Let the held read loop run one cycle; return whether it completed in `timeout`."""
+        with self._lock:
+            hold = self._reads_hold
+            if hold is None or self.schedule.closed:
+                return False
+            done = self._one_cycle = Ticket()
+            self._reads_hold = Ticket()  # taken again by the cycle's CycleDone (_cycle)
+            self._step(Call(time.monotonic(), Ticket(), 'release', (hold,)))
+        ok = done.wait(timeout if self.port_open else min(timeout, 0.2))
+        with self._lock:
+            if self._one_cycle is done:  # none came: hold the reads again all the same
+                self._one_cycle = None
+                self._step(Call(time.monotonic(), self._reads_hold, 'hold', ()))
+        return ok
 
     # -- callers --------------------------------------------------------------------------------
 
@@ -139,9 +210,14 @@ class BusRuntime:
         return self.call('emergency_stop', timeout=timeout)
 
     def transact(self, frame: bytes, servo_id: int, nparams: int, retries: int = 0,
-                 timeout: float = CALL_TIMEOUT_S) -> Optional[proto.Reply]:
-        """One request at the next boundary; its reply, or None (no reply, or no answer)."""
-        answer = self.call('transact', frame, servo_id, nparams, retries, timeout=timeout)
+                 timeout: float = CALL_TIMEOUT_S,
+                 wait: Optional[float] = None) -> Optional[proto.Reply]:
+        """One request at the next boundary; its reply, or None (no reply, or no answer).
+
+        `wait`: how long an attempt waits for its reply (default: wire time + margin).
+        """
+        answer = self.call('transact', frame, servo_id, nparams, retries, wait,
+                           timeout=timeout)
         return None if answer is None else answer.reply
 
     @contextmanager
@@ -161,30 +237,81 @@ class BusRuntime:
     # -- stepping -------------------------------------------------------------------------------
 
     def _step(self, event: Any) -> List[Any]:
-        """Step the schedule with `event`; carry out its actions here, in its order."""
+        """Step the schedule with `event`; carry out its actions here, in its order.
+
+        Callbacks that publish (``on_cycle``) run after the lock is let go, on this thread.
+        """
         with self._lock:
-            self._due = math.inf
-            self._stepped_at = time.monotonic()
-            return run_core(self._stepper, [event], self._handlers)
+            self._depth += 1
+            try:
+                self._due = math.inf
+                self._stepped_at = time.monotonic()
+                self.schedule.margin_s = self.bus.margin_s  # derived again on each (re)open
+                done = run_core(self._stepper, [event], self._handlers)
+                if isinstance(event, ev.Reply):  # counted by whether it ended its request
+                    self.bus.note_reply(event.message, self.schedule.last_taken)
+                silences = self.schedule.silences
+                if silences:
+                    for servo_id, garbled in silences:
+                        self.bus.note_silence(servo_id, garbled)
+                    silences.clear()
+            finally:
+                self._depth -= 1
+                deferred = self._deferred if self._depth == 0 else None
+                if deferred:
+                    self._deferred = []
+        for call in deferred or ():
+            call()
+        return done
+
+    def _guarded(self, event: Any) -> None:
+        """Step from the reader or the timer thread: a failure is reported, the bus goes on."""
+        try:
+            self._step(event)
+        except Exception as exc:  # noqa: BLE001 - the reader and the timer never die of it
+            if self._on_failure is not None:
+                self._on_failure(exc)
+            else:
+                self._emit('error', f'servo bus step failed: {exc!r}')
+
+    def _on_bytes(self, data: bytes) -> None:
+        # Reader thread, before the frames these bytes make: a request answered by bytes and
+        # no frame was answered garbled (S24).
+        with self._lock:
+            self.schedule.received_bytes(len(data))
 
     def _on_frame(self, frame: proto.Reply) -> None:
         # Reader thread: stamped when its bytes were read, not when this thread got to it.
         now = self.link.last_rx_time or time.monotonic()
-        self._step(ev.Reply(now, frame))
+        self._guarded(ev.Reply(now, frame))
 
     def _on_connection(self, up: bool, reason: str) -> None:
         now = time.monotonic()
-        self._step(ev.LinkUp(now) if up else ev.LinkDown(now, reason))
+        self._guarded(ev.LinkUp(now) if up else ev.LinkDown(now, reason))
 
     def _duty(self) -> Optional[float]:
         # A deadline a later step moved (a reply came before it) costs no step; one every
         # TIMER_IDLE_S all the same, for the read loop's clock (a test's) that others move.
         now = time.monotonic()
+        idle = self._idle(now)
         if now < self._due and now - self._stepped_at < TIMER_IDLE_S:
-            return self._due
-        self._step(ev.Tick(now))
-        due = self._due
+            return min(self._due, idle)
+        self._guarded(ev.Tick(now))
+        due = min(self._due, idle)
         return None if due == math.inf else due
+
+    def _idle(self, now: float) -> float:
+        """Call on_idle when it is due; return when it is due next (inf: never)."""
+        if self._on_idle is None:
+            return math.inf
+        if now >= self._idle_due:
+            try:
+                due = self._on_idle()
+            except Exception as exc:  # noqa: BLE001 - the timer never dies of it
+                self._emit('error', f'servo bus idle duty failed: {exc!r}')
+                due = None
+            self._idle_due = now + TIMER_IDLE_S if due is None else due
+        return self._idle_due
 
     def _timer_failed(self, exc: BaseException) -> None:
         self._emit('error', f'servo bus timer failed: {exc!r}')
@@ -211,12 +338,21 @@ class BusRuntime:
         if self._on_read is not None:
             self._on_read(action)
 
-    def _cycle(self, action: CycleDone) -> None:
+    def _cycle(self, action: CycleDone) -> Optional[List[Any]]:
         if self._on_cycle is not None:
-            self._on_cycle(action)
+            self._deferred.append(lambda: self._on_cycle(action))
+        done = self._one_cycle
+        if done is not None:  # read_cycle's: the reads are held again before the next READ
+            self._one_cycle = None
+            self._deferred.append(lambda: done.settle(True))
+            return [Call(action.now, self._reads_hold, 'hold', ())]
+        return None
 
     def _log_line(self, action: ev.Log) -> None:
-        self._emit(action.level, action.text)
+        if self._on_log is not None:
+            self._on_log(action.level, action.text)
+        else:
+            self._emit(action.level, action.text)
 
     def _set_timer(self, action: ev.SetTimer) -> None:
         self._due = action.at

@@ -43,10 +43,11 @@ from uav_serial_common.pty_port import wire_time
 class _Tx:
     """One transaction of a service or of the read loop that waits for a reply."""
 
-    __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts', 'mark')
+    __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts', 'mark',
+                 'wait')
 
     def __init__(self, frame: bytes, reply_id: int, nparams: int, retries: int, owner: Any,
-                 tag: Any = None) -> None:
+                 tag: Any = None, wait: Optional[float] = None) -> None:
         self.frame = frame
         self.reply_id = reply_id
         self.nparams = nparams
@@ -55,6 +56,7 @@ class _Tx:
         self.tag = tag
         self.attempts = 0
         self.mark = (0, 0)  # (bytes, frames) received when it was first sent
+        self.wait = wait  # how long an attempt waits for its reply (None: wire time + margin)
 
 
 class BusSchedule:
@@ -105,6 +107,13 @@ class BusSchedule:
         self.bytes_in = 0
         self.frames_in = 0
         self.unsolicited: Dict[Tuple[int, int], int] = {}
+        self.last_taken = False  # whether the last reply received ended its transaction
+        # Per id, a margin of its own when longer than margin_s (a servo that answers late:
+        # the driver's link learns it); None: margin_s for all.
+        self.slow_margin: Optional[Sequence[float]] = None
+        # When a list: each attempt that got no reply, (id, garbled: bytes and no frame came
+        # since its first attempt; None before the last attempt), for the driver's counters.
+        self.silences: Optional[List[Tuple[int, Optional[bool]]]] = None
 
     # -- the one entry ---------------------------------------------------------------------------
 
@@ -192,6 +201,7 @@ class BusSchedule:
         """Take a reply decoded off the wire; the one awaited completes its transaction."""
         self.frames_in += 1
         tx = self._tx
+        self.last_taken = False
         # A reply that came before the request had left the line answers an earlier one (a
         # late reply of the attempt before a retry): it ends nothing.
         if tx is not None and self._tx_sent < now < self._tx_deadline and \
@@ -199,6 +209,7 @@ class BusSchedule:
             self._tx = None
             self._tx_deadline = math.inf
             self._free_at = max(self._free_at, now)
+            self.last_taken = True
             self._done(now, tx, reply)
         else:
             kind = (reply.servo_id, len(reply.params))
@@ -226,7 +237,9 @@ class BusSchedule:
         self.closed = True
         self.commands.drop()
         for svc in list(self.services) + ([self.service] if self.service else []):
-            actions.append(Answer(svc.token, False, 'shutting down'))
+            left = self._tx is not None and self._tx.owner is svc
+            actions.append(Answer(svc.token, False, 'shutting down' + (
+                '; its request had left' if left else '')))
         stops = [token for _, token in self.urgent]
         self.urgent.clear()
         self.services.clear()
@@ -273,6 +286,9 @@ class BusSchedule:
             tx, self._tx = self._tx, None
             self._free_at = max(self._free_at, self._tx_deadline)
             self._tx_deadline = math.inf
+            if self.silences is not None:
+                self.silences.append((tx.reply_id, self._garbled(tx)
+                                      if tx.attempts > tx.retries else None))
             if tx.attempts > tx.retries:
                 self._done(now, tx, None)
             elif tx.owner == 'read':
@@ -397,8 +413,11 @@ class BusSchedule:
         tx.attempts += 1
         if tx.attempts == 1:
             tx.mark = (self.bytes_in, self.frames_in)
-        timeout = wire_time(len(tx.frame) + tx.nparams + REPLY_OVERHEAD, self.baud) + \
-            self.margin_s
+        margin = self.margin_s
+        if self.slow_margin is not None and self.slow_margin[tx.reply_id] > margin:
+            margin = self.slow_margin[tx.reply_id]
+        timeout = tx.wait if tx.wait is not None else \
+            wire_time(len(tx.frame) + tx.nparams + REPLY_OVERHEAD, self.baud) + margin
         self._tx = tx
         self._tx_sent = at + wire_time(len(tx.frame), self.baud)
         self._tx_deadline = at + timeout
@@ -409,11 +428,13 @@ class BusSchedule:
         self._free_at = at + wire_time(len(frame), self.baud) + IDLE_GUARD_S
         return Send(at, frame, kind, None, 0, self._free_at)
 
+    def _garbled(self, tx: _Tx) -> bool:
+        """Whether bytes and no frame came since `tx` was first sent (S24: colliding replies)."""
+        return self.bytes_in > tx.mark[0] and self.frames_in == tx.mark[1]
+
     def _done(self, now: float, tx: _Tx, reply: Optional[proto.Reply]) -> None:
         if tx.owner != 'read':
-            garbled = reply is None and self.bytes_in > tx.mark[0] and \
-                self.frames_in == tx.mark[1]
-            tx.owner.result(now, reply, garbled)
+            tx.owner.result(now, reply, reply is None and self._garbled(tx))
             return
         s, kind, started, last = tx.tag
         if reply is None:
@@ -486,8 +507,10 @@ class _Service:
                 yield frame
             self.text = 'SYNC WRITE sent'
         elif name == 'transact':
-            frame, servo_id, nparams, retries = args
-            yield self._tx(frame, servo_id, nparams, retries)
+            frame, servo_id, nparams, retries = args[:4]
+            tx = self._tx(frame, servo_id, nparams, retries)
+            tx.wait = args[4] if len(args) > 4 else None  # a scan's long confirmation
+            yield tx
             self.ok, self._answer_reply = self._reply is not None, self._reply
             self.text = 'answered' if self.ok else 'no reply'
         elif name == 'send':

@@ -14,11 +14,11 @@ import traceback
 from typing import Any, Callable, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout, PRIORITY_URGENT
+from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
 from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s, renamed,
-                                        set_id_refusal, TORQUE_OFF_ALL)
+                                        set_id_refusal)
 from desheng_servo_ros.state import FACTORY_ID, FIRMWARE, ID, POSITION, Result, RUN_PRESETS, TORQUE
 from desheng_servo_ros.units import select
 from uav_serial_common.text import clip, few
@@ -72,11 +72,11 @@ class ServoServices:
                         staged: bool) -> Result:
         """Move servos now: one SYNC WRITE, or REG WRITE each then ACTION (staged)."""
         targets = self._resolve(names, ids, positions, move_time_ms)
-        # A queued ~/command for these servos is older than this call: it must not follow it.
-        self._drop_pending([t[0] for t in targets])
         if not staged:
-            self.bus.sync_write_positions(targets)
+            # The schedule drops a queued ~/command for these servos: it is older than this.
+            self.bus.call('write_positions', tuple(targets))
             return Result.sent(f'SYNC WRITE sent to {len(targets)} servo(s)')
+        self._drop_pending([t[0] for t in targets])
         for servo_id, ticks, ms in targets:
             try:
                 self.bus.reg_write(servo_id, proto.TARGET_POSITION_ADDRESS,
@@ -118,11 +118,9 @@ class ServoServices:
     @_service
     def emergency_stop(self) -> Result:
         """Torque off, every servo at once (one broadcast); queued commands are dropped."""
-        self._drop_pending()
-        self.bus.discard_posted()
-        self.bus.send(TORQUE_OFF_ALL, PRIORITY_URGENT)
-        for s in self._servos:
-            s.set_torque(False)
+        # The schedule's: ahead of everything queued, the queued commands dropped, every
+        # servo's torque recorded off.
+        self.bus.call('emergency_stop')
         self.log_warning('emergency stop: torque off broadcast to every servo')
         return Result.sent('torque off broadcast to every servo (id 254)')
 
