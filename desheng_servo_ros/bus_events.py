@@ -30,6 +30,8 @@ class Send(NamedTuple):
     reply_id: Optional[int]
     nparams: int
     deadline: float
+    flush: bool = True
+    """A request: stale input (and a partial frame) is discarded before it goes."""
 
 
 class Answer(NamedTuple):

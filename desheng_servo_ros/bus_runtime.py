@@ -49,6 +49,10 @@ from uav_serial_common.ticket import Ticket
 CALL_TIMEOUT_S = 2.0
 """How long a caller waits for its answer by default (the bus may be held meanwhile)."""
 TIMER_IDLE_S = 0.1
+# A reply's deadline waits this much longer at most while the reader holds unread bytes,
+# looking again every READER_POLL_S.
+READER_GRACE_S = 0.05
+READER_POLL_S = 0.0005
 
 
 class _Locked:
@@ -116,6 +120,7 @@ class BusRuntime:
         bus.on_link = self._on_connection
         bus.runtime = self
         self.link = bus.link
+        self._reader: Optional[threading.Thread] = None  # the link's reader thread
         self._timer = DeadlineTimer(self._duty, name='servo-bus-timer', idle_s=TIMER_IDLE_S,
                                     min_sleep_s=0.0002, on_error=self._timer_failed)
         self._handlers = {Send: self._send, Answer: self._answer, ReadDone: self._read,
@@ -132,6 +137,7 @@ class BusRuntime:
     def start(self) -> None:
         """Open the port (its reader thread) and start the timer."""
         self.link.start()
+        self._reader = self.link._thread
         self._timer.start()
 
     def stop(self) -> List[bytes]:
@@ -157,7 +163,7 @@ class BusRuntime:
         return self.schedule.closed
 
     def locked(self) -> Any:
-        """The step lock: the schedule's state, read or changed between two steps."""
+        """Return the step lock (to read or change the schedule's state between two steps)."""
         return self._lock
 
     def hold_reads(self) -> Ticket:
@@ -296,6 +302,14 @@ class BusRuntime:
         idle = self._idle(now)
         if now < self._due and now - self._stepped_at < TIMER_IDLE_S:
             return min(self._due, idle)
+        schedule = self.schedule
+        if schedule.awaiting(now) and self.link.unread_input() and \
+                now < schedule.reply_deadline + READER_GRACE_S:
+            # Bytes came in that the reader has not handed on yet: they may be the reply. On a
+            # loaded host the reader can be late by more than a short deadline, and calling
+            # that a timeout (and sending again on a half-duplex line) would report a silence
+            # nobody saw.
+            return now + READER_POLL_S
         self._guarded(ev.Tick(now))
         due = min(self._due, idle)
         return None if due == math.inf else due
@@ -323,6 +337,12 @@ class BusRuntime:
         if delay > 0:  # a frame of a batch: after the one before it left the line
             time.sleep(delay)
         try:
+            if action.reply_id is not None and action.flush:
+                # As the read chain did: a request's reply is not an earlier one's. The
+                # decoder's partial frame always (garbage must not swallow the reply); the
+                # port's input too unless the reader thread steps this (it has just taken in
+                # everything the port had, and flushing a pty is a slow ioctl).
+                self.link.flush_input(port=threading.current_thread() is not self._reader)
             self.link.write(action.frame)
         except LinkError as exc:
             return [ev.LinkDown(time.monotonic(), f'write failed: {exc}')]

@@ -44,7 +44,7 @@ class _Tx:
     """One transaction of a service or of the read loop that waits for a reply."""
 
     __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts', 'mark',
-                 'wait')
+                 'wait', 'flush')
 
     def __init__(self, frame: bytes, reply_id: int, nparams: int, retries: int, owner: Any,
                  tag: Any = None, wait: Optional[float] = None) -> None:
@@ -57,6 +57,7 @@ class _Tx:
         self.attempts = 0
         self.mark = (0, 0)  # (bytes, frames) received when it was first sent
         self.wait = wait  # how long an attempt waits for its reply (None: wire time + margin)
+        self.flush = True  # stale input is discarded before it is sent (Send.flush)
 
 
 class BusSchedule:
@@ -100,6 +101,7 @@ class BusSchedule:
         self.held: set = set()  # tokens of the holds granted and not released
         self._notes: List[Any] = []  # ReadDone, CycleDone and Log actions of this step
         self._pace_offset = pace - now  # the read loop's clock less the events' (step)
+        self._pace_at = (now, pace)  # the last step's moment on both clocks
         self.cycles_done = 0
         self.read_cycles_done = 0  # cycles that had READs in them
         # What came off the wire: bytes, frames, and replies no request took, by (id, params)
@@ -132,6 +134,9 @@ class BusSchedule:
         """
         now = event.now
         self._pace_offset = 0.0 if pace_now is None else pace_now - now
+        # The step's own moment on the read loop's clock, exactly (now + offset may round
+        # below it, and a cycle due at pace_now would wait for the clock to move again).
+        self._pace_at = (now, now if pace_now is None else pace_now)
         if isinstance(event, Reply):
             out = self.received(now, event.message)
         elif isinstance(event, Tick):
@@ -279,6 +284,15 @@ class BusSchedule:
                       else self.reads.next_cycle - self._pace_offset)
         return max(self._free_at, nxt)
 
+    def awaiting(self, now: float) -> bool:
+        """Whether a reply is awaited whose deadline passed by `now` (the next poll ends it)."""
+        return self._tx is not None and now >= self._tx_deadline
+
+    @property
+    def reply_deadline(self) -> float:
+        """Until when the reply awaited is waited for (inf: none awaited)."""
+        return self._tx_deadline
+
     def poll(self, now: float) -> List[Any]:
         """Let time pass to `now`: a deadline that passed, then whatever is next on the bus."""
         actions: List[Any] = []
@@ -322,7 +336,8 @@ class BusSchedule:
 
     def _pace(self, now: float) -> float:
         """`now` (the events' clock) on the read loop's clock (``step``'s ``pace_now``)."""
-        return now + self._pace_offset
+        at, pace = self._pace_at
+        return pace if now == at else now + self._pace_offset
 
     def _reading(self) -> bool:
         """Whether the read loop runs (a scan, an id change or a hold stops it)."""
@@ -422,7 +437,7 @@ class BusSchedule:
         self._tx_sent = at + wire_time(len(tx.frame), self.baud)
         self._tx_deadline = at + timeout
         actions.append(Send(at, tx.frame, 'read' if tx.owner == 'read' else tx.owner.name,
-                            tx.reply_id, tx.nparams, at + timeout))
+                            tx.reply_id, tx.nparams, at + timeout, tx.flush))
 
     def _send_noreply(self, at: float, frame: bytes, kind: str) -> Send:
         self._free_at = at + wire_time(len(frame), self.baud) + IDLE_GUARD_S
@@ -510,6 +525,8 @@ class _Service:
             frame, servo_id, nparams, retries = args[:4]
             tx = self._tx(frame, servo_id, nparams, retries)
             tx.wait = args[4] if len(args) > 4 else None  # a scan's long confirmation
+            # False: what arrived before it is kept (a scan collects late replies by id).
+            tx.flush = args[5] if len(args) > 5 else True
             yield tx
             self.ok, self._answer_reply = self._reply is not None, self._reply
             self.text = 'answered' if self.ok else 'no reply'

@@ -325,7 +325,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         self._changed()
 
     def _loop_failed(self, exc: BaseException) -> None:
-        """A step of the bus (or the start-up) raised: said, counted; the bus goes on."""
+        """Say and count a step of the bus (or the start-up) that raised; the bus goes on."""
         self._loop_failures += 1
         self._loop_failed_at = self.clock()
         text = f'{type(exc).__name__}: {exc}'
@@ -379,7 +379,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         self._changed()
 
     def _cycle_done(self, done: CycleDone) -> None:
-        """A cycle is complete: the checks once per CHECK_PERIOD_S, then publish."""
+        """Take a complete cycle: the checks once per CHECK_PERIOD_S, then publish."""
         self.cycle_count += 1
         now = self.clock()
         if now >= self._next_check:

@@ -320,7 +320,8 @@ class ServoBusLink:
 
         Sent again up to `retries` times when no reply comes (an emergency stop goes between
         two attempts: the schedule's rule); `timeout`: the wait of an attempt (default: wire
-        time + margin). `flush` and `priority` are the schedule's to decide (kept for callers).
+        time + margin). `flush` False keeps what arrived before the request (a scan collects
+        late replies). `priority` is the schedule's to decide (kept for the callers).
         """
         runtime = self._runtime()
         if retries is None:
@@ -329,7 +330,7 @@ class ServoBusLink:
         wait = timeout if timeout is not None else self.timeout_for(len(frame), reply_params,
                                                                     servo_id)
         answer = runtime.call('transact', frame, servo_id, reply_params, retries, timeout,
-                              timeout=BUS_LOCK_TIMEOUT_S + attempts * wait)
+                              flush, timeout=BUS_LOCK_TIMEOUT_S + attempts * wait)
         if answer is None:
             error: LinkError = BusBusy(f'the bus on {self.port} did not carry the request in '
                                        f'{BUS_LOCK_TIMEOUT_S:.0f} s')

@@ -21,6 +21,7 @@ from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
 from support import FakeClock
+from uav_serial_common.core_events import Reply
 from uav_serial_common.process import wait_for
 
 JOINTS = (Joint(1, 'pan'), Joint(2, 'tilt'), Joint(3, 'roll'))
@@ -336,15 +337,18 @@ def test_round2_22_5_a_second_servo_after_unanswered_requests_is_still_reported(
 def test_a_failing_read_loop_is_reported_and_restarts(tmp_path):
     rig = Rig(tmp_path, loop=True, clock=FakeClock())
     try:
-        real = rig.core.bus.read_chain
+        # A step of the read loop (a reply, on the reader thread) that raises once.
+        schedule = rig.core.runtime.schedule
+        real = schedule.step
         calls = []
 
-        def once(*args, **kwargs):
-            calls.append(1)
-            if len(calls) == 1:
-                raise RuntimeError('a bug nobody foresaw')
-            return real(*args, **kwargs)
-        rig.core.bus.read_chain = once
+        def once(event, *args, **kwargs):
+            if isinstance(event, Reply):
+                calls.append(1)
+                if len(calls) == 1:
+                    raise RuntimeError('a bug nobody foresaw')
+            return real(event, *args, **kwargs)
+        schedule.step = once
 
         def ran_again():
             rig.clock.advance(0.02)  # cycles are due on the test's clock
@@ -390,7 +394,7 @@ def test_a_service_move_supersedes_a_queued_command_and_emergency_stop_drops_the
     result = rig.core.write_positions([], [3], [0.0], 0, False)
     assert result.ok, result.message
     assert rig.core.emergency_stop().ok
-    with rig.core._cmd_cond:
+    with rig.core.runtime.locked():
         assert rig.core._pending == {}
 
 
@@ -796,8 +800,7 @@ def test_a_command_goes_out_at_the_next_read_boundary_from_the_running_read_loop
                 before.append(r)
             # At most the READ that was on the wire when the command came.
             assert len(before) <= 1, before
-            wait_for(lambda: rig.core._last_post is None or rig.core._last_post.settled, 2,
-                     what='the command written')
+            wait_for(lambda: not rig.core._pending, 2, what='the command written')
         # The read loop went on.
         count = rig.core.cycle_count
         wait_for(lambda: rig.core.cycle_count > count + 10, 5, what='more read cycles')

@@ -710,7 +710,10 @@ def test_round2_22_servo_the_reads_pace_on_their_own_clock_and_deadlines_on_the_
     # Offline now; its re-probe is due REPROBE_PERIOD_S later on the read loop's clock too
     # (the second of the events' clock that passed is not the read loop's).
     assert not bus.servos[0].online
-    assert not _sends(bus.step(Tick(at + 0.001), pace_now=0.02))
+    # (Just before the next cycle on that clock: at 0.02 exactly it is due. The schedule takes
+    # the step's pace_now as it is: now + (pace_now - now) rounded below it, which this step
+    # once relied on.)
+    assert not _sends(bus.step(Tick(at + 0.001), pace_now=0.0199))
     later = _sends(bus.step(Tick(at + 0.002), pace_now=REPROBE_PERIOD_S))
     assert [s.kind for s in later] == ['read'] and later[0].at == at + 0.002
 
