@@ -91,7 +91,9 @@ def test_round2_22_servo_runtime_reads_again_after_an_unplug(bus):
     wait_for(lambda: cycles, 20, what='a read cycle')
     dev.runner.unplug()
     wait_for(lambda: not runtime.port_open, 20, what='the port closed')
-    assert not any(s.online for s in runtime.schedule.servos)
+    # The port's flag drops before the reader thread steps LinkDown: wait for the judgement.
+    wait_for(lambda: not any(s.online for s in runtime.schedule.servos), 20,
+             what='every servo offline')
     dev.runner.replug()
     wait_for(lambda: runtime.port_open, 20, what='the port open again')
     mark = len(reads)
