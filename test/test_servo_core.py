@@ -11,6 +11,7 @@ import threading
 import time
 
 from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.bus_schedule import Send
 from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAILURES,
                                     REPROBE_PERIOD_S, ServoBusConfig, ServoBusCore, WARN)
 from desheng_servo_ros.link import FORGET_AFTER_REPLIES
@@ -869,3 +870,44 @@ def test_round2_22_torque_off_is_the_last_frame_even_while_a_service_runs(tmp_pa
     wire = [r.raw for r in rig.tap.requests(mark)]
     assert wire[-1] == stop, [w.hex() for w in wire[-3:]]
     assert results and not results[0].ok
+
+
+def test_round2_22_2_the_live_driver_puts_on_the_wire_only_what_the_schedule_sends(tmp_path):
+    # Issue 22 item 2: ServoBusCore runs the schedule the model searches (BusSchedule, stepped
+    # by BusRuntime): the read loop, commands, services, the emergency stop and the shutdown
+    # all leave as the schedule's Send actions, in its order, with no thread of the driver's
+    # own reading, commanding or reporting beside the port's reader and the runtime's timer.
+    before = set(threading.enumerate())
+    rig = Rig(tmp_path, loop=True, clock=time.monotonic, publish_rate_hz=200.0)
+    try:
+        sent = []
+        runtime = rig.core.runtime
+        carry = runtime._handlers[Send]
+
+        def send(action):
+            sent.append(action.frame)
+            return carry(action)
+        runtime._handlers[Send] = send
+        wait_for(lambda: sent, 5, what='a frame sent')
+        mark = rig.tap.mark()
+        wait_for(lambda: all(s.online for s in rig.core.snapshot().servos), 5,
+                 what='every servo online')
+        assert rig.core.command([], [1, 2], [0.1, -0.1], 0).ok
+        assert rig.core.write_positions([], [3], [0.2], 0, False).ok
+        assert rig.core.set_torque([2], True).ok
+        assert rig.core.scan(1, 4).ok
+        assert rig.core.emergency_stop().ok
+        count = rig.core.cycle_count
+        wait_for(lambda: rig.core.cycle_count > count + 5, 5, what='reads going on')
+        mine = {t.name for t in set(threading.enumerate()) - before if t.is_alive()}
+        assert {n for n in mine if n.startswith('servo-')} == {'servo-bus-timer'}, mine
+        assert f'serial-reader {rig.dev.path}' in mine, mine
+    finally:
+        rig.core.stop()
+        rig.dev.stop()
+    wire = [r.raw for r in rig.tap.requests(mark)]
+    # Every frame the bus got since, and only those, in the schedule's order (the tap's mark
+    # fell somewhere after the first), the last one torque off.
+    assert len(wire) > 20 and any(sent[j:] == wire for j in range(len(sent))), (
+        [w.hex() for w in wire[:5]], [f.hex() for f in sent[:5]])
+    assert wire[-1] == proto.encode_write(proto.BROADCAST_ID, 0x28, b'\x00')
