@@ -18,7 +18,7 @@ from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
                                         judge_link, judge_probe, judge_reply, next_on_bus,
                                         NOT_DUE, OFFLINE_AFTER_FAILURES,
-                                        plan_telemetry, POSTED, PROBE_READS, probe_quiet_s,
+                                        plan_telemetry, POSTED, PROBE_READS,
                                         ReadSchedule, renamed, REPLY_OVERHEAD, RETRY,
                                         set_id_refusal, shutdown_frames, sync_write_frames,
                                         Target, TORQUE_OFF_ALL, YIELD)
@@ -383,7 +383,6 @@ class _Service:
         self._steps = self._run()
         self._reply: Optional[proto.Reply] = None
         self._garbled = False
-        self._at = 0.0
 
     def next(self) -> Any:
         """Return the next step: a transaction, a frame without a reply, or None (done)."""
@@ -399,7 +398,6 @@ class _Service:
         """
         self._reply = reply
         self._garbled = garbled
-        self._at = now
 
     def answer(self) -> Answer:
         """Return the call's answer."""
@@ -465,10 +463,12 @@ class _Service:
         for _ in range(PROBE_READS):
             yield self._tx(proto.encode_read(servo_id, POSITION.address, POSITION.size),
                            servo_id, POSITION.size, 0)
+            # The driver sleeps probe_quiet_s after a reply (off the bus lock), so a second
+            # servo's whole reply ends before the next READ; the model's wire does not make
+            # host frames collide with replies, and that reply is counted either way (taken by
+            # the next READ, whose own replies then come unsolicited, or unsolicited itself).
             if self._reply is not None:
                 values.append(int.from_bytes(self._reply.params, 'big'))
-                # A second servo's whole reply would follow at once: wait for it to end.
-                bus._free_at = max(bus._free_at, self._at + probe_quiet_s(bus.baud))
             elif self._garbled:
                 garbled += 1
         return judge_probe(values, garbled, bus.unsolicited.get(kind, 0) - unsolicited)
