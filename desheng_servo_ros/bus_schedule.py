@@ -18,7 +18,7 @@ from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
                                         judge_link, judge_probe, judge_reply, next_on_bus,
                                         NOT_DUE, OFFLINE_AFTER_FAILURES,
-                                        plan_telemetry, POSTED, PROBE_READS,
+                                        plan_telemetry, POSTED, PROBE_READS, probe_quiet_s,
                                         ReadSchedule, renamed, REPLY_OVERHEAD, RETRY,
                                         set_id_refusal, shutdown_frames, sync_write_frames,
                                         Target, TORQUE_OFF_ALL, YIELD)
@@ -202,7 +202,15 @@ class BusSchedule:
             return math.inf
         if self._tx is not None:
             return self._tx_deadline
-        if self.urgent or self.services or self.service is not None or self._retry:
+        svc = self.service
+        if svc is not None and svc.ready_at > self._free_at and not self.urgent and \
+                svc.retry is None and self._retry is None:
+            # The service waits (set_id's probe, for a second reply); commands may go.
+            nxt = svc.ready_at
+            if self.commands.pending:
+                nxt = min(nxt, self.commands.free_at())
+            return max(self._free_at, nxt)
+        if self.urgent or self.services or svc is not None or self._retry:
             return self._free_at
         nxt = math.inf
         if self.commands.pending:
@@ -313,6 +321,8 @@ class BusSchedule:
             self._start(now, svc.retry, actions)
             svc.retry = None
             return True
+        if svc is not None and svc.ready_at > now:
+            return False  # it waits (wake_at); a command may go meanwhile
         if self.service is None:
             self.service = self.services.popleft()
             if self.service.quiet:
@@ -383,6 +393,8 @@ class _Service:
         self._steps = self._run()
         self._reply: Optional[proto.Reply] = None
         self._garbled = False
+        self._at = 0.0
+        self.ready_at = 0.0  # its next step waits until then
 
     def next(self) -> Any:
         """Return the next step: a transaction, a frame without a reply, or None (done)."""
@@ -398,6 +410,7 @@ class _Service:
         """
         self._reply = reply
         self._garbled = garbled
+        self._at = now
 
     def answer(self) -> Answer:
         """Return the call's answer."""
@@ -463,12 +476,11 @@ class _Service:
         for _ in range(PROBE_READS):
             yield self._tx(proto.encode_read(servo_id, POSITION.address, POSITION.size),
                            servo_id, POSITION.size, 0)
-            # The driver sleeps probe_quiet_s after a reply (off the bus lock), so a second
-            # servo's whole reply ends before the next READ; the model's wire does not make
-            # host frames collide with replies, and that reply is counted either way (taken by
-            # the next READ, whose own replies then come unsolicited, or unsolicited itself).
             if self._reply is not None:
                 values.append(int.from_bytes(self._reply.params, 'big'))
+                # As the driver: a second servo's whole reply ends before the next READ (it
+                # sleeps off the bus lock: commands may go meanwhile, the read loop is paused).
+                self.ready_at = self._at + probe_quiet_s(bus.baud)
             elif self._garbled:
                 garbled += 1
         return judge_probe(values, garbled, bus.unsolicited.get(kind, 0) - unsolicited)
