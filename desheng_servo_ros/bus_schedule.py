@@ -253,7 +253,15 @@ class BusSchedule:
             return math.inf
         if self._tx is not None:
             return self._tx_deadline
-        if self.urgent or self.services or self.service is not None or self._retry:
+        svc = self.service
+        if svc is not None and svc.ready_at > self._free_at and not self.urgent and \
+                svc.retry is None and self._retry is None:
+            # The service waits (set_id's probe, for a second reply); commands may go.
+            nxt = svc.ready_at
+            if self.commands.pending:
+                nxt = min(nxt, self.commands.free_at())
+            return max(self._free_at, nxt)
+        if self.urgent or self.services or svc is not None or self._retry:
             return self._free_at
         nxt = math.inf
         if self.commands.pending:
@@ -384,6 +392,8 @@ class BusSchedule:
             self._start(now, svc.retry, actions)
             svc.retry = None
             return True
+        if svc is not None and svc.ready_at > now:
+            return False  # it waits (wake_at); a command may go meanwhile
         if self.service is None:
             self.service = self.services.popleft()
             if self.service.quiet:

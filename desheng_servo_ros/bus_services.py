@@ -56,6 +56,7 @@ class _Service:
         self._answer_reply: Optional[proto.Reply] = None
         self._garbled = False
         self._at = 0.0
+        self.ready_at = 0.0  # its next step waits until then
 
     def next(self) -> Any:
         """Return the next step: a transaction, a frame without a reply, or None (done)."""
@@ -154,8 +155,9 @@ class _Service:
                            servo_id, POSITION.size, 0)
             if self._reply is not None:
                 values.append(int.from_bytes(self._reply.params, 'big'))
-                # A second servo's whole reply would follow at once: wait for it to end.
-                bus._free_at = max(bus._free_at, self._at + probe_quiet_s(bus.baud))
+                # As the driver: a second servo's whole reply ends before the next READ (it
+                # sleeps off the bus lock: commands may go meanwhile, the read loop is paused).
+                self.ready_at = self._at + probe_quiet_s(bus.baud)
             elif self._garbled:
                 garbled += 1
         return judge_probe(values, garbled, bus.unsolicited.get(kind, 0) - unsolicited)

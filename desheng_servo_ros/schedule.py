@@ -335,9 +335,9 @@ def judge_probe(values: Sequence[int], garbled: int, unsolicited: int,
     answer twice (a READ without a reply of its own may be answered late, once: beyond those,
     more than one servo answers); their positions also rarely agree (`values_differ`: count
     that as a sign too, at the price of a moving servo looking like two). 'one' only when every
-    READ was answered, in its time or late: on a bus that loses replies a second servo's may be
-    among those lost, and the PINGs that found the new id free may have missed a servo there
-    ('unsure').
+    READ was answered in its time: on a bus that loses replies a second servo's may be among
+    those lost (and a late reply is not told from a second servo's), and the PINGs that found
+    the new id free may have missed a servo there ('unsure').
     """
     extra = unsolicited - (PROBE_READS - len(values))
     if garbled:
@@ -349,9 +349,12 @@ def judge_probe(values: Sequence[int], garbled: int, unsolicited: int,
                            'servos, or one that is moving (stop it first)')
     if not values:
         return 'none', ''
-    if extra < 0:
-        return 'unsure', (f'{-extra} of {PROBE_READS} READs unanswered, even late: the bus '
-                          'loses replies, and a servo may go unheard')
+    if len(values) < PROBE_READS:
+        # A reply that came late and a second servo's reply look alike (the search found two
+        # lost READs hiding a second servo's two replies): only a READ answered in its time
+        # is known to be one servo's.
+        return 'unsure', (f'{PROBE_READS - len(values)} of {PROBE_READS} READs not answered in '
+                          'time: the bus loses or delays replies, and a servo may go unheard')
     return 'one', ''
 
 

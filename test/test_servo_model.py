@@ -820,3 +820,73 @@ def test_round2_22_5_found_set_id_onto_an_id_whose_pings_were_lost_is_not_done()
     state.set_id_never_makes_two_joints_share_an_id()
     state.one_transaction_at_a_time()
     state.teardown()
+
+
+def test_round2_22_5_found_the_set_id_probe_leaves_the_bus_to_the_reads_and_commands() -> None:
+    # The 20,000-sequence search found this when the model's set_id probe held the whole bus
+    # for probe_quiet_s after each reply (the driver sleeps off the bus lock): over a stretch,
+    # commands 7.47 ms ahead of READs (allowance 7.29 ms).
+    state = ServoBusModel()
+    state.start(n=4, rate=1000.0, retries=0, telemetry=0.05, extra=False, seed=0)
+    state.flood(count=9, first=0, spacing_ms=0.5)
+    state.flood(count=5, first=0, spacing_ms=1.0)
+    state.garbage(data=b'\x00', ms=0.0)
+    state.set_id(ms=12.0, new=1, old=1)
+    for _ in range(5):
+        state.garbage(data=b'\x00', ms=0.0)
+    state.set_torque(enable=False, ms=2.0599987804851545)
+    state.garbage(data=b'\x00', ms=0.0)
+    state.garbage(data=b'\x00', ms=0.0)
+    state.flood(count=11, first=0, spacing_ms=3.0)
+    state.flood(count=44, first=0, spacing_ms=2.296875)
+    state.set_torque(enable=False, ms=0.0)
+    state.garbage(data=b'\x00', ms=4.0)
+    state.set_id(ms=5.0, new=5, old=1)
+    state.garbage(data=b'\x00', ms=0.0)
+    state.set_id(ms=33.0, new=1, old=1)
+    state.garbage(data=b'\x00', ms=9.0)
+    state.flood(count=8, first=14, spacing_ms=3.0)
+    state.garbage(data=b'\x00', ms=0.0)
+    state.one_transaction_at_a_time()
+    state.the_newest_target_reaches_the_wire_within_one_read_cycle()
+    state.reads_keep_at_least_half_their_rate()
+    state.set_id_done_never_makes_two_servos_share_an_id()
+    state.teardown()
+
+
+def test_round2_22_5_found_two_servos_whose_replies_come_apart_are_not_renamed_at_once() -> None:
+    # The 20,000-sequence search found this once the model's probe sent its next READ at once
+    # after a reply: two servos at 6 (not in the list) whose replies come apart; each READ
+    # took the second servo's reply to the READ before, the last ones came after the probe,
+    # and set_id 6 -> 5 renamed both. The probe waits probe_quiet_s after a reply, as the
+    # driver does (off the bus: commands may go meanwhile).
+    state = ServoBusModel()
+    state.start(n=4, rate=200.0, retries=1, telemetry=0.05, extra=False, seed=1013)
+    for ms in (0.0, 0.0, 0.0, 9.0, 1.2560228024584075, 1.8077944499808587):
+        state.emergency_stop(ms=ms)
+    state.scan(ms=33.7710072188161)
+    state.emergency_stop(ms=0.0)
+    state.emergency_stop(ms=0.0)
+    state.read_register(ms=17.0, servo_id=5)
+    state.read_register(ms=23.0, servo_id=5)
+    state.write_positions(ms=8.0, ticks=0)
+    state.write_positions(ms=9.0, ticks=0)
+    for _ in range(3):
+        state.emergency_stop(ms=0.0)
+    state.set_id(ms=20.0, new=1, old=1)
+    state.connect_a_second_servo_at_an_id(collisions=False, position=1000, servo_id=6)
+    state.set_torque(enable=False, ms=7.0)
+    state.set_torque(enable=False, ms=16.0)
+    state.connect_a_second_servo_at_an_id(collisions=False, position=1000, servo_id=6)
+    state.wire_faults(corrupt=0.1, drop=0.1, late=0.0)
+    state.set_torque(enable=False, ms=0.0)
+    state.emergency_stop(ms=10.0)
+    state.set_id(ms=14.0, new=6, old=1)
+    state.set_id_of_a_servo_not_in_the_list(ms=33.0, new=1)
+    state.wire_faults(corrupt=0.0, drop=0.1, late=0.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=31.0, new=5)
+    state.wait(ms=100.0)
+    state.one_transaction_at_a_time()
+    state.reads_keep_at_least_half_their_rate()
+    state.set_id_done_never_makes_two_servos_share_an_id()
+    state.teardown()
