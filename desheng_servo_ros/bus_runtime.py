@@ -143,14 +143,16 @@ class BusRuntime:
     def stop(self) -> List[bytes]:
         """Step the shutdown (torque off the last frame), let it leave, close the port.
 
-        Returns the frames the shutdown sent (none when the port was not open).
+        Returns the frames the shutdown wrote (none when the port was not open).
         """
+        written = self.frames_sent
         sent = [a for a in self._step(Shutdown(time.monotonic())) if isinstance(a, Send)]
+        written = self.frames_sent - written  # a write to a port that is not open fails
         self._timer.stop()
-        if sent:  # the torque off leaves the line before the port closes
+        if sent and written:  # the torque off leaves the line before the port closes
             time.sleep(max(0.0, sent[-1].deadline - time.monotonic()))
         self.link.stop()
-        return [a.frame for a in sent]
+        return [a.frame for a in sent][:written]
 
     @property
     def port_open(self) -> bool:
