@@ -2,85 +2,59 @@
 
 :class:`BusSchedule` composes the parts of ``schedule.py`` (the read cycles, the online
 judgement, the command queue and its budget, what goes first at a READ boundary, the set_id
-rule, the shutdown sequence) into a whole bus: events with their time in, actions out, one
-transaction on the half-duplex bus at a time. ``test/test_servo_model.py`` drives it against the
-device model in virtual time and checks the bus's safety invariants after every step; the
-threaded driver calls the same parts on its threads.
+rule, the shutdown sequence) into a whole bus, with one entry: :meth:`BusSchedule.step` takes
+one event with its time and returns the actions to carry out (issue 22 item 1), one
+transaction on the half-duplex bus at a time, so ``core_runner.run_core`` can drive it.
+
+Events (``bus_events.py``): :class:`Command` (a ``~/command``), :class:`Call` (a service call,
+answered once by an :class:`Answer` with its token), :class:`Shutdown`, and the shared
+``core_events`` ``Reply`` (a reply decoded off the wire), ``LinkUp``/``LinkDown`` (the port) and
+``Tick`` (time passed). Actions: :class:`Send` (a frame, when it goes and until when it holds
+the bus), :class:`Answer`, :class:`ReadDone` and :class:`CycleDone` (what the reads brought),
+``Log``, and last a shared ``SetTimer`` (when the next ``Tick`` is due; a step without one has
+no deadline). ``test/test_servo_model.py`` steps it against the device model in virtual time and
+checks the bus's safety invariants after every step; the threaded driver calls the same parts
+of ``schedule.py`` on its threads.
 """
 
 from __future__ import annotations
 
 from collections import deque
 import math
-from typing import Any, Deque, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Deque, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.bus_events import (  # noqa: F401 - the types, re-exported
+    Action, Answer, Call, Command, CycleDone, Event, QUIET_CALLS, ReadDone, Send, Shutdown)
+from desheng_servo_ros.bus_services import _Service, _Tx
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
                                         judge_link, judge_reply, next_on_bus, NOT_DUE,
-                                        OFFLINE_AFTER_FAILURES,
-                                        plan_telemetry, POSTED,
-                                        ReadSchedule, renamed, REPLY_OVERHEAD, RETRY,
+                                        OFFLINE_AFTER_FAILURES, plan_telemetry, POSTED,
+                                        ReadSchedule, REPLY_OVERHEAD, REPROBE_PERIOD_S, RETRY,
                                         set_id_refusal, shutdown_frames, sync_write_frames,
                                         Target, TORQUE_OFF_ALL, YIELD)
-from desheng_servo_ros.state import (ID, POSITION, READ_STATE, READ_WIDE, ServoRecord, TORQUE)
+from desheng_servo_ros.state import READ_STATE, READ_WIDE, ServoRecord
 from desheng_servo_ros.units import Joint
+from uav_serial_common.core_events import LinkDown, LinkUp, Log, Reply, SetTimer, Tick
 from uav_serial_common.pty_port import wire_time
-
-
-class Send(NamedTuple):
-    """Put `frame` on the bus at `at`; the bus is taken until `deadline`.
-
-    A reply of `reply_id` with `nparams` params is awaited until `deadline`; `reply_id` None:
-    no reply, the bus is free again at `deadline` (the frame's wire time and a guard).
-    """
-
-    at: float
-    frame: bytes
-    kind: str
-    reply_id: Optional[int]
-    nparams: int
-    deadline: float
-
-
-class Answer(NamedTuple):
-    """A service call's answer."""
-
-    token: int
-    ok: bool
-    text: str
-
-
-class _Tx:
-    """One transaction of a service or of the read loop that waits for a reply."""
-
-    __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts')
-
-    def __init__(self, frame: bytes, reply_id: int, nparams: int, retries: int, owner: Any,
-                 tag: Any = None) -> None:
-        self.frame = frame
-        self.reply_id = reply_id
-        self.nparams = nparams
-        self.retries = retries
-        self.owner = owner
-        self.tag = tag
-        self.attempts = 0
 
 
 class BusSchedule:
     """The servo bus as a state machine: events with their time in, actions out.
 
-    Events: :meth:`command` (a ``~/command``), :meth:`call` (a service: ``emergency_stop``,
-    ``write_positions``, ``read_register``, ``set_torque``, ``scan``, ``set_id``),
-    :meth:`received` (a reply decoded off the wire), :meth:`link` (port up/down),
-    :meth:`shutdown`; :meth:`poll` at :meth:`wake_at` (or any time) lets time pass. Each returns
-    the :class:`Send` and :class:`Answer` actions to carry out, in order. One transaction on the
+    :meth:`step` takes each event (module doc) and returns the :class:`Send` and
+    :class:`Answer` actions to carry out, in order, then the ``SetTimer`` of the next
+    deadline. The methods it calls (:meth:`command`, :meth:`received`, :meth:`link`,
+    :meth:`shutdown`, :meth:`poll` at :meth:`wake_at`) and :meth:`call` (which numbers the
+    calls) are its parts, kept public for the cases that name one moment. One transaction on the
     bus at a time: nothing is sent while a reply is awaited or a frame is on the wire.
     """
 
     def __init__(self, joints: Sequence[Joint], *, now: float, baud: int = 115200,
                  publish_rate_hz: float = 1000.0, telemetry_period_s: float = 1.0,
                  max_retries: int = 1, margin_s: float = 0.002,
-                 torque_off_on_shutdown: bool = True) -> None:
+                 torque_off_on_shutdown: bool = True,
+                 pace_now: Optional[float] = None) -> None:
         self.servos: Tuple[ServoRecord, ...] = tuple(ServoRecord(j, k)
                                                      for k, j in enumerate(joints))
         self.baud = baud
@@ -89,7 +63,8 @@ class BusSchedule:
         self.margin_s = margin_s
         self.torque_off_on_shutdown = torque_off_on_shutdown
         self.max_retries = max_retries
-        self.reads = ReadSchedule(1.0 / publish_rate_hz, max_retries, now)
+        pace = now if pace_now is None else pace_now  # the read loop's clock (step)
+        self.reads = ReadSchedule(1.0 / publish_rate_hz, max_retries, pace)
         self.commands = CommandQueue()
         self.port_open = True
         self.closed = False
@@ -102,8 +77,66 @@ class BusSchedule:
         self._retry: Optional[_Tx] = None  # a READ to send again at the next boundary
         self._free_at = now  # a frame without a reply holds the bus until then
         self._tokens = 0
+        self.held: set = set()  # tokens of the holds granted and not released
+        self._notes: List[Any] = []  # ReadDone, CycleDone and Log actions of this step
+        self._pace_offset = pace - now  # the read loop's clock less the events' (step)
+        self._pace_at = (now, pace)  # the last step's moment on both clocks
         self.cycles_done = 0
         self.read_cycles_done = 0  # cycles that had READs in them
+        # What came off the wire: bytes, frames, and replies no request took, by (id, params)
+        # (a request answered by bytes and no frame at all was answered garbled: S24).
+        self.bytes_in = 0
+        self.frames_in = 0
+        self.unsolicited: Dict[Tuple[int, int], int] = {}
+        self.last_taken = False  # whether the last reply received ended its transaction
+        # Per id, a margin of its own when longer than margin_s (a servo that answers late:
+        # the driver's link learns it); None: margin_s for all.
+        self.slow_margin: Optional[Sequence[float]] = None
+        # When a list: each attempt that got no reply, (id, garbled: bytes and no frame came
+        # since its first attempt; None before the last attempt), for the driver's counters.
+        self.silences: Optional[List[Tuple[int, Optional[bool]]]] = None
+
+    # -- the one entry ---------------------------------------------------------------------------
+
+    def step(self, event: Event, pace_now: Optional[float] = None) -> List[Action]:
+        """Take one event; return the actions to carry out, in order (``SetTimer`` last).
+
+        A ``SetTimer(at)`` ends every step that leaves something due (a reply's deadline, the
+        next READ, a command batch the budget holds back, a frame still on the line): step a
+        ``Tick`` by then. A step without one has nothing due until the next event.
+
+        ``pace_now``: the read loop's clock, when it is not the events' (a test's clock that
+        the test moves, as the driver's ``clock``): the cycles, re-probes and telemetry are
+        paced on it, while replies' deadlines and the commands' budget run on the events'
+        clock. Default ``event.now``. The times of the actions are on the events' clock (but
+        ``ReadDone.started``).
+        """
+        now = event.now
+        self._pace_offset = 0.0 if pace_now is None else pace_now - now
+        # The step's own moment on the read loop's clock, exactly (now + offset may round
+        # below it, and a cycle due at pace_now would wait for the clock to move again).
+        self._pace_at = (now, now if pace_now is None else pace_now)
+        if isinstance(event, Reply):
+            out = self.received(now, event.message)
+        elif isinstance(event, Tick):
+            out = self.poll(now)
+        elif isinstance(event, Command):
+            out = self.command(now, event.targets)
+        elif isinstance(event, Call):
+            out = self._call(now, event.token, event.name, event.args)
+        elif isinstance(event, (LinkUp, LinkDown)):
+            out = self.link(now, isinstance(event, LinkUp))
+        elif isinstance(event, Shutdown):
+            out = self.shutdown(now)
+        else:
+            raise TypeError(f'not an event of the servo bus: {event!r}')
+        # What the reads brought come after the step's frames: the next READ leaves first.
+        out.extend(self._notes)
+        self._notes.clear()
+        due = self.wake_at()
+        if due < math.inf:
+            out.append(SetTimer(due))
+        return out
 
     # -- events ---------------------------------------------------------------------------------
 
@@ -116,9 +149,20 @@ class BusSchedule:
     def call(self, now: float, name: str, *args: Any) -> Tuple[int, List[Any]]:
         """Take a service call; return its token (its :class:`Answer` carries it), the actions."""
         self._tokens += 1
-        token = self._tokens
+        return self._tokens, self._call(now, self._tokens, name, args)
+
+    def _call(self, now: float, token: Hashable, name: str,
+              args: Sequence[Any]) -> List[Any]:
         if self.closed:
-            return token, [Answer(token, False, 'shutting down; nothing sent')]
+            return [Answer(token, False, 'shutting down; nothing sent')]
+        if name == 'release':
+            # Also of a hold not granted yet (its caller gave up waiting): it never will be.
+            self.held.discard(args[0])
+            out = [Answer(svc.token, False, 'released before the bus was held')
+                   for svc in self.services if svc.token == args[0]]
+            self.services = deque(svc for svc in self.services if svc.token != args[0])
+            self.reads.reset(self._pace(now))  # the servo list may have changed
+            return out + [Answer(token, True, 'released')] + self.poll(now)
         if name == 'emergency_stop':
             # Ahead of everything queued; queued commands must not follow it.
             self.commands.drop()
@@ -129,13 +173,19 @@ class BusSchedule:
                 self.commands.drop([t[0] for t in args[0]])
             refusal = set_id_refusal(self.servos, *args) if name == 'set_id' else None
             if refusal is not None:
-                return token, [Answer(token, False, 'refused: ' + refusal)]
+                return [Answer(token, False, 'refused: ' + refusal)]
             self.services.append(_Service(self, token, name, args))
-        return token, self.poll(now)
+        return self.poll(now)
+
+    def received_bytes(self, count: int) -> None:
+        """Count bytes off the wire, before the frames they make go to :meth:`received`."""
+        self.bytes_in += count
 
     def received(self, now: float, reply: proto.Reply) -> List[Any]:
         """Take a reply decoded off the wire; the one awaited completes its transaction."""
+        self.frames_in += 1
         tx = self._tx
+        self.last_taken = False
         # A reply that came before the request had left the line answers an earlier one (a
         # late reply of the attempt before a retry): it ends nothing.
         if tx is not None and self._tx_sent < now < self._tx_deadline and \
@@ -143,14 +193,18 @@ class BusSchedule:
             self._tx = None
             self._tx_deadline = math.inf
             self._free_at = max(self._free_at, now)
+            self.last_taken = True
             self._done(now, tx, reply)
+        else:
+            kind = (reply.servo_id, len(reply.params))
+            self.unsolicited[kind] = self.unsolicited.get(kind, 0) + 1
         return self.poll(now)
 
     def link(self, now: float, up: bool) -> List[Any]:
         """Take the port opening or closing; a transaction in flight is lost with it."""
         self.port_open = up
         judge_link(self.servos, up)
-        self.reads.reset(now)
+        self.reads.reset(self._pace(now))
         for tx in (self._tx, self._retry):
             if tx is not None:
                 self._done(now, tx, None)
@@ -167,17 +221,28 @@ class BusSchedule:
         self.closed = True
         self.commands.drop()
         for svc in list(self.services) + ([self.service] if self.service else []):
-            actions.append(Answer(svc.token, False, 'shutting down'))
+            left = self._tx is not None and self._tx.owner is svc
+            actions.append(Answer(svc.token, False, 'shutting down' + (
+                '; its request had left' if left else '')))
+        stops = [token for _, token in self.urgent]
+        self.urgent.clear()
         self.services.clear()
         self.service = None
+        self.held.clear()
         # The transaction on the wire ends first (its reply or its deadline).
         at = max(now, self._free_at, self._tx_deadline if self._tx is not None else now)
         self._tx = self._retry = None
         self._tx_deadline = math.inf
+        sent = False
         for frame in shutdown_frames(self.torque_off_on_shutdown):
             if self.port_open:
                 actions.append(self._send_noreply(at, frame, 'shutdown'))
                 at = self._free_at
+                sent = True
+        # A stop still queued (a transaction was on the wire): the shutdown's torque off is it.
+        actions.extend(Answer(token, sent, 'torque off broadcast as the shutdown\'s last frame'
+                              if sent else 'shutting down; torque off NOT sent')
+                       for token in stops)
         return actions
 
     # -- time -----------------------------------------------------------------------------------
@@ -188,14 +253,32 @@ class BusSchedule:
             return math.inf
         if self._tx is not None:
             return self._tx_deadline
-        if self.urgent or self.services or self.service is not None or self._retry:
+        svc = self.service
+        if svc is not None and svc.ready_at > self._free_at and not self.urgent and \
+                svc.retry is None and self._retry is None:
+            # The service waits (set_id's probe, for a second reply); commands may go.
+            nxt = svc.ready_at
+            if self.commands.pending:
+                nxt = min(nxt, self.commands.free_at())
+            return max(self._free_at, nxt)
+        if self.urgent or self.services or svc is not None or self._retry:
             return self._free_at
         nxt = math.inf
         if self.commands.pending:
             nxt = self.commands.free_at()
         if self._reading():
-            nxt = min(nxt, self._free_at if self.reads.in_cycle else self.reads.next_cycle)
+            nxt = min(nxt, self._free_at if self.reads.in_cycle
+                      else self.reads.next_cycle - self._pace_offset)
         return max(self._free_at, nxt)
+
+    def awaiting(self, now: float) -> bool:
+        """Whether a reply is awaited whose deadline passed by `now` (the next poll ends it)."""
+        return self._tx is not None and now >= self._tx_deadline
+
+    @property
+    def reply_deadline(self) -> float:
+        """Until when the reply awaited is waited for (inf: none awaited)."""
+        return self._tx_deadline
 
     def poll(self, now: float) -> List[Any]:
         """Let time pass to `now`: a deadline that passed, then whatever is next on the bus."""
@@ -204,6 +287,9 @@ class BusSchedule:
             tx, self._tx = self._tx, None
             self._free_at = max(self._free_at, self._tx_deadline)
             self._tx_deadline = math.inf
+            if self.silences is not None:
+                self.silences.append((tx.reply_id, self._garbled(tx)
+                                      if tx.attempts > tx.retries else None))
             if tx.attempts > tx.retries:
                 self._done(now, tx, None)
             elif tx.owner == 'read':
@@ -231,13 +317,19 @@ class BusSchedule:
             return False
         if reads.in_cycle or self._retry is not None:
             return True
-        return reads.due(now) and any(
-            s.failures < OFFLINE_AFTER_FAILURES or now >= s.next_probe for s in self.servos)
+        pace = self._pace(now)
+        return reads.due(pace) and any(
+            s.failures < OFFLINE_AFTER_FAILURES or pace >= s.next_probe for s in self.servos)
+
+    def _pace(self, now: float) -> float:
+        """`now` (the events' clock) on the read loop's clock (``step``'s ``pace_now``)."""
+        at, pace = self._pace_at
+        return pace if now == at else now + self._pace_offset
 
     def _reading(self) -> bool:
-        """Whether the read loop runs (a scan or an id change holds it)."""
+        """Whether the read loop runs (a scan, an id change or a hold stops it)."""
         svc = self.service
-        return not (svc is not None and svc.quiet)
+        return not (self.held or (svc is not None and svc.quiet))
 
     def _next(self, now: float, actions: List[Any]) -> bool:
         """Put the next thing on the bus at `now`; False when nothing is due."""
@@ -275,11 +367,12 @@ class BusSchedule:
             return False
         reads = self.reads
         if not reads.in_cycle:
-            started = reads.start_cycle(now, self.servos)
+            started = reads.start_cycle(self._pace(now), self.servos)
             if started == NOT_DUE:
                 return False
             if started == EMPTY:
                 self.cycles_done += 1
+                self._notes.append(CycleDone(now, False))
                 return False
         frame, servo_id, nparams, retries, tag = reads.take()
         self._start(now, _Tx(frame, servo_id, nparams, retries, 'read', tag), actions)
@@ -299,17 +392,21 @@ class BusSchedule:
             self._start(now, svc.retry, actions)
             svc.retry = None
             return True
+        if svc is not None and svc.ready_at > now:
+            return False  # it waits (wake_at); a command may go meanwhile
         if self.service is None:
             self.service = self.services.popleft()
             if self.service.quiet:
-                self.reads.reset(now)
+                self.reads.reset(self._pace(now))
         svc = self.service
         step = svc.next()
         if step is None:
             actions.append(svc.answer())
             self.service = None
-            if svc.quiet:
-                self.reads.reset(now)  # the servo list may have changed
+            if svc.name == 'hold':
+                self.held.add(svc.token)
+            elif svc.quiet:
+                self.reads.reset(self._pace(now))  # the servo list may have changed
         elif isinstance(step, _Tx):
             self._start(now, step, actions)
         else:
@@ -318,141 +415,47 @@ class BusSchedule:
 
     def _start(self, at: float, tx: _Tx, actions: List[Any]) -> None:
         tx.attempts += 1
-        timeout = wire_time(len(tx.frame) + tx.nparams + REPLY_OVERHEAD, self.baud) + \
-            self.margin_s
+        if tx.attempts == 1:
+            tx.mark = (self.bytes_in, self.frames_in)
+        margin = self.margin_s
+        if self.slow_margin is not None and self.slow_margin[tx.reply_id] > margin:
+            margin = self.slow_margin[tx.reply_id]
+        timeout = tx.wait if tx.wait is not None else \
+            wire_time(len(tx.frame) + tx.nparams + REPLY_OVERHEAD, self.baud) + margin
         self._tx = tx
         self._tx_sent = at + wire_time(len(tx.frame), self.baud)
         self._tx_deadline = at + timeout
         actions.append(Send(at, tx.frame, 'read' if tx.owner == 'read' else tx.owner.name,
-                            tx.reply_id, tx.nparams, at + timeout))
+                            tx.reply_id, tx.nparams, at + timeout, tx.flush))
 
     def _send_noreply(self, at: float, frame: bytes, kind: str) -> Send:
         self._free_at = at + wire_time(len(frame), self.baud) + IDLE_GUARD_S
         return Send(at, frame, kind, None, 0, self._free_at)
 
+    def _garbled(self, tx: _Tx) -> bool:
+        """Whether bytes and no frame came since `tx` was first sent (S24: colliding replies)."""
+        return self.bytes_in > tx.mark[0] and self.frames_in == tx.mark[1]
+
     def _done(self, now: float, tx: _Tx, reply: Optional[proto.Reply]) -> None:
         if tx.owner != 'read':
-            tx.owner.result(reply)
+            tx.owner.result(now, reply, reply is None and self._garbled(tx))
             return
         s, kind, started, last = tx.tag
         if reply is None:
-            judge_failure(s, now)
+            if judge_failure(s, self._pace(now)):
+                self._notes.append(Log('warning', (
+                    f'{s.name} (id {s.id}) stopped answering: offline, probing it every '
+                    f'{REPROBE_PERIOD_S:g} s (check its power and cable; ~/scan lists the bus)')))
         elif kind == READ_STATE:
             s.failures = 0
             s.set_torque(reply.params[0] != 0)
         else:
             if kind == READ_WIDE:
                 plan_telemetry(s, started, self.telemetry_period_s, len(self.servos))
-            judge_reply(s)
+            if judge_reply(s):
+                self._notes.append(Log('info', f'{s.name} (id {s.id}) is back online'))
+        self._notes.append(ReadDone(now, s.id, kind, started, reply))
         if last:
             self.cycles_done += 1
             self.read_cycles_done += 1
-
-
-class _Service:
-    """A service call as a sequence of transactions (the model's version of the core's)."""
-
-    def __init__(self, bus: BusSchedule, token: int, name: str, args: Tuple[Any, ...]) -> None:
-        self.bus = bus
-        self.token = token
-        self.name = name
-        self.args = args
-        # A scan and an id change hold the read loop: they need a quiet bus.
-        self.quiet = name in ('scan', 'set_id')
-        self.ok = True
-        self.text = ''
-        self.retry: Optional[_Tx] = None  # its transaction to send again
-        self._steps = self._run()
-        self._reply: Optional[proto.Reply] = None
-
-    def next(self) -> Any:
-        """Return the next step: a transaction, a frame without a reply, or None (done)."""
-        try:
-            return next(self._steps)
-        except StopIteration:
-            return None
-
-    def result(self, reply: Optional[proto.Reply]) -> None:
-        """Take the reply of the step's transaction (None: none after its retries)."""
-        self._reply = reply
-
-    def answer(self) -> Answer:
-        """Return the call's answer."""
-        return Answer(self.token, self.ok, self.text)
-
-    def _tx(self, frame: bytes, servo_id: int, nparams: int, retries: int) -> _Tx:
-        return _Tx(frame, servo_id, nparams, retries, self)
-
-    def _run(self) -> Any:
-        name, args, bus = self.name, self.args, self.bus
-        if name == 'write_positions':
-            for frame in sync_write_frames(args[0]):
-                yield frame
-            self.text = 'SYNC WRITE sent'
-        elif name == 'read_register':
-            servo_id, address, length = args
-            yield self._tx(proto.encode_read(servo_id, address, length), servo_id, length,
-                           bus.max_retries)
-            self.ok = self._reply is not None
-            self.text = 'read' if self.ok else 'no reply'
-        elif name == 'set_torque':
-            ids, enable = args
-            for servo_id in ids:
-                yield self._tx(proto.encode_write(servo_id, TORQUE.address,
-                                                  b'\x01' if enable else b'\x00'),
-                               servo_id, 0, bus.max_retries)
-                yield self._tx(proto.encode_read(servo_id, TORQUE.address, 1), servo_id, 1,
-                               bus.max_retries)
-                back = self._reply is not None and self._reply.params[0] != 0
-                for s in bus.servos:
-                    if s.id == servo_id and self._reply is not None:
-                        s.set_torque(back)
-                if back != enable:
-                    self.ok = False
-            self.text = 'torque'
-        elif name == 'scan':
-            first, last = args
-            found = []
-            for servo_id in range(first, last + 1):
-                yield self._tx(proto.encode_ping(servo_id), servo_id, 0, 0)
-                if self._reply is not None:
-                    found.append(servo_id)
-            self.text = f'found {found}'
-        elif name == 'set_id':
-            yield from self._set_id(*args)
-
-    def _answers(self, servo_id: int) -> Any:
-        for _ in range(2):
-            yield self._tx(proto.encode_ping(servo_id), servo_id, 0, 0)
-            if self._reply is not None:
-                return True
-        return False
-
-    def _set_id(self, old: int, new: int) -> Any:
-        bus = self.bus
-        taken = yield from self._answers(new)
-        if taken:
-            self.ok, self.text = False, f'id {new} already answers'
-            return
-        values = []
-        for _ in range(5):
-            yield self._tx(proto.encode_read(old, POSITION.address, POSITION.size), old,
-                           POSITION.size, 0)
-            if self._reply is not None:
-                values.append(bytes(self._reply.params))
-        if not values:
-            self.ok, self.text = False, f'servo {old} does not answer'
-            return
-        # A refusal checked again where the list could have changed meanwhile.
-        refusal = set_id_refusal(bus.servos, old, new)
-        if refusal is not None:
-            self.ok, self.text = False, refusal
-            return
-        yield self._tx(proto.encode_write(old, ID.address, bytes([new])), old, 0,
-                       bus.max_retries)
-        now_at_new = yield from self._answers(new)
-        if not now_at_new:
-            self.ok, self.text = False, f'UNKNOWN whether servo {old} now has id {new}'
-            return
-        bus.servos = renamed(bus.servos, old, new)
-        self.text = f'servo {old} now answers at id {new}'
+            self._notes.append(CycleDone(now, True))

@@ -1,40 +1,34 @@
 """The servo bus as a device: its servos, the read loop, commands and services. No ROS here.
 
-:class:`ServoBusCore` owns the bus (:class:`~desheng_servo_ros.link.ServoBusLink`), the servo list
-and what is known of each servo, and runs the rules on its threads. The rules of scheduling live
-in ``schedule.py``, without I/O, thread, lock or clock (the read cycles and their pace, the
+:class:`ServoBusCore` owns the bus and what is known of each servo. Every decision of the bus
+is the schedule's (``bus_schedule.BusSchedule``: the read cycles and their pace, the
 online/offline judgement, the coalesced commands and their share of the bus, what goes first at
-a READ boundary, the set_id rule, the shutdown sequence): this module, ``read_cycles.py``,
-``commands.py`` and ``link.py`` call them, and ``bus_schedule.py`` composes them into the state
-machine the model test drives. The services are in ``services.py``, the diagnostics in
-``health.py``, the types in ``state.py``. It reports through callbacks (``on_cycle(snapshot)``,
-``on_change()``, ``on_servos()``) and takes a clock for everything that is planned in time. The
-node (``node.py``) only translates. Decisions: ``docs/protocols.md``, "Driver decisions" of the
-servo bus.
+a READ boundary, an emergency stop, the services' transactions and holds, the shutdown's torque
+off), the same state machine the model test searches; ``bus_runtime.BusRuntime`` steps it on the
+port (``link.ServoBusLink``: the port, its counters and margins, the services' blocking
+requests). This module takes what the reads bring (``ReadDone``: the values; ``CycleDone``:
+publish, the duplicate-id check) and adds the start-up procedure. The services are in
+``services.py``, the diagnostics in ``health.py``, the types in ``state.py``. It reports through
+callbacks (``on_cycle(snapshot)``, ``on_change()``, ``on_servos()``) and takes a clock for the
+read loop's pace. The node (``node.py``) only translates. Decisions: ``docs/protocols.md``,
+"Driver decisions" of the servo bus.
 
-Threads and state (who writes what, and what guards it):
+Threads (who steps the schedule; one step at a time under the runtime's lock):
 
-- **read loop** (``_loop_main``): start-up scan, torque on at start, then read cycles as one
-  chain of READs (``ServoBusLink.read_chain``); it restarts itself after any failure. It owns
-  ``_cycles`` and the loop-failure fields.
-- **link reader thread**: while a chain runs, it sends each next READ and handles each reply
-  (``_on_read``, ``ReadCycles``), and runs ``_on_connection``. A chain's results are handed out
-  one at a time (the chain's lock), so each servo's fields have a single writer at a time, with
-  no lock: a servo's ``reading`` and ``telemetry`` are immutable tuples replaced in one
-  assignment, so a snapshot never mixes two replies.
-- **reporter** (``_reporter_main``): calls ``on_cycle(snapshot)`` after each cycle, off the wire.
-- **commander** (``_commander_main``, ``commands.py``): sends the newest pending command; the
-  pending targets and the command budget (``_commands``, a ``schedule.CommandQueue``) are
-  guarded by ``_cmd_cond``.
-- **callers** (the node's executor threads): services and ``command()``. A service that needs
-  a quiet bus or changes the servo list pauses the read loop first (``_pause`` and
-  ``_loop_idle``, guarded by ``_pause_cond``).
-- ``_servos`` is a tuple replaced in one assignment (start-up scan, ``set_id``, both with the
-  loop paused); readers take it once. The duplicate-id bookkeeping is written by the reader
-  thread at cycle starts only.
-- The bus itself: one transaction at a time under the link's priority lock (emergency stop >
-  commands and services > read loop), also between two attempts of a request; after the
-  shutdown's torque off the link takes no transaction any more (``ServoBusLink.send_last``).
+- the **link reader thread**: each reply (the next READ leaves from it at once), the port
+  opening or closing; its ``ReadDone`` handler writes the servo's values (a servo's
+  ``reading`` and ``telemetry`` are immutable tuples replaced in one assignment, so a snapshot
+  never mixes two replies), and after the lock is let go its ``CycleDone`` handler publishes;
+- the runtime's **timer**: deadlines, the next cycle, a command the budget holds back, and
+  the reports while the port is away;
+- **callers** (the node's executor threads): ``command()`` and the services, each a call
+  answered by the schedule and waited on with a timeout; a service that needs a quiet bus
+  holds the read loop (``runtime.held``);
+- **start-up** (``_startup``, a thread that ends): the start-up scan and torque on, with the
+  read loop held from the start.
+
+``_servos`` is the schedule's tuple, replaced in one assignment under the step lock (start-up
+scan, ``set_id``, both with the read loop held); readers take it once.
 """
 
 from __future__ import annotations
@@ -45,18 +39,16 @@ import math
 import threading
 import time
 import traceback
-from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, Optional, Tuple
 
-from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.bus_runtime import BusRuntime
+from desheng_servo_ros.bus_schedule import CycleDone, ReadDone
 from desheng_servo_ros.commands import CommandPath
 from desheng_servo_ros.health import BusHealth, LOOP_FAILURE_HOLD_S  # noqa: F401 - re-exported
-from desheng_servo_ros.link import (BusBusy, LinkDown, LinkError, PRIORITY_LOOP, Posted,
-                                    ServoBusLink)
+from desheng_servo_ros.link import LinkError, PRIORITY_LOOP, ServoBusLink
 from desheng_servo_ros.schedule import (  # noqa: F401 - the rules' constants, re-exported
-    COMMAND_BURST, COMMAND_CYCLE_SHARE, COMMAND_SPACING, CommandQueue, EMPTY, judge_failure,
-    judge_link, judge_reply, NOT_DUE, OFFLINE_AFTER_FAILURES, plan_cycle, plan_telemetry,
-    ReadSchedule,    REPROBE_PERIOD_S, shutdown_frames, sync_write_frames)
-from desheng_servo_ros.read_cycles import _OneCycle, ReadCycles
+    COMMAND_BURST, COMMAND_CYCLE_SHARE, COMMAND_SPACING, CommandQueue, OFFLINE_AFTER_FAILURES,
+    REPROBE_PERIOD_S, shutdown_frames, sync_write_frames)
 from desheng_servo_ros.services import PROBE_READS, ServoServices  # noqa: F401
 from desheng_servo_ros.state import (  # noqa: F401 - the driver's types, re-exported
     ALL_IDS, BusSnapshot, ERROR, Health, new_tuple, OK, READ_STATE, READ_WIDE, Reading, Result,
@@ -77,8 +69,6 @@ CHECK_PERIOD_S = 1.0
 DUPLICATE_SURPLUS = 2
 DUPLICATE_GARBLE_LEVEL = 0.5
 DUPLICATE_HOLD_S = 5.0
-# A failed read loop restarts after a pause that grows up to LOOP_BACKOFF_MAX_S.
-LOOP_BACKOFF_MAX_S = 1.0
 
 
 class ServoBusCore(CommandPath, ServoServices, BusHealth):
@@ -96,10 +86,8 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         self._rad_per_tick = self.units.rad_per_tick
         self._zero_tick = self.units.zero_tick
         joints = servo_list(config.servo_ids, config.joint_names)  # ValueError: bad config
-        self._servos: Tuple[ServoRecord, ...] = tuple(ServoRecord(j, k)
-                                                      for k, j in enumerate(joints))
         self._configured_ids = frozenset(config.servo_ids)
-        self._scan_at_start = not self._servos
+        self._scan_at_start = not joints
         self._log = logger
         self._on_cycle = on_cycle
         self._on_change = on_change
@@ -113,90 +101,94 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                                 adjust_latency_timer=config.adjust_latency_timer,
                                 on_latency=self._on_latency)
         self._link = self.bus.link
+        self.runtime = BusRuntime(config.port, config.baud, joints,
+                                  publish_rate_hz=config.publish_rate_hz,
+                                  telemetry_period_s=config.telemetry_period_s,
+                                  max_retries=config.max_retries,
+                                  torque_off_on_shutdown=config.torque_off_on_shutdown,
+                                  clock=clock, on_read=self._on_read, on_cycle=self._cycle_done,
+                                  on_log=self._on_log, on_failure=self._loop_failed,
+                                  on_idle=self._idle, bus=self.bus, logger=logger)
+        self._schedule = self.runtime.schedule
+        self._index: Tuple[Tuple[ServoRecord, ...], Dict[int, ServoRecord]] = ((), {})
         self._latency_logged = ''
-        self._cycles = ReadCycles(
-            clock=clock, servos=lambda: self._servos,
-            period_s=1.0 / config.publish_rate_hz,
-            on_read=self._on_read, on_cycle_start=self._cycle_started,
-            on_cycle_done=self._cycle_done, retries=config.max_retries)
         self._running = False
-        self._pause = 0
-        self._loop_idle = False
-        self._pause_cond = threading.Condition()
         self._startup_done = False
+        self._reads_hold: Any = None  # the read loop's hold from the start (start-up, tests)
+        self._startup_thread: Optional[threading.Thread] = None
+        self._wake = threading.Event()  # the start-up's waits end at the shutdown
         self.cycle_count = 0
         self.cycle_rate_hz = 0.0
+        self.behind_logged = False
         self._rate_mark: Optional[Tuple[float, int]] = None
         self._next_check = -math.inf
-        self._offline_report_at = -math.inf
         self._loop_failures = 0
         self._loop_failure = ''
         self._loop_failed_at = -math.inf
-        self._report_cond = threading.Condition()
-        self._report_due = False
-        self._cmd_cond = threading.Condition()
-        self._commands = CommandQueue()  # guarded by _cmd_cond
-        self._last_post: Optional[Posted] = None
-        self._threads: List[threading.Thread] = []
-        self._loop: Optional[threading.Thread] = None
+        self._loop: Optional[threading.Thread] = None  # no read-loop thread: the runtime reads
 
     # -- lifecycle ------------------------------------------------------------------------------
 
     def start(self, read_loop: bool = True) -> None:
-        """Open the port and start the threads (without the read loop: tests call read_cycle)."""
+        """Open the port and start reading (without the read loop: tests call read_cycle).
+
+        The read loop is held from the start: by the start-up procedure (a scan when servo_ids
+        is empty, torque on), or, without the read loop, for good (read_cycle runs one cycle).
+        """
         self._running = True
-        self._allow_reading()
-        self.bus.start()
-        for target, name in ((self._reporter_main, 'servo-reporter'),
-                             (self._commander_main, 'servo-commands')):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        self._reads_hold = self.runtime.hold_reads()
+        self.runtime.start()
         if read_loop:
-            self._loop = threading.Thread(target=self._loop_main, name='servo-read-loop',
-                                          daemon=True)
-            self._loop.start()
+            self._startup_thread = threading.Thread(target=self._startup_main,
+                                                    name='servo-startup', daemon=True)
+            self._startup_thread.start()
 
     def stop(self) -> None:
-        """Stop the threads, broadcast torque off as the last frame (if configured), close."""
+        """Stop reading, broadcast torque off as the last frame (if configured), close."""
         self._running = False
-        self._allow_reading()
-        for cond in (self._pause_cond, self._report_cond, self._cmd_cond):
-            with cond:
-                cond.notify_all()
-        if self._loop is not None:
-            self._loop.join(2.0)
-        for thread in self._threads:
-            thread.join(1.0)
-        self._drop_pending()
-        self.bus.discard_posted()
-        try:
-            frames = shutdown_frames(self.config.torque_off_on_shutdown)
-            if frames:
-                if not self.bus.port_open:
-                    # Said, not silently skipped: the servos may still hold their torque.
-                    raise LinkDown(f'{self.config.port} is not open '
-                                   f'({self.bus.link.last_error or "not connected"})')
-                # The last frames: the bus takes none after them (a service still running
-                # gets LinkDown), so torque off is the last frame of a shutdown.
-                self.bus.send_last(frames)
-        except LinkError as exc:
-            self.log_error(f'torque off on shutdown NOT sent: {exc}; servos that had torque on '
-                           'still hold it')
-        finally:
-            self.bus.stop()
+        self._wake.set()
+        port_open = self.bus.port_open
+        frames = self.runtime.stop()
+        if shutdown_frames(self.config.torque_off_on_shutdown) and not frames:
+            # Said, not silently skipped: the servos may still hold their torque.
+            reason = (f'{self.config.port} is not open '
+                      f'({self.bus.link.last_error or "not connected"})' if not port_open
+                      else 'the port closed')
+            self.log_error(f'torque off on shutdown NOT sent: {reason}; servos that had '
+                           'torque on still hold it')
+        if self._startup_thread is not None:
+            self._startup_thread.join(2.0)
 
     def update_config(self, changes: Dict[str, Any]) -> None:
         """Apply runtime parameter changes (the others are refused before they get here)."""
         runtime = {k: v for k, v in changes.items() if k in ServoBusConfig.RUNTIME}
         self.config = replace(self.config, **runtime)
-        if 'publish_rate_hz' in runtime:
-            self._cycles.behind_logged = False
-            self._cycles.schedule.period_s = 1.0 / runtime['publish_rate_hz']
-        if 'response_timeout_ms' in runtime:
-            self.bus.response_timeout_ms = runtime['response_timeout_ms']
-        if 'max_retries' in runtime:
-            self.bus.max_retries = self._cycles.schedule.retries = runtime['max_retries']
+        schedule = self._schedule
+        with self.runtime.locked():
+            if 'publish_rate_hz' in runtime:
+                self.behind_logged = False
+                schedule.rate_hz = runtime['publish_rate_hz']
+                schedule.reads.period_s = 1.0 / runtime['publish_rate_hz']
+            if 'telemetry_period_s' in runtime:
+                schedule.telemetry_period_s = runtime['telemetry_period_s']
+            if 'response_timeout_ms' in runtime:
+                self.bus.response_timeout_ms = runtime['response_timeout_ms']
+                schedule.margin_s = self.bus.margin_s
+            if 'max_retries' in runtime:
+                self.bus.max_retries = schedule.max_retries = schedule.reads.retries = \
+                    runtime['max_retries']
+            if 'torque_off_on_shutdown' in runtime:
+                schedule.torque_off_on_shutdown = runtime['torque_off_on_shutdown']
+
+    @property
+    def _servos(self) -> Tuple[ServoRecord, ...]:
+        """The servo records, the schedule's (one tuple, replaced in one assignment)."""
+        return self._schedule.servos
+
+    @property
+    def _commands(self) -> CommandQueue:
+        """The pending commands and their budget, the schedule's."""
+        return self._schedule.commands
 
     # -- what others read -----------------------------------------------------------------------
 
@@ -258,49 +250,28 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
             except Exception:  # noqa: BLE001 - a reporting problem never stops reading
                 pass
 
-    # -- read loop ------------------------------------------------------------------------------
-
-    def _allow_reading(self) -> None:
-        # The read cycles check this flag before every READ (running and not paused).
-        self._cycles.enabled = self._running and not self._pause
-
-    def _loop_main(self) -> None:
-        backoff = 0.05
-        while self._running:
-            try:
-                if not self._startup_done:
-                    self._startup()
-                self._run_cycles()
-            except Exception as exc:  # noqa: BLE001 - never die, never silently
-                self._loop_failures += 1
-                self._loop_failed_at = self.clock()
-                text = f'{type(exc).__name__}: {exc}'
-                detail = f':\n{traceback.format_exc()}' if text != self._loop_failure else ''
-                self._loop_failure = text
-                self.log_error(f'read loop failed ({text}); restarting it{detail}', every_s=5.0,
-                               key='loop-failed')
-                self._changed()
-                self._cycles.reset()
-                with self._pause_cond:  # real time: a stopped test clock must not hold it
-                    self._pause_cond.wait(backoff)
-                backoff = min(backoff * 2, LOOP_BACKOFF_MAX_S)
-
-    def _sleep(self, seconds: float, until_pause: bool = True) -> None:
-        # In short steps of real time against the clock, so a pause or shutdown never waits for
-        # a slow rate, and a test's clock can move time on.
-        deadline = self.clock() + seconds
-        with self._pause_cond:
-            while self._running and not (until_pause and self._pause):
-                remaining = deadline - self.clock()
-                if remaining <= 0:
-                    return
-                self._pause_cond.wait(min(0.05, remaining))
+    # -- start-up and the read loop ------------------------------------------------------------
 
     def _wait_port_open(self) -> bool:
         while self._running:
             if self.bus.wait_port_open(0.1):
                 return True
         return False
+
+    def _startup_main(self) -> None:
+        """Start-up scan and torque on, with the read loop held; then the read loop goes."""
+        try:
+            while self._running:
+                try:
+                    self._startup()
+                    break
+                except Exception as exc:  # noqa: BLE001 - never die, never silently
+                    self._loop_failed(exc)
+                    self._wake.wait(0.5)
+        finally:
+            hold, self._reads_hold = self._reads_hold, None
+            if hold is not None:
+                self.runtime.release(hold)
 
     def _startup(self) -> None:
         while self._scan_at_start and self._running:
@@ -321,7 +292,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 f'no servo answers on {self.config.port} at {self.config.baud} baud: check '
                 'power, wiring and the baud parameter; scanning again in '
                 f'{SCAN_RETRY_S:.0f} s')
-            self._sleep(SCAN_RETRY_S, until_pause=False)
+            self._wake.wait(SCAN_RETRY_S)
         if self.config.torque_on_start and self._wait_port_open():
             for s in self._servos:
                 try:
@@ -331,72 +302,21 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                     self.log_warning(f'torque on at start: {s.name} (id {s.id}): {exc}')
         self._startup_done = True
 
-    def _run_cycles(self) -> None:
-        cycles = self._cycles
-        while self._running:
-            if self._pause:
-                self._idle_while_paused()
-                cycles.reset()
-                continue
-            if not self.bus.port_open:
-                # Keep servo_states (all offline) and diagnostics coming while the port is away,
-                # at the publish rate, and look at the port often enough for a prompt shutdown.
-                now = self.clock()
-                if now >= self._offline_report_at:
-                    self._report()
-                    self._offline_report_at = now + 1.0 / self.config.publish_rate_hz
-                self.bus.wait_port_open(min(0.1, 1.0 / self.config.publish_rate_hz))
-                cycles.reset()
-                continue
-            if not cycles.in_cycle:
-                delay = cycles.next_cycle - self.clock()
-                if delay > 0:
-                    self._sleep(delay)
-                    continue
-            try:
-                # Returns between cycles when the next one is not due yet, or early when a
-                # command, a service or a pause wants the bus.
-                self.bus.read_chain(cycles, PRIORITY_LOOP)
-            except (LinkDown, BusBusy):
-                continue
-
     def read_cycle(self) -> BusSnapshot:
-        """Run one read cycle now, on the calling thread, and return the snapshot (tests)."""
-        cycles = self._cycles
-        cycles.schedule.next_cycle = min(cycles.next_cycle, self.clock())
-        if cycles.start():
-            self.bus.read_chain(_OneCycle(cycles), PRIORITY_LOOP)
+        """Run one read cycle now (the read loop held: start(read_loop=False)); the snapshot."""
+        self.runtime.read_cycle()
         return self.snapshot()
-
-    def _idle_while_paused(self) -> None:
-        with self._pause_cond:
-            while self._pause and self._running:
-                self._loop_idle = True
-                self._pause_cond.notify_all()
-                self._pause_cond.wait(0.1)
-            self._loop_idle = False
 
     @contextmanager
     def _loop_paused(self) -> Iterator[None]:
         """Hold the read loop between two READs (scan, id change, reset)."""
-        with self._pause_cond:
-            self._pause += 1
-            self._allow_reading()
-            self._pause_cond.notify_all()
-            loop = self._loop
-            self._pause_cond.wait_for(
-                lambda: self._loop_idle or loop is None or not loop.is_alive(), PAUSE_TIMEOUT_S)
-        try:
+        with self.runtime.held(PAUSE_TIMEOUT_S):
             yield
-        finally:
-            with self._pause_cond:
-                self._pause -= 1
-                self._allow_reading()
-                self._pause_cond.notify_all()
 
     def _set_servos(self, servos: Tuple[ServoRecord, ...]) -> None:
-        self._servos = servos  # one assignment: readers see the old or the new tuple
-        self._cycles.reset()
+        with self.runtime.locked():
+            self._schedule.servos = servos  # one assignment: readers see the old or the new
+            self._schedule.reads.reset(self.clock())
         if self._on_servos is not None:
             try:
                 self._on_servos()
@@ -404,76 +324,89 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 self.log_error(f'servo list handler failed:\n{traceback.format_exc()}')
         self._changed()
 
-    # -- the hot path (link reader thread) ------------------------------------------------------
+    def _loop_failed(self, exc: BaseException) -> None:
+        """Say and count a step of the bus (or the start-up) that raised; the bus goes on."""
+        self._loop_failures += 1
+        self._loop_failed_at = self.clock()
+        text = f'{type(exc).__name__}: {exc}'
+        detail = (':\n' + ''.join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+                  if text != self._loop_failure else '')
+        self._loop_failure = text
+        self.log_error(f'read loop failed ({text}); restarting it{detail}', every_s=5.0,
+                       key='loop-failed')
+        self._changed()
 
-    def _on_read(self, s: ServoRecord, kind: int, started: float,
-                 reply: Optional[proto.Reply]) -> None:
-        """Take the result of one READ of the cycle that started at `started`."""
-        if reply is None:
-            self._failed(s, started)
+    # -- what the reads bring (the runtime's handlers) ------------------------------------------
+
+    def _record(self, servo_id: int) -> Optional[ServoRecord]:
+        servos = self._servos
+        index = self._index
+        if index[0] is not servos:
+            index = self._index = (servos, {s.id: s for s in servos})
+        return index[1].get(servo_id)
+
+    def _on_read(self, done: ReadDone) -> None:
+        """Take the values of one READ (the schedule judged the servo already)."""
+        reply = done.reply
+        s = self._record(done.servo_id)
+        if reply is None or s is None:
             return
         p = reply.params
-        if kind == READ_STATE:
+        if done.kind == READ_STATE:
             s.telemetry = s.telemetry._replace(current_ma=float((p[S_CURRENT] << 8)
                                                                 | p[S_CURRENT + 1]),
                                                torque_enabled=p[0] != 0)
-            if s.failures:
-                s.failures = 0
             return
-        if kind == READ_WIDE:
-            plan_telemetry(s, started, self.config.telemetry_period_s, len(self._servos))
+        if done.kind == READ_WIDE:
             s.telemetry = s.telemetry._replace(temperature_c=float(p[W_TEMPERATURE]))
-        self._update_position(s, (p[0] << 8) | p[1], (p[2] << 8) | p[3], reply.status)
+        self._update_position(s, (p[0] << 8) | p[1], (p[2] << 8) | p[3], reply.status, done.now)
 
-    def _update_position(self, s: ServoRecord, ticks: int, speed: int, status: int) -> None:
+    def _update_position(self, s: ServoRecord, ticks: int, speed: int, status: int,
+                         at: float) -> None:
         old = s.reading
         if ticks != old.ticks and s.seen:
             s.direction = 1.0 if ticks > old.ticks else -1.0
         rpt = self._rad_per_tick
-        # Stamped with the reply's arrival: the reader thread took it off the port just now.
+        # Stamped with the reply's arrival: the reader thread took it off the port then.
         s.reading = new_tuple(Reading, (ticks, (ticks - self._zero_tick) * rpt, speed,
-                                        s.direction * speed * rpt if speed else 0.0, status,
-                                        self._link.last_rx_time))
-        changed = status != old.status or not s.online
-        if judge_reply(s):
-            self.log_info(f'{s.name} (id {s.id}) is back online')
-        if changed:
+                                        s.direction * speed * rpt if speed else 0.0, status, at))
+        if status != old.status:
             self._changed()
 
-    def _failed(self, s: ServoRecord, now: float) -> None:
-        if judge_failure(s, now):
-            self._changed()
-            self.log_warning(
-                f'{s.name} (id {s.id}) stopped answering: offline, probing it every '
-                f'{REPROBE_PERIOD_S:g} s (check its power and cable; ~/scan lists the bus)')
+    def _on_log(self, level: str, text: str) -> None:
+        # The schedule's online judgement (offline, back online): said, and the status changed.
+        self._emit(level, text)
+        self._changed()
 
-    def _cycle_started(self, now: float) -> None:
+    def _cycle_done(self, done: CycleDone) -> None:
+        """Take a complete cycle: the checks once per CHECK_PERIOD_S, then publish."""
+        self.cycle_count += 1
+        now = self.clock()
         if now >= self._next_check:
             self._next_check = now + CHECK_PERIOD_S
             self._check(now)
-
-    def _cycle_done(self) -> None:
-        self.cycle_count += 1
-        # Messages are built and published by the reporter, while the next cycle's bytes are
-        # on the wire, instead of adding to every cycle.
-        with self._report_cond:
-            self._report_due = True
-            self._report_cond.notify()
+        self._report()
         if self.cycle_count == OFFLINE_AFTER_FAILURES + 1:
             self._report_missing()
 
+    def _idle(self) -> Optional[float]:
+        """While the port is away: servo_states (all offline) and diagnostics keep coming."""
+        if not self._running or self.bus.port_open:
+            return None
+        self._report()
+        return time.monotonic() + 1.0 / self.config.publish_rate_hz
+
     def _check(self, now: float) -> None:
         """Once per CHECK_PERIOD_S: the cycle rate and the duplicate-id judgement (S24)."""
-        cycles = self._cycles
-        schedule = cycles.schedule
+        schedule = self._schedule.reads
         if self._rate_mark is not None and now > self._rate_mark[0]:
             count = self.cycle_count - self._rate_mark[1]
             self.cycle_rate_hz = count / (now - self._rate_mark[0])
             rate = self.config.publish_rate_hz
             # Behind for good: most cycles started late and the rate fell short of the goal.
             if count and 2 * schedule.late >= count and self.cycle_rate_hz < 0.9 * rate and \
-                    not cycles.behind_logged:
-                cycles.behind_logged = True
+                    not self.behind_logged:
+                self.behind_logged = True
                 self.log_warning(
                     f'the bus cannot keep up with publish_rate_hz {rate:g} ({len(self._servos)} '
                     f'servos at {self.config.baud} baud): publishing as fast as it reads '
@@ -529,15 +462,6 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
             if self._running:
                 self.log_warning(f'publishing failed: {exc!r}', every_s=5.0, key='report')
 
-    def _reporter_main(self) -> None:
-        while self._running:
-            with self._report_cond:
-                if not self._report_due:
-                    self._report_cond.wait(0.5)
-                due, self._report_due = self._report_due, False
-            if due and self._running:
-                self._report()
-
     def _on_latency(self, report: LatencyReport) -> None:
         # Reader thread, on every (re)open: say what was found and done once, and again only
         # when it changes (another adapter after a replug).
@@ -551,6 +475,5 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         self._changed()
 
     def _on_connection(self, up: bool, reason: str) -> None:
-        # Reader thread: only flags here, never a transaction.
-        judge_link(self._servos, up)
+        # Reader thread, after the schedule judged the servos (the runtime's LinkUp/LinkDown).
         self._changed()

@@ -1,45 +1,47 @@
-"""Half-duplex transactions with a bus of Desheng servos, on top of the shared SerialLink.
+"""The servo bus behind one serial port: its counters, margins and blocking requests.
 
-No ROS here. :class:`ServoBusLink` owns the bus: one transaction at a time (a priority lock, so an
-emergency stop overtakes a read cycle and a service call gets in between two reads), stale input
-flushed before each request, exactly the reply of the addressed id with the expected length, a
-timeout of the wire time of request + reply plus a margin, bounded retries, chains of READs sent
-by the reader thread (the read loop), and frames that expect no reply (broadcast, SYNC WRITE,
-ACTION) holding the bus for their own wire time; while a chain runs, such frames are handed to it
-(`post`) and go out between two READs from the reader thread, with no thread hand-off.
+No ROS here. :class:`ServoBusLink` owns the port (the shared SerialLink) and what is counted on
+it, and gives the services their blocking requests; every decision of the bus (one
+transaction at a time, the READs, the commands, an emergency stop first, retries and deadlines)
+is the schedule's (``bus_schedule.BusSchedule``), which ``bus_runtime.BusRuntime`` steps on this
+port: a request here is a ``transact``/``send`` call of the runtime, waited on with a timeout.
 
 The reply margin is derived from the port on every (re)open (`uav_serial_common.usb_latency`: a
 USB adapter's latency timer is lowered where allowed; a pty or a 1 ms adapter gets a few ms), and
 per servo from replies that came late (a servo that answers slowly gets a longer wait, forgotten
-again after a run of timely replies). A scan PINGs with the short margin and collects late
-replies by id while it goes on, then confirms those ids with a long wait (docs/protocols.md,
-"Scan").
+again after a run of timely replies); the schedule reads both. A scan PINGs with the short
+margin and collects late replies by id while it goes on, then confirms those ids with a long
+wait (`bus_scan.sweep`; docs/protocols.md, "Scan").
 """
 
 from __future__ import annotations
 
 from collections import deque
-from contextlib import contextmanager
-import threading
 import time
-from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, Optional, Sequence,
-                    Tuple)
+from typing import Any, Callable, Deque, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.bus_chain import (  # noqa: F401 - re-exported
-    _PriorityLock, _ReadChain, BusBusy, Posted, PRIORITY_LOOP, PRIORITY_SERVICE,
-    PRIORITY_URGENT, ReadItem, ReadPlan)
 from desheng_servo_ros.bus_scan import sweep
 from desheng_servo_ros.protocol import Reply, StreamDecoder
-from desheng_servo_ros.schedule import (IDLE_GUARD_S, next_on_bus, REPLY_OVERHEAD,
-                                        sync_write_frames, YIELD)
+from desheng_servo_ros.schedule import REPLY_OVERHEAD, sync_write_frames
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 from uav_serial_common.usb_latency import BASE_MARGIN_S, inspect_latency_timer, LatencyReport
 
 __all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'PRIORITY_LOOP',
-           'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ReadItem', 'ReadPlan',
-           'Posted', 'ServoBusLink', 'REPLY_OVERHEAD', 'sync_write_frames']
+           'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ServoBusLink',
+           'REPLY_OVERHEAD', 'sync_write_frames']
+
+# Who asks (kept for the callers' signatures: the schedule puts an emergency stop first and a
+# service before the read loop, whatever they pass).
+PRIORITY_URGENT = 0
+PRIORITY_SERVICE = 1
+PRIORITY_LOOP = 2
+
+
+class BusBusy(LinkError):
+    """The bus did not take the request in time (held, or its answer never came)."""
+
 
 # Margin beyond the wire time of request + reply when response_timeout_ms is 0 ("derived") and the
 # port has not been looked at yet: the servo answers within ~0.1..1 ms, but a USB-serial adapter
@@ -52,19 +54,25 @@ DERIVED_MARGIN_S = 0.034
 LEARN_FACTOR = 1.5
 MAX_LEARNED_MARGIN_S = 0.1
 FORGET_AFTER_REPLIES = 20
+# How long a caller waits for the bus to carry its request beyond its own wire time (the bus may
+# be held by a service meanwhile).
 BUS_LOCK_TIMEOUT_S = 2.0
 # Weight of the newest outcome in an id's garbled-reply level (GARBLE_WEIGHT of a garbled reply
 # raises it, a clean one lowers it): four garbled replies in a row take it past one half, which
 # random line noise on one id practically never does, two servos answering at once (S24) soon.
 GARBLE_WEIGHT = 0.2
+# A request that got no reply may still be answered, late (the device or the host stalled): its
+# reply is then no second servo. Such a late reply is expected for LATE_REPLY_S after the wait
+# for it ended; one that comes later counts as a reply no request explains.
+LATE_REPLY_S = 2.0
 
 
 class ServoBusLink:
-    """The servo bus behind one serial port.
+    """The servo bus behind one serial port (module doc).
 
-    Transactions raise ``LinkTimeout`` (no valid reply after every retry), ``LinkDown`` (port
-    not open) or ``BusBusy``. ``on_connection(up, reason)`` is called from the reader thread:
-    never start a transaction from it.
+    Requests raise ``LinkTimeout`` (no valid reply after every retry), ``LinkDown`` (port not
+    open) or ``BusBusy`` (not carried in time). ``runtime`` (a ``BusRuntime``) carries them; it
+    sets ``on_reply``/``on_bytes`` to step its schedule from the reader thread.
     """
 
     def __init__(self, port: str, baud: int, *, response_timeout_ms: float = 0.0,
@@ -92,12 +100,6 @@ class ServoBusLink:
         self.slow_margin = [0.0] * 256
         self._timely = [0] * 256
         self._late_sink: Optional[Dict[int, float]] = None
-        # Frames without a reply handed to the running read chain (post); _posting says
-        # whether a chain takes them.
-        self._posted: Deque[Posted] = deque()
-        self._posted_item: Optional[Posted] = None
-        self._posting = False
-        self._post_lock = threading.Lock()
         self.decoder = StreamDecoder('reply')
         self.transactions = 0
         self.failed_transactions = 0
@@ -105,18 +107,24 @@ class ServoBusLink:
         self.requests_by_id = [0] * 256
         self.replies_by_id = [0] * 256
         self._unsolicited: Dict[Tuple[int, int], int] = {}
+        # Per id: until when each request that went unanswered may still be answered late
+        # (oldest first), and the replies that no request explains (S24: a second servo).
+        self._owed: List[Deque[float]] = [deque() for _ in range(256)]
+        self.surplus_by_id = [0] * 256
         # Requests of an id answered by bytes that made no frame: a garbled reply, the sign of
         # two servos answering at once (S24) when it keeps happening to one id. garble_level is
         # a moving average of garbled (1) and clean (0) replies per id.
         self.garbled_by_id = [0] * 256
         self.garble_level = [0.0] * 256
-        self.link = SerialLink(port, baud, self.decoder, on_frame=self._on_unsolicited,
-                               on_connection=on_connection, on_tx=self._on_tx, logger=logger,
+        self.on_reply: Optional[Callable[[Reply], None]] = None
+        self.on_bytes: Optional[Callable[[bytes], None]] = None
+        self.on_link: Optional[Callable[[bool, str], None]] = None  # the runtime's
+        self._on_connection = on_connection  # the owner's, after the runtime's
+        self.runtime: Any = None  # the BusRuntime that carries the requests
+        self.link = SerialLink(port, baud, self.decoder, on_frame=self._on_frame,
+                               on_connection=self._connection, on_tx=self._on_tx,
+                               on_rx=self._on_rx, logger=logger,
                                backoff_max_s=backoff_max_s, on_open=self._on_port_open)
-        self._lock = _PriorityLock()
-        self._closed = False  # after send_last: no transaction any more
-        self._idle_at = 0.0
-        self._matchers: Dict[Tuple[int, int], Callable[[Reply], bool]] = {}
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -170,8 +178,7 @@ class ServoBusLink:
         if wire is None:
             wire = self._wire[key] = wire_time(request_len + reply_params + REPLY_OVERHEAD,
                                                self.baud)
-        slow = self.slow_margin[servo_id]
-        return wire + (slow if slow > self._margin else self._margin)
+        return wire + self.margin_for(servo_id)
 
     def _on_port_open(self, port: Any) -> None:
         """Look at the port's latency timer on every (re)open (reader thread, before use)."""
@@ -208,96 +215,135 @@ class ServoBusLink:
             self.slow_margin[servo_id] = 0.0
             self._timely[servo_id] = 0
 
-    # -- transactions ---------------------------------------------------------------------------
+    def learn_from(self, servo_id: int, reply: Reply) -> None:
+        """Give `servo_id` a margin of its own if `reply` came later than the bus's margin."""
+        needed = self._reply_margin(servo_id, len(reply.raw))
+        if needed > self._margin:
+            self._learn(servo_id, needed)
 
-    def _matcher(self, servo_id: int, nparams: int) -> Callable[[Reply], bool]:
-        key = (servo_id, nparams)
-        match = self._matchers.get(key)
-        if match is None:
-            replies = self.replies_by_id
-            garble = self.garble_level
-            slow = self.slow_margin
-            keep = 1.0 - GARBLE_WEIGHT
+    # -- what the runtime tells (its stepping thread, under its lock) ---------------------------
 
-            def match(reply: Reply, servo_id=servo_id, nparams=nparams) -> bool:
-                if reply.servo_id == servo_id and len(reply.params) == nparams:
-                    replies[servo_id] += 1
-                    garble[servo_id] *= keep
-                    if slow[servo_id]:
-                        self._slow_servo_replied(servo_id, len(reply.raw))
-                    return True
-                return False
-            self._matchers[key] = match
-        return match
+    def note_reply(self, frame: Reply, taken: bool) -> None:
+        """Count a reply: `taken` when it ended the transaction awaiting it."""
+        servo_id = frame.servo_id
+        self.replies_by_id[servo_id] += 1
+        if taken:
+            self.garble_level[servo_id] *= 1.0 - GARBLE_WEIGHT
+            if self.slow_margin[servo_id]:
+                self._slow_servo_replied(servo_id, len(frame.raw))
+            return
+        # Late replies (after a timeout) and duplicate-id replies (S24) end up here. A reply
+        # later than its servo's margin is a slow servo (or a stalled host): it gets a margin
+        # of its own. A duplicate's second reply follows the first at once, within the margin.
+        self.unexpected_frames += 1
+        kind = (servo_id, len(frame.params))
+        self._unsolicited[kind] = self._unsolicited.get(kind, 0) + 1
+        if not self._late_reply(servo_id):
+            self.surplus_by_id[servo_id] += 1
+        if self.sent_at[servo_id]:
+            needed = self._reply_margin(servo_id, len(frame.raw))
+            if needed > self.margin_for(servo_id):
+                self._learn(servo_id, needed)
+        sink = self._late_sink
+        if sink is not None:
+            sink.setdefault(servo_id, time.monotonic())
 
-    def _take(self, priority: int) -> None:
-        if not self._lock.acquire(priority, BUS_LOCK_TIMEOUT_S):
-            raise BusBusy(f'the bus on {self.port} stayed busy for {BUS_LOCK_TIMEOUT_S:.0f} s')
-        if self._closed:
-            self._lock.release()
+    def note_silence(self, servo_id: int, garbled: Optional[bool]) -> None:
+        """Note an attempt of `servo_id` that got no reply (it may still be answered late).
+
+        `garbled`: its last attempt, answered by bytes and no frame (None: not the last).
+        """
+        self._owed[servo_id].append(time.monotonic() + LATE_REPLY_S)
+        stats = self.link.stats
+        if garbled is None:
+            stats.retries += 1
+            return
+        stats.timeouts += 1
+        self.failed_transactions += 1
+        if garbled:
+            self.garbled_by_id[servo_id] += 1
+            level = self.garble_level[servo_id]
+            self.garble_level[servo_id] = level + GARBLE_WEIGHT * (1.0 - level)
+
+    def _late_reply(self, servo_id: int) -> bool:
+        """Whether an unanswered request of `servo_id` may explain a reply no one waited for.
+
+        It then has had its reply (a request is answered at most once). The reply another
+        request took early is the same: that request's own reply comes unsolicited after it.
+        """
+        owed = self._owed[servo_id]
+        now = time.monotonic()
+        while owed:
+            if owed.popleft() >= now:
+                return True
+        return False
+
+    def _on_frame(self, frame: Reply) -> None:
+        if self.on_reply is not None:
+            self.on_reply(frame)
+        else:
+            self.note_reply(frame, False)
+
+    def _connection(self, up: bool, reason: str) -> None:
+        for handler in (self.on_link, self._on_connection):
+            if handler is not None:
+                handler(up, reason)
+
+    def _on_rx(self, data: bytes) -> None:
+        if self.on_bytes is not None:
+            self.on_bytes(data)
+
+    def _on_tx(self, data: bytes) -> None:
+        # Every unicast instruction is answered (S13), broadcast ones never.
+        self.transactions += 1
+        if len(data) > 4:
+            servo_id = data[2]
+            if servo_id != proto.BROADCAST_ID:
+                self.requests_by_id[servo_id] += 1
+                self.sent_at[servo_id] = time.monotonic()
+                self.sent_len[servo_id] = len(data)
+
+    # -- requests (a caller's thread; carried by the runtime) -----------------------------------
+
+    def _runtime(self) -> Any:
+        runtime = self.runtime
+        if runtime is None or runtime.closed:
             raise LinkDown(f'{self.port}: the driver is shutting down')
-        idle_at = self._idle_at
-        if idle_at:
-            delay = idle_at - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-
-    @contextmanager
-    def _holding(self, priority: int) -> Iterator[None]:
-        """Own the bus for transactions that wait for their replies (the bus is idle after)."""
-        self._take(priority)
-        try:
-            yield
-        except LinkError:
-            self.failed_transactions += 1
-            raise
-        finally:
-            self._lock.release()
+        if not self.port_open:
+            raise LinkDown(f'{self.port} is not open ({self.link.last_error or "not connected"})')
+        return runtime
 
     def transact(self, frame: bytes, servo_id: int, reply_params: int,
                  priority: int = PRIORITY_SERVICE, retries: Optional[int] = None,
                  timeout: Optional[float] = None, flush: bool = True) -> Reply:
         """Send one request and return the reply of ``servo_id`` with ``reply_params`` params.
 
-        Sent again up to `retries` times when no reply comes; a caller of higher priority that
-        waits (an emergency stop) goes between two attempts. `flush` False keeps what arrived
-        before the request (a scan collects late replies).
+        Sent again up to `retries` times when no reply comes (an emergency stop goes between
+        two attempts: the schedule's rule); `timeout`: the wait of an attempt (default: wire
+        time + margin). `flush` False keeps what arrived before the request (a scan collects
+        late replies). `priority` is the schedule's to decide (kept for the callers).
         """
-        if timeout is None:
-            timeout = self.timeout_for(len(frame), reply_params, servo_id)
+        runtime = self._runtime()
         if retries is None:
             retries = self.max_retries
-        match = self._matcher(servo_id, reply_params)
-        self._take(priority)
-        held = True
-        attempt = 0
-        try:
-            self.transactions += 1
-            stats = self.link.stats
-            mark = (stats.bytes_in, stats.frames_in)
-            while True:
-                try:
-                    return self.link.request(frame, match, timeout, 0, flush=flush)
-                except LinkTimeout:
-                    if attempt >= retries:
-                        self._note_silence(servo_id, mark)
-                        raise
-                attempt += 1
-                stats.timeouts -= 1  # one per request, as SerialLink counts them
-                stats.retries += 1
-                if next_on_bus(self._lock.waiting_above(priority), False, True) == YIELD:
-                    # An emergency stop waits: it goes between two attempts (schedule.py).
-                    held = False
-                    self._lock.release()
-                    self._take(priority)
-                    held = True
-        except LinkError as exc:
-            self.failed_transactions += 1
-            exc.sent = exc.sent or attempt > 0
-            raise
-        finally:
-            if held:
-                self._lock.release()
+        attempts = retries + 1
+        wait = timeout if timeout is not None else self.timeout_for(len(frame), reply_params,
+                                                                    servo_id)
+        answer = runtime.call('transact', frame, servo_id, reply_params, retries, timeout,
+                              flush, timeout=BUS_LOCK_TIMEOUT_S + attempts * wait)
+        if answer is None:
+            error: LinkError = BusBusy(f'the bus on {self.port} did not carry the request in '
+                                       f'{BUS_LOCK_TIMEOUT_S:.0f} s')
+            error.sent = True  # it may have left meanwhile
+            raise error
+        if answer.reply is not None:
+            return answer.reply
+        error = (LinkTimeout(f'no reply from servo {servo_id}') if answer.ok is False and
+                 self.port_open and not runtime.closed else
+                 LinkDown(f'{self.port}: the link went down during the request'))
+        # A call the shutdown dropped before its request left sent nothing.
+        error.sent = not answer.text.startswith('shutting down') or 'had left' in answer.text
+        raise error
 
     def probe(self, frame: bytes, servo_id: int, reply_params: int,
               priority: int = PRIORITY_SERVICE,
@@ -305,8 +351,7 @@ class ServoBusLink:
         """Send one request once; return (its reply or None, whether a garbled reply came).
 
         Garbled = bytes arrived but no frame at all: on a half-duplex bus, the sign of two
-        servos answering at once (S24); a plain silence is (None, False). `flush` False keeps
-        what arrived before the request (as `transact`).
+        servos answering at once (S24); a plain silence is (None, False).
         """
         garbled = self.garbled_by_id[servo_id]
         try:
@@ -315,137 +360,31 @@ class ServoBusLink:
         except LinkTimeout:
             return None, self.garbled_by_id[servo_id] > garbled
 
-    def _note_silence(self, servo_id: int, mark: Optional[Tuple[int, int]]) -> None:
-        """Count an unanswered request of `servo_id` as garbled if bytes but no frame came."""
-        stats = self.link.stats
-        if mark is not None and stats.bytes_in > mark[0] and stats.frames_in == mark[1]:
-            self.garbled_by_id[servo_id] += 1
-            level = self.garble_level[servo_id]
-            self.garble_level[servo_id] = level + GARBLE_WEIGHT * (1.0 - level)
+    def call(self, name: str, *args: Any) -> Any:
+        """Step a call of the schedule and return its answer, done (ok) or raised.
 
-    def read_chain(self, plan: 'ReadPlan', priority: int = PRIORITY_LOOP) -> int:
-        """READ servos back to back, as ``plan.next_read()`` gives them, until it returns None.
-
-        The next READ goes out the moment the previous reply is matched, from the link's reader
-        thread, so a chain costs no thread hand-off per servo, also from one read cycle to the
-        next. A READ that gets no reply is sent again at once, up to its own retries; then
-        ``plan.on_read(tag, None)``. Replies reach ``plan.on_read(tag, reply)`` on the reader
-        thread, after the next READ is on its way. The chain stops early, between two READs,
-        when a caller of higher priority waits for the bus. Returns the READs sent.
+        ``LinkDown`` when the port is not open (nothing sent) or the answer says it did not
+        happen; ``BusBusy`` when no answer came in time.
         """
-        chain = _ReadChain(self, plan, priority)
-        with self._holding(priority):
-            with self._post_lock:
-                self._posting = True
-            error: Optional[LinkError] = None
-            try:
-                return self.link.request_chain(chain, flush=True)
-            except LinkError as exc:
-                error = exc
-                raise
-            finally:
-                self._end_posting(error)
-
-    def post(self, frames: Sequence[bytes], wait_s: Optional[float] = None) -> Optional[Posted]:
-        """Hand frames without a reply to the running read chain; None if none runs.
-
-        The chain's reader thread writes them between two READs (after the reply in flight),
-        each holding the bus for its wire time; no thread hand-off. With `wait_s`, block until
-        they are written: raises what writing raised, or BusBusy after `wait_s`.
-        """
-        item = Posted(frames)
-        with self._post_lock:
-            if not self._posting:
-                return None
-            self._posted.append(item)
-        if wait_s is not None:
-            if not item.wait(wait_s):
-                raise BusBusy(f'the bus on {self.port} took no command for {wait_s:.0f} s')
-            if item.error is not None:
-                raise item.error
-        return item
-
-    def discard_posted(self) -> None:
-        """Drop frames posted and not sent yet (an emergency stop); their waiters are told."""
-        with self._post_lock:
-            items = list(self._posted)
-            self._posted.clear()
-        for item in items:
-            item.settle(LinkError('dropped by an emergency stop'))
-
-    def _next_posted(self) -> bytes:
-        """Take the next posted frame (reader thread, chain lock held)."""
-        with self._post_lock:
-            item = self._posted[0]
-            frame = item.frames.pop(0)
-            if not item.frames:
-                self._posted.popleft()
-                self._posted_item = item
-        self.transactions += 1
-        return frame
-
-    def _posted_done(self, error: Optional[LinkError] = None) -> None:
-        item, self._posted_item = self._posted_item, None
-        if item is not None:
-            item.settle(error)
-
-    def _end_posting(self, error: Optional[LinkError]) -> None:
-        """After a chain (bus held): settle its last posted frame, send what is still posted."""
-        with self._post_lock:
-            self._posting = False
-            left = list(self._posted)
-            self._posted.clear()
-        self._posted_done(error)
-        for item in left:
-            try:
-                for frame in item.frames:
-                    self._write_held(frame)
-            except LinkError as exc:
-                item.settle(exc)
-                continue
-            item.settle()
-
-    def _write_held(self, frame: bytes) -> None:
-        """Write a frame without a reply while holding the bus; it holds it for its wire time."""
-        delay = self._idle_at - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        self.transactions += 1
-        try:
-            self.link.write(frame)
-        except LinkError:
-            self.failed_transactions += 1
-            raise
-        self._idle_at = time.monotonic() + wire_time(len(frame), self.baud) + IDLE_GUARD_S
+        answer = self._runtime().call(name, *args, timeout=BUS_LOCK_TIMEOUT_S)
+        if answer is None:
+            error: LinkError = BusBusy(f'the bus on {self.port} did not take {name} in '
+                                       f'{BUS_LOCK_TIMEOUT_S:.0f} s')
+            error.sent = True  # it may have left meanwhile
+            raise error
+        if not answer.ok:
+            error = LinkDown(f'{self.port}: {answer.text}')
+            error.sent = 'had left' in answer.text
+            raise error
+        return answer
 
     def send(self, frame: bytes, priority: int = PRIORITY_SERVICE) -> None:
-        """Send a frame that gets no reply; the bus stays taken for its wire time."""
-        self._take(priority)
-        try:
-            self._write_held(frame)
-        finally:
-            self._lock.release()
+        """Send a frame that gets no reply; returns once the schedule put it on the wire."""
+        self.send_all([frame])
 
-    def send_last(self, frames: Sequence[bytes]) -> None:
-        """Send `frames` ahead of every waiter, then close the bus to all others for good.
-
-        The shutdown's frames (torque off): a service or command that wanted the bus meanwhile
-        gets LinkDown, so nothing follows them on the wire. Returns once they left the line.
-        """
-        self._take(PRIORITY_URGENT)
-        try:
-            self._closed = True
-            for frame in frames:
-                self._write_held(frame)
-            self.drain()
-        finally:
-            self._lock.release()
-
-    def drain(self) -> None:
-        """Block until the last frame without a reply has left the wire."""
-        delay = self._idle_at - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
+    def send_all(self, frames: Sequence[bytes]) -> None:
+        """Send frames without a reply, back to back."""
+        self.call('send', list(frames))
 
     # -- instructions ---------------------------------------------------------------------------
 
@@ -485,16 +424,10 @@ class ServoBusLink:
         return self.transact(proto.encode_reset(servo_id), servo_id, 0, priority)
 
     def sync_write_positions(self, targets: Sequence[Tuple[int, int, int]],
-                             priority: int = PRIORITY_SERVICE, wait: bool = True) -> list:
-        """SYNC WRITE (id, ticks, ms) in as few frames as fit; returns the frames.
-
-        While the read chain runs they go out from it at the next READ boundary (`post`; with
-        `wait`, this returns once they are written), else at once under the bus lock.
-        """
+                             priority: int = PRIORITY_SERVICE) -> list:
+        """SYNC WRITE (id, ticks, ms) in as few frames as fit, at the next READ boundary."""
         frames = sync_write_frames(targets)
-        if self.post(frames, BUS_LOCK_TIMEOUT_S if wait else None) is None:
-            for frame in frames:
-                self.send(frame, priority)
+        self.send_all(frames)
         return frames
 
     def scan(self, ids: Iterable[int], priority: int = PRIORITY_SERVICE) -> List[int]:
@@ -506,12 +439,6 @@ class ServoBusLink:
         """
         return sweep(self, ids, priority)
 
-    def learn_from(self, servo_id: int, reply: Reply) -> None:
-        """Give `servo_id` a margin of its own if `reply` came later than the bus's margin."""
-        needed = self._reply_margin(servo_id, len(reply.raw))
-        if needed > self._margin:
-            self._learn(servo_id, needed)
-
     # -- counters -------------------------------------------------------------------------------
 
     @property
@@ -519,41 +446,17 @@ class ServoBusLink:
         """Candidate reply frames rejected by their checksum."""
         return self.decoder.checksum_errors
 
-    def _on_unsolicited(self, frame: Reply) -> None:
-        # Late replies (after a timeout) and duplicate-id replies (S24) end up here. A reply
-        # later than its servo's margin is a slow servo (or a stalled host): it gets a margin of
-        # its own. A duplicate's second reply follows the first at once, within the margin.
-        servo_id = frame.servo_id
-        self.unexpected_frames += 1
-        self.replies_by_id[servo_id] += 1
-        kind = (servo_id, len(frame.params))
-        self._unsolicited[kind] = self._unsolicited.get(kind, 0) + 1
-        if self.sent_at[servo_id]:
-            needed = self._reply_margin(servo_id, len(frame.raw))
-            if needed > self.margin_for(servo_id):
-                self._learn(servo_id, needed)
-        sink = self._late_sink
-        if sink is not None:
-            sink.setdefault(servo_id, time.monotonic())
-
-    def _on_tx(self, data: bytes) -> None:
-        # Every unicast instruction is answered (S13), broadcast ones never.
-        if len(data) > 4:
-            servo_id = data[2]
-            if servo_id != proto.BROADCAST_ID:
-                self.requests_by_id[servo_id] += 1
-                self.sent_at[servo_id] = time.monotonic()
-                self.sent_len[servo_id] = len(data)
-
     def unsolicited_replies(self, servo_id: int, nparams: int) -> int:
         """Return the replies of `servo_id` with `nparams` params that no request waited for."""
         return self._unsolicited.get((servo_id, nparams), 0)
 
     def surplus_replies(self, servo_id: int) -> int:
-        """Return replies minus requests of ``servo_id`` so far; growing means a duplicate id.
+        """Return the replies of ``servo_id`` that no request explains; growing: a duplicate id.
 
-        Lost replies make it smaller; a reply comes late at most once per request. So when it
-        grows, more than one servo answers to this id (S24): on a real bus their replies
-        collide, and no reading of that id can be trusted.
+        A reply that no request waited for is a late one when a request of that id went
+        unanswered (within LATE_REPLY_S): each such request explains one reply. Beyond those,
+        more than one servo answers to this id (S24): on a real bus their replies collide, and
+        no reading of that id can be trusted. (Replies minus requests would not do: replies
+        owed when it is looked at, and answered after, would make it grow with one servo.)
         """
-        return self.replies_by_id[servo_id] - self.requests_by_id[servo_id]
+        return self.surplus_by_id[servo_id]

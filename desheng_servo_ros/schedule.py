@@ -16,6 +16,7 @@ device model in virtual time. The parts:
   priority, i.e. an emergency stop or a service, then a pending command, then the READ to be
   retried, then the next READ);
 - :func:`set_id_refusal` and :func:`renamed`: ``~/set_id`` never gives two joints one id;
+- :func:`judge_probe`: ``~/set_id``'s probe of the bus, that never renames two servos at once;
 - :func:`shutdown_frames`: the shutdown sequence, whose last frame is torque off.
 """
 
@@ -25,9 +26,11 @@ import math
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.state import READ_POSITION, READ_STATE, READ_WIDE, ServoRecord, TORQUE
+from desheng_servo_ros.state import (POSITION, READ_POSITION, READ_STATE, READ_WIDE,
+                                     ServoRecord, TORQUE)
 from desheng_servo_ros.units import Joint
 from uav_serial_common.pty_port import wire_time
+from uav_serial_common.text import few
 
 # A servo is offline after this many READs in a row failed (each with its retries), and then
 # probed this often (one READ, no retries), so a missing servo costs little bus time.
@@ -310,6 +313,49 @@ def set_id_refusal(servos: Sequence[ServoRecord], old: int, new: int) -> Optiona
                 'joints would share it. Pick an id not in servo_ids; to move a servo onto a '
                 'configured id, run the driver without that id in servo_ids first')
     return None
+
+
+# ~/set_id's probe of the old id (S24): this many READs of its present position, one attempt
+# each, and after each reply a wait for a second servo's reply to end (probe_quiet_s).
+PROBE_READS = 5
+
+
+def probe_quiet_s(baud: int) -> float:
+    """Return the wait after a probe READ's reply: a second whole reply follows it at once."""
+    return wire_time(2 * (POSITION.size + 6), baud) + 0.003
+
+
+def judge_probe(values: Sequence[int], garbled: int, unsolicited: int,
+                values_differ: bool = True) -> Tuple[str, str]:
+    """Return ('none' | 'one' | 'unsure' | 'several', why) after PROBE_READS READs of an id.
+
+    `values`: the positions of the READs answered; `garbled`: READs answered by bytes that made
+    no frame; `unsolicited`: replies of that id and size no READ took, while they ran. Two
+    servos at one id collide (garbled replies) or, on a bus that keeps their replies apart,
+    answer twice (a READ without a reply of its own may be answered late, once: beyond those,
+    more than one servo answers); their positions also rarely agree (`values_differ`: count
+    that as a sign too, at the price of a moving servo looking like two). 'one' only when every
+    READ was answered in its time: on a bus that loses replies a second servo's may be among
+    those lost (and a late reply is not told from a second servo's), and the PINGs that found
+    the new id free may have missed a servo there ('unsure').
+    """
+    extra = unsolicited - (PROBE_READS - len(values))
+    if garbled:
+        return 'several', f'{garbled} of {PROBE_READS} replies garbled (colliding replies)'
+    if extra > 0:
+        return 'several', f'{extra} replies more than requests'
+    if values_differ and len(set(values)) > 1:
+        return 'several', (f'its present position read {few(sorted(set(values)))}: two '
+                           'servos, or one that is moving (stop it first)')
+    if not values:
+        return 'none', ''
+    if len(values) < PROBE_READS:
+        # A reply that came late and a second servo's reply look alike (the search found two
+        # lost READs hiding a second servo's two replies): only a READ answered in its time
+        # is known to be one servo's.
+        return 'unsure', (f'{PROBE_READS - len(values)} of {PROBE_READS} READs not answered in '
+                          'time: the bus loses or delays replies, and a servo may go unheard')
+    return 'one', ''
 
 
 def renamed(servos: Sequence[ServoRecord], old: int, new: int) -> Tuple[ServoRecord, ...]:

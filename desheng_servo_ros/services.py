@@ -14,17 +14,15 @@ import traceback
 from typing import Any, Callable, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout, PRIORITY_URGENT
+from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
-from desheng_servo_ros.schedule import renamed, set_id_refusal, TORQUE_OFF_ALL
+from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s, renamed,
+                                        set_id_refusal)
 from desheng_servo_ros.state import FACTORY_ID, FIRMWARE, ID, POSITION, Result, RUN_PRESETS, TORQUE
 from desheng_servo_ros.units import select
-from uav_serial_common.pty_port import wire_time
 from uav_serial_common.text import clip, few
 
-# READs of the present position that tell one servo at an id from several (set_id, scan).
-PROBE_READS = 5
 # An id change or RESET whose frame left without an acknowledgement (lost, or the link dropped)
 # is settled by asking the bus; a link that went down gets this long to come back for that.
 SETTLE_WAIT_S = 2.0
@@ -74,11 +72,11 @@ class ServoServices:
                         staged: bool) -> Result:
         """Move servos now: one SYNC WRITE, or REG WRITE each then ACTION (staged)."""
         targets = self._resolve(names, ids, positions, move_time_ms)
-        # A queued ~/command for these servos is older than this call: it must not follow it.
-        self._drop_pending([t[0] for t in targets])
         if not staged:
-            self.bus.sync_write_positions(targets)
+            # The schedule drops a queued ~/command for these servos: it is older than this.
+            self.bus.call('write_positions', tuple(targets))
             return Result.sent(f'SYNC WRITE sent to {len(targets)} servo(s)')
+        self._drop_pending([t[0] for t in targets])
         for servo_id, ticks, ms in targets:
             try:
                 self.bus.reg_write(servo_id, proto.TARGET_POSITION_ADDRESS,
@@ -120,11 +118,9 @@ class ServoServices:
     @_service
     def emergency_stop(self) -> Result:
         """Torque off, every servo at once (one broadcast); queued commands are dropped."""
-        self._drop_pending()
-        self.bus.discard_posted()
-        self.bus.send(TORQUE_OFF_ALL, PRIORITY_URGENT)
-        for s in self._servos:
-            s.set_torque(False)
+        # The schedule's: ahead of everything queued, the queued commands dropped, every
+        # servo's torque recorded off.
+        self.bus.call('emergency_stop')
         self.log_warning('emergency stop: torque off broadcast to every servo')
         return Result.sent('torque off broadcast to every servo (id 254)')
 
@@ -250,9 +246,7 @@ class ServoServices:
     def _how_many_answer(self, servo_id: int, values_differ: bool = True) -> Tuple[str, str]:
         """Return ('none' | 'one' | 'several', why): READs the present position a few times.
 
-        Two servos at one id either collide (garbled replies, S24) or, on a bus that keeps their
-        replies apart, answer twice; their positions also rarely agree (`values_differ`: count
-        that as a sign too, at the price of a moving servo looking like two).
+        The judgement is schedule.judge_probe's (BusSchedule's set_id probe uses it too).
         """
         # Replies that no READ waited for, of the READs' size only: a late reply to an earlier
         # request (a PING of the scan when the device stalled) is one reply to one request.
@@ -263,7 +257,7 @@ class ServoServices:
         # second reply later than that (the device or the reader fell behind) is then taken by
         # the next READ or counted unsolicited, never thrown away (thrown away, beside a busy
         # loop, it let set_id rename two servos at one id).
-        quiet = wire_time(2 * (POSITION.size + 6), self.config.baud) + 0.003
+        quiet = probe_quiet_s(self.config.baud)
         values, garbled = [], 0
         for k in range(PROBE_READS):
             reply, mangled = self.bus.probe(frame, servo_id, POSITION.size, flush=k == 0)
@@ -272,18 +266,9 @@ class ServoServices:
                 time.sleep(quiet)
             elif mangled:
                 garbled += 1
-        # Each READ without a reply of its own may be answered late, once: beyond those, more
-        # than one servo answers.
-        extra = (self.bus.unsolicited_replies(servo_id, POSITION.size) - unsolicited
-                 - (PROBE_READS - len(values)))
-        if garbled:
-            return 'several', f'{garbled} of {PROBE_READS} replies garbled (colliding replies)'
-        if extra > 0:
-            return 'several', f'{extra} replies more than requests'
-        if values_differ and len(set(values)) > 1:
-            return 'several', (f'its present position read {few(sorted(set(values)))}: two '
-                               'servos, or one that is moving (stop it first)')
-        return ('one', '') if values else ('none', '')
+        return judge_probe(values, garbled,
+                           self.bus.unsolicited_replies(servo_id, POSITION.size) - unsolicited,
+                           values_differ)
 
     @_service
     def set_id(self, old: int, new: int) -> Result:
@@ -306,6 +291,10 @@ class ServoServices:
                     f'more than one servo answers at id {old} ({why}): a new id would go to '
                     'all of them. Disconnect or power off all but one, then try again; nothing '
                     'changed'))
+            if count == 'unsure':
+                return Result.refused('lossy_bus', (
+                    f'servo {old} answers, but {why}: whether it is alone at id {old} and id '
+                    f'{new} is free cannot be told; nothing changed. Try again'))
             what = f'servo {old} now has id {new}'
             lost = self._send_unacknowledged(
                 lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
@@ -321,9 +310,22 @@ class ServoServices:
                                              f'still answers at id {old}; nothing changed')
                     return _unknown(what, lost, f'neither id {old} nor {new} answers now; '
                                                 'check with ~/scan')
+                # Done only if it is alone there: a servo at the new id whose PING replies
+                # were lost would now share it (the same probe as before the change).
+                after, why = self._how_many_answer(new)
             except LinkError as exc:
                 return _unknown(what, exc, f'~/scan tells (id {new} answers if it did)')
             self._rename(old, new)
+            if after == 'several':
+                message = (f'servo {old} took id {new}, and more than one servo answers there '
+                           f'now ({why}): id {new} was taken by a servo the probe did not hear. '
+                           'Connect them one at a time and give each its own id')
+                self.log_error(message)
+                return Result.failed(message, 'shared_id')
+            if after != 'one':
+                return Result.unknown(f'servo {old} answers at id {new}, but whether it is alone '
+                                      f'there was not seen ({why or "no reply"}); check with '
+                                      '~/scan', 'lossy_bus')
         message = f'servo {old} now answers at id {new}' + (
             '' if lost is None else f' (its acknowledgement was lost: {lost})')
         self.log_info(message)

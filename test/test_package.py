@@ -333,7 +333,7 @@ OTHER_CONCEPTS = {
     ('parachute_mavlink_ros/events.py', 'Tick'),               # its core takes `now` apart
     ('desheng_servo_ros/protocol.py', 'Reply'),                # a decoded status frame
     ('desheng_servo_ros/protocol.py', 'Request'),              # a decoded host frame
-    ('desheng_servo_ros/bus_schedule.py', 'Answer'),           # (token, ok, text): not a Result
+    ('desheng_servo_ros/bus_events.py', 'Answer'),             # (token, ok, text): not a Result
     ('parachute_mavlink_ros/events.py', 'Answer'),             # an event: a service answered
 }
 
@@ -363,6 +363,10 @@ def test_round2_22_5_every_core_takes_one_log_record_and_link_type():
     assert settings_core.Answer is trigger_core.Answer is ce.Answer
     assert trigger_core.SetTimer is rules.SetTimer is ce.SetTimer
     assert trigger_core.Tick is rules.Tick is ce.Tick
+    from desheng_servo_ros import bus_schedule
+    assert bus_schedule.Tick is ce.Tick and bus_schedule.SetTimer is ce.SetTimer
+    assert bus_schedule.Reply is ce.Reply and bus_schedule.LinkDown is ce.LinkDown
+    assert bus_schedule.Log is ce.Log
     # Two guarantees kept apart: the deploy decision waits for the disk, a trigger decision not.
     assert {ce.SYNC_WAIT, ce.SYNC_ASK, ce.NO_SYNC} == set(ce.SYNCS) and len(ce.SYNCS) == 3
     with pytest.raises(ValueError):

@@ -1,16 +1,18 @@
-"""ServoBusLink against the simulated bus on a pty: matching, timeouts, retries, bus timing."""
+"""ServoBusLink on its runtime against the simulated bus on a pty: matching, timeouts, retries,
+bus timing, who goes first."""
 
 import threading
 import time
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.link import (_PriorityLock, DERIVED_MARGIN_S, LinkTimeout,
-                                    PRIORITY_LOOP, PRIORITY_SERVICE, PRIORITY_URGENT,
-                                    ServoBusLink)
+from desheng_servo_ros.bus_runtime import BusRuntime
+from desheng_servo_ros.link import DERIVED_MARGIN_S, LinkTimeout, ServoBusLink
+from desheng_servo_ros.schedule import TORQUE_OFF_ALL
+from desheng_servo_ros.units import Joint
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
-from uav_serial_common.process import wait_for
 from servo_rig import Wire
+from uav_serial_common.process import wait_for
 from uav_serial_common.pty_port import wire_time
 
 
@@ -31,11 +33,26 @@ def bus(tmp_path_factory):
                           seed=1).start()
     wire = Wire(dev.runner)
     link = ServoBusLink(dev.path, 115200, max_retries=1, response_timeout_ms=RIG_MARGIN_MS)
-    link.start()
+    # Its requests are carried by a runtime with no servo to read (the schedule's calls).
+    runtime = BusRuntime(dev.path, 115200, [], bus=link)
+    runtime.start()
     assert link.wait_port_open(5)
     yield dev, wire, link
-    link.stop()
+    runtime.stop()
     dev.stop()
+
+
+def reading(dev, ids, publish_rate_hz=100.0):
+    """A link and its runtime reading `ids`, the read loop held (read_cycle runs one cycle)."""
+    link = ServoBusLink(dev.path, 115200, max_retries=1, response_timeout_ms=RIG_MARGIN_MS)
+    results = []
+    runtime = BusRuntime(dev.path, 115200, [Joint(i, f'j{i}') for i in ids], bus=link,
+                         publish_rate_hz=publish_rate_hz, telemetry_period_s=3600.0,
+                         max_retries=1, on_read=results.append)
+    hold = runtime.hold_reads()
+    runtime.start()
+    assert link.wait_port_open(5)
+    return link, runtime, hold, results
 
 
 def test_read_returns_the_addressed_servos_reply(bus):
@@ -111,79 +128,63 @@ def test_frames_without_reply_hold_the_bus_for_their_wire_time(bus):
     assert t_ping - t_sync >= wire_time(len(sync), 115200)
 
 
-def test_the_bus_lock_serves_higher_priorities_first():
-    lock = _PriorityLock()
-    assert lock.acquire(PRIORITY_LOOP, 1.0)
-    order = []
-    threads = [threading.Thread(target=lambda p=p: (lock.acquire(p, 5.0), order.append(p),
-                                                    lock.release()))
-               for p in (PRIORITY_LOOP, PRIORITY_SERVICE, PRIORITY_URGENT)]
-    for t in threads:
-        t.start()
-        # Queue them in this order, lowest priority first.
-        wait_for(lambda t=t: sum(lock._waiting) == threads.index(t) + 1, 5,
-                 what='the waiter queued')
-    assert lock.waiting_above(PRIORITY_LOOP)
-    lock.release()
-    for t in threads:
-        t.join(5)
-    assert order == [PRIORITY_URGENT, PRIORITY_SERVICE, PRIORITY_LOOP]
-    assert lock.acquire(PRIORITY_LOOP, 0.1)
-    assert not lock.acquire(PRIORITY_URGENT, 0.05)
-
-
-class Plan:
-    """A read plan over a list of servo ids (position READs), recording what it is told."""
-
-    def __init__(self, ids, retries=1, on_reply=None):
-        self.todo = list(ids)
-        self.retries = retries
-        self.on_reply = on_reply
-        self.results = []
-
-    def next_read(self):
-        if not self.todo:
-            return None
-        servo_id = self.todo.pop(0)
-        return proto.encode_read(servo_id, 0x38, 4), servo_id, 4, self.retries, servo_id
-
-    def on_read(self, tag, reply):
-        self.results.append((tag, None if reply is None else reply.servo_id))
-        if self.on_reply is not None:
-            self.on_reply(self)
-
-
-def test_a_read_chain_retries_a_lost_reply_at_once_and_reports_a_missing_servo(bus):
+def test_an_emergency_stop_goes_ahead_of_the_requests_that_wait_for_the_bus(bus):
+    # Who goes first is the schedule's (an emergency stop, then the callers in turn), no lock's.
     dev, wire, link = bus
     mark = wire.mark()
-    retries = link.link.stats.retries
-    transactions, failed = link.transactions, link.failed_transactions
-    dev.runner.faults.drop_next = 1
-    plan = Plan([1, 2, 77, 3])
-    assert link.read_chain(plan) == 6
-    assert plan.results == [(1, 1), (2, 2), (77, None), (3, 3)]
-    assert [r.servo_id for r in wire.requests(mark)] == [1, 1, 2, 77, 77, 3]
-    assert link.link.stats.retries == retries + 2
-    assert (link.transactions, link.failed_transactions) == (transactions + 4, failed + 1)
-    # A READ planned without retries is given up after its first silence.
-    plan = Plan([77, 1], retries=0)
-    assert link.read_chain(plan) == 2 and plan.results == [(77, None), (1, 1)]
+    waiting = threading.Thread(target=lambda: pytest.raises(LinkTimeout, link.ping, 77, None, 0))
+    waiting.start()  # holds the bus for its reply's margin
+    wait_for(lambda: len(wire.requests(mark)) == 1, 5, what='the PING of 77 on the bus')
+    queued = [threading.Thread(target=link.ping, args=(i,)) for i in (1, 2)]
+    for t in queued:
+        t.start()
+    wait_for(lambda: len(link.runtime.schedule.services) == 2, 5, what='two requests queued')
+    assert link.runtime.emergency_stop().ok
+    for t in [waiting] + queued:
+        t.join(5)
+    sent = [r.raw for r in wire.requests(mark)]
+    assert sent[:2] == [proto.encode_ping(77), TORQUE_OFF_ALL]
+    assert sorted(sent[2:]) == sorted([proto.encode_ping(1), proto.encode_ping(2)])
 
 
-def test_a_read_chain_yields_the_bus_between_two_reads_to_a_waiting_service(bus):
-    _, wire, link = bus
-    pings = []
+def test_a_read_cycle_retries_a_lost_reply_at_once_and_reports_a_missing_servo(tmp_path):
+    dev = VirtualServoBus(str(tmp_path / 'bus'), [1, 2, 3], seed=1).start()
+    wire = Wire(dev.runner)
+    link, runtime, hold, results = reading(dev, [1, 2, 77, 3])
+    try:
+        mark = wire.mark()
+        retries = link.link.stats.retries
+        failed = link.failed_transactions
+        dev.runner.faults.drop_next = 1
+        assert runtime.read_cycle()
+        # The first cycle reads each servo's state and telemetry: two READs each.
+        assert [(r.servo_id, r.reply is not None) for r in results] == [
+            (1, True), (1, True), (2, True), (2, True), (77, False), (77, False), (3, True),
+            (3, True)]
+        # The lost reply's READ sent again at once; each READ of 77 after its retry.
+        assert [r.servo_id for r in wire.requests(mark)] == [1, 1, 1, 2, 2, 77, 77, 77, 77, 3, 3]
+        assert link.link.stats.retries == retries + 3
+        assert link.failed_transactions == failed + 2
+    finally:
+        runtime.stop()
+        dev.stop()
 
-    def ask_once(plan):
-        if len(plan.results) == 3:
-            threading.Thread(target=lambda: pings.append(link.ping(2).servo_id)).start()
-    mark = wire.mark()
-    retries = link.link.stats.retries
-    plan = Plan([1] * 10000, on_reply=ask_once)
-    sent = link.read_chain(plan)
-    # The chain gave up the bus soon after the service queued, not after 10000 READs (a READ
-    # retried after a host stall is one more frame sent).
-    assert 3 <= len(plan.results) == sent - (link.link.stats.retries - retries) < 10000
-    wait_for(lambda: pings == [2], 5, what='the PING of the waiting service')
-    requests = [r for r in wire.requests(mark)]
-    assert requests[sent].instruction == proto.Instruction.PING
+
+def test_the_read_loop_yields_the_bus_between_two_reads_to_a_waiting_service(tmp_path):
+    dev = VirtualServoBus(str(tmp_path / 'bus'), [1, 2, 3], seed=1).start()
+    wire = Wire(dev.runner)
+    link, runtime, hold, results = reading(dev, [1], publish_rate_hz=1000.0)
+    try:
+        runtime.release(hold)
+        wait_for(lambda: len(results) > 20, 5, what='the read loop reading')
+        mark = wire.mark()
+        assert link.ping(2).servo_id == 2
+        requests = wire.requests(mark)
+        # At most the READ that was on the wire when the service came goes before it.
+        pings = [k for k, r in enumerate(requests) if r.instruction == proto.Instruction.PING]
+        assert pings and pings[0] <= 1, [r.servo_id for r in requests]
+        count = len(results)
+        wait_for(lambda: len(results) > count + 20, 5, what='the read loop going on')
+    finally:
+        runtime.stop()
+        dev.stop()

@@ -1,0 +1,193 @@
+"""The servo bus schedule's transactions and service calls (``bus_schedule.BusSchedule``).
+
+:class:`_Tx` is one request that waits for its reply (a READ of the read loop, or a service's);
+:class:`_Service` is a service call as a sequence of transactions and frames without a reply,
+which the schedule runs one step at a time (a generator: no thread, no clock). Kept apart from
+``bus_schedule.py`` so that each stays under 600 lines.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Hashable, Optional, Tuple
+
+from desheng_servo_ros import protocol as proto
+from desheng_servo_ros.bus_events import Answer, QUIET_CALLS
+from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s, renamed,
+                                        set_id_refusal, sync_write_frames)
+from desheng_servo_ros.state import ID, POSITION, TORQUE
+
+
+class _Tx:
+    """One transaction of a service or of the read loop that waits for a reply."""
+
+    __slots__ = ('frame', 'reply_id', 'nparams', 'retries', 'owner', 'tag', 'attempts', 'mark',
+                 'wait', 'flush')
+
+    def __init__(self, frame: bytes, reply_id: int, nparams: int, retries: int, owner: Any,
+                 tag: Any = None, wait: Optional[float] = None) -> None:
+        self.frame = frame
+        self.reply_id = reply_id
+        self.nparams = nparams
+        self.retries = retries
+        self.owner = owner
+        self.tag = tag
+        self.attempts = 0
+        self.mark = (0, 0)  # (bytes, frames) received when it was first sent
+        self.wait = wait  # how long an attempt waits for its reply (None: wire time + margin)
+        self.flush = True  # stale input is discarded before it is sent (Send.flush)
+
+
+class _Service:
+    """A service call as a sequence of transactions (the model's version of the core's)."""
+
+    def __init__(self, bus: Any, token: Hashable, name: str,
+                 args: Tuple[Any, ...]) -> None:
+        self.bus = bus
+        self.token = token
+        self.name = name
+        self.args = args
+        # A scan, an id change and a hold stop the read loop: they need a quiet bus.
+        self.quiet = name in QUIET_CALLS
+        self.ok = True
+        self.text = ''
+        self.retry: Optional[_Tx] = None  # its transaction to send again
+        self._steps = self._run()
+        self._reply: Optional[proto.Reply] = None
+        self._answer_reply: Optional[proto.Reply] = None
+        self._garbled = False
+        self._at = 0.0
+        self.ready_at = 0.0  # its next step waits until then
+
+    def next(self) -> Any:
+        """Return the next step: a transaction, a frame without a reply, or None (done)."""
+        try:
+            return next(self._steps)
+        except StopIteration:
+            return None
+
+    def result(self, now: float, reply: Optional[proto.Reply], garbled: bool = False) -> None:
+        """Take the reply of the step's transaction (None: none after its retries).
+
+        `garbled`: bytes and no frame came while it was awaited.
+        """
+        self._reply = reply
+        self._garbled = garbled
+        self._at = now
+
+    def answer(self) -> Answer:
+        """Return the call's answer."""
+        return Answer(self.token, self.ok, self.text, self._answer_reply)
+
+    def _tx(self, frame: bytes, servo_id: int, nparams: int, retries: int) -> _Tx:
+        return _Tx(frame, servo_id, nparams, retries, self)
+
+    def _run(self) -> Any:
+        name, args, bus = self.name, self.args, self.bus
+        if name == 'write_positions':
+            for frame in sync_write_frames(args[0]):
+                yield frame
+            self.text = 'SYNC WRITE sent'
+        elif name == 'transact':
+            frame, servo_id, nparams, retries = args[:4]
+            tx = self._tx(frame, servo_id, nparams, retries)
+            tx.wait = args[4] if len(args) > 4 else None  # a scan's long confirmation
+            # False: what arrived before it is kept (a scan collects late replies by id).
+            tx.flush = args[5] if len(args) > 5 else True
+            yield tx
+            self.ok, self._answer_reply = self._reply is not None, self._reply
+            self.text = 'answered' if self.ok else 'no reply'
+        elif name == 'send':
+            for frame in args[0]:
+                yield frame
+            self.text = 'sent'
+        elif name == 'hold':
+            self.text = 'the read loop holds'
+        elif name == 'read_register':
+            servo_id, address, length = args
+            yield self._tx(proto.encode_read(servo_id, address, length), servo_id, length,
+                           bus.max_retries)
+            self.ok = self._reply is not None
+            self.text = 'read' if self.ok else 'no reply'
+        elif name == 'set_torque':
+            ids, enable = args
+            for servo_id in ids:
+                yield self._tx(proto.encode_write(servo_id, TORQUE.address,
+                                                  b'\x01' if enable else b'\x00'),
+                               servo_id, 0, bus.max_retries)
+                yield self._tx(proto.encode_read(servo_id, TORQUE.address, 1), servo_id, 1,
+                               bus.max_retries)
+                back = self._reply is not None and self._reply.params[0] != 0
+                for s in bus.servos:
+                    if s.id == servo_id and self._reply is not None:
+                        s.set_torque(back)
+                if back != enable:
+                    self.ok = False
+            self.text = 'torque'
+        elif name == 'scan':
+            first, last = args
+            found = []
+            for servo_id in range(first, last + 1):
+                yield self._tx(proto.encode_ping(servo_id), servo_id, 0, 0)
+                if self._reply is not None:
+                    found.append(servo_id)
+            self.text = f'found {found}'
+        elif name == 'set_id':
+            yield from self._set_id(*args)
+
+    def _answers(self, servo_id: int) -> Any:
+        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
+        garbled = False
+        for _ in range(2):
+            yield self._tx(proto.encode_ping(servo_id), servo_id, 0, 0)
+            if self._reply is not None:
+                return 'yes'
+            garbled = garbled or self._garbled
+        return 'garbled' if garbled else 'no'
+
+    def _how_many_answer(self, servo_id: int) -> Any:
+        """Probe as the live driver does (ServoServices._how_many_answer), with judge_probe."""
+        bus = self.bus
+        kind = (servo_id, POSITION.size)
+        unsolicited = bus.unsolicited.get(kind, 0)
+        values, garbled = [], 0
+        for _ in range(PROBE_READS):
+            yield self._tx(proto.encode_read(servo_id, POSITION.address, POSITION.size),
+                           servo_id, POSITION.size, 0)
+            if self._reply is not None:
+                values.append(int.from_bytes(self._reply.params, 'big'))
+                # As the driver: a second servo's whole reply ends before the next READ (it
+                # sleeps off the bus lock: commands may go meanwhile, the read loop is paused).
+                self.ready_at = self._at + probe_quiet_s(bus.baud)
+            elif self._garbled:
+                garbled += 1
+        return judge_probe(values, garbled, bus.unsolicited.get(kind, 0) - unsolicited)
+
+    def _set_id(self, old: int, new: int) -> Any:
+        bus = self.bus
+        taken = yield from self._answers(new)
+        if taken != 'no':
+            self.ok, self.text = False, f'id {new} already answers ({taken})'
+            return
+        count, why = yield from self._how_many_answer(old)
+        if count != 'one':
+            self.ok, self.text = False, (f'servo {old} does not answer' if count == 'none'
+                                         else f'more than one servo answers at id {old} ({why})')
+            return
+        # A refusal checked again where the list could have changed meanwhile.
+        refusal = set_id_refusal(bus.servos, old, new)
+        if refusal is not None:
+            self.ok, self.text = False, refusal
+            return
+        yield self._tx(proto.encode_write(old, ID.address, bytes([new])), old, 0,
+                       bus.max_retries)
+        now_at_new = yield from self._answers(new)
+        if now_at_new != 'yes':
+            self.ok, self.text = False, f'UNKNOWN whether servo {old} now has id {new}'
+            return
+        # Done only if it is alone there (a servo at the new id whose PINGs were lost).
+        after, why = yield from self._how_many_answer(new)
+        bus.servos = renamed(bus.servos, old, new)
+        if after != 'one':
+            self.ok, self.text = False, f'servo {old} took id {new}, not alone there? ({why})'
+            return
+        self.text = f'servo {old} now answers at id {new}'
