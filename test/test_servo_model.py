@@ -268,6 +268,9 @@ class ServoBusModel(RuleBasedStateMachine):
         # Calls during which a servo was connected: one plugged in at the new id after the
         # probe found it free is beyond what any probe can see.
         self.disturbed: set = set()
+        # Calls during which a servo was unplugged: the renamed one may be gone by the answer
+        # (none at the new id then), but never two.
+        self.unplugged: set = set()
         self._answers_seen = 0
         self.wire.run_until(START + 0.01)
 
@@ -420,6 +423,7 @@ class ServoBusModel(RuleBasedStateMachine):
         # back, it comes fresh from the factory at that id.
         if servo_id in self.wire.sim.ids:
             self.wire.sim.remove_servo(servo_id)
+            self.unplugged.update(self.set_ids)
         else:
             self.wire.sim.add_servo(servo_id)
             self.disturbed.update(self.set_ids)
@@ -524,13 +528,14 @@ class ServoBusModel(RuleBasedStateMachine):
     def set_id_done_never_makes_two_servos_share_an_id(self) -> None:
         # After any ~/set_id answered as done, one servo answers at its new id: the bus probe
         # found the new id free and one servo at the old one (also one not in the servo list),
-        # unless a servo was connected while the call ran.
+        # unless a servo was connected while the call ran; none if one was unplugged meanwhile.
         answers = self.wire.answers
         for answer, ids in list(zip(answers, self.wire.answer_ids))[self._answers_seen:]:
             call = self.set_ids.pop(answer.token, None)
             if call is not None and answer.ok and answer.token not in self.disturbed:
                 old, new = call
-                assert ids.count(new) == 1, (
+                found = ids.count(new)
+                assert found == 1 or (found == 0 and answer.token in self.unplugged), (
                     f'set_id {old} -> {new} answered done ({answer.text}) with the bus at ids '
                     f'{sorted(ids)}: {ids.count(new)} servos at {new}')
         self._answers_seen = len(answers)
@@ -850,6 +855,25 @@ def test_round2_22_5_found_the_set_id_probe_leaves_the_bus_to_the_reads_and_comm
     state.one_transaction_at_a_time()
     state.the_newest_target_reaches_the_wire_within_one_read_cycle()
     state.reads_keep_at_least_half_their_rate()
+    state.set_id_done_never_makes_two_servos_share_an_id()
+    state.teardown()
+
+
+def test_round2_22_5_found_a_renamed_servo_unplugged_before_the_answer_is_no_violation() -> None:
+    # The 20,000-sequence search on the merged driver found this, a fault of the model's own
+    # oracle: set_id 6 -> 2 (6 not in the list) probed 2 free and 6 alone, renamed it, found it
+    # alone at 2, and was answered done; the servo at 2 was unplugged between that probe and the
+    # answer, so the bus had none at 2. Two at one id stays a violation whatever happens; none
+    # is one only when no servo was unplugged during the call.
+    state = ServoBusModel()
+    state.start(n=1, rate=50.0, retries=0, telemetry=0.05, extra=True, seed=0, pace=0.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=35.0, new=2)
+    state.emergency_stop(ms=2.0)
+    (token, call), = state.set_ids.items()
+    state.disconnect_or_connect_a_servo(servo_id=2)
+    state.emergency_stop(ms=2.0)
+    answer = next(a for a in state.wire.answers if a.token == token)
+    assert call == (6, 2) and answer.ok and 2 not in state.wire.sim.ids
     state.set_id_done_never_makes_two_servos_share_an_id()
     state.teardown()
 
