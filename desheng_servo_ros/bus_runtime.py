@@ -49,10 +49,8 @@ from uav_serial_common.ticket import Ticket
 CALL_TIMEOUT_S = 2.0
 """How long a caller waits for its answer by default (the bus may be held meanwhile)."""
 TIMER_IDLE_S = 0.1
-# A reply's deadline waits this much longer at most while the reader holds unread bytes,
-# looking again every READER_POLL_S.
+# A reply's deadline waits this much longer at most while the reader holds unread bytes.
 READER_GRACE_S = 0.05
-READER_POLL_S = 0.0005
 
 
 class _Locked:
@@ -310,8 +308,10 @@ class BusRuntime:
             # Bytes came in that the reader has not handed on yet: they may be the reply. On a
             # loaded host the reader can be late by more than a short deadline, and calling
             # that a timeout (and sending again on a half-duplex line) would report a silence
-            # nobody saw.
-            return now + READER_POLL_S
+            # nobody saw. Woken when the reader has handed them on (its reply, if it was one,
+            # stepped by then), the duty looks again at once.
+            self.link.wait_handed_on(schedule.reply_deadline + READER_GRACE_S - now)
+            return time.monotonic()
         self._guarded(ev.Tick(now))
         due = min(self._due, idle)
         return None if due == math.inf else due

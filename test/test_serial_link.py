@@ -11,7 +11,7 @@ import pytest
 
 from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_common.pty_port import PortUnplugged, VirtualSerialPort
-from uav_serial_common.serial_link import LinkDown, LinkTimeout, SerialLink
+from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 
 
 class LineDecoder:
@@ -210,31 +210,29 @@ def test_a_request_in_flight_fails_fast_when_the_port_goes_away(device):
         assert time.monotonic() - start < 4.0
 
 
-def test_a_chain_whose_next_request_cannot_be_written_fails_fast_and_the_link_recovers(device):
-    # The cable is pulled between a reply and the next request of the chain, which the reader
-    # thread writes itself: it finds the port gone (and used to deadlock on its own lock).
-    link, _, _ = make_link(device.port.path)
+def test_a_write_from_the_reader_thread_to_a_vanished_port_fails_fast_and_the_link_recovers(
+        device):
+    # A runtime writes its next request from the reader thread, on the reply before it (the
+    # servo bus's READs). The cable pulled in between, the write finds the port gone: it fails
+    # at once (the reader used to deadlock on its own lock), and the link reopens after replug.
+    outcome = []
 
-    class PullBeforeTwo(ListChain):
-        def next_request(self):
-            if self.todo and self.todo[0] == 2:
-                device.stop()  # its select would hold the pty open a little longer
-                device.port.unplug()
-            return super().next_request()
+    def on_frame(frame):
+        if frame == b're 1':
+            device.stop()  # its select would hold the pty open a little longer
+            device.port.unplug()
+            try:
+                link.write(b'ask 2\n')
+                outcome.append('written')
+            except LinkError as exc:
+                outcome.append(exc)
+    link = SerialLink(device.port.path, 115200, LineDecoder(), on_frame=on_frame)
+    link.start()
     try:
         assert link.wait_port_open(2)
-        outcome = []
-
-        def run():
-            try:
-                outcome.append(link.request_chain(PullBeforeTwo(link, [1, 2, 3])))
-            except LinkDown as exc:
-                outcome.append(exc)
-        worker = threading.Thread(target=run, daemon=True)
-        worker.start()
-        worker.join(5)
-        assert not worker.is_alive(), 'the chain hung when the port went away'
-        assert len(outcome) == 1 and isinstance(outcome[0], LinkDown)
+        link.write(b'ask 1\n')
+        wait_for(lambda: outcome, 5, what='the write from the reader thread to end')
+        assert isinstance(outcome[0], LinkDown), outcome
         assert device.received[-1] == b'ask 1'
         assert 'write failed' in link.last_error or 'cannot open' in link.last_error
         device.port.replug()
@@ -303,111 +301,6 @@ def test_spy_url_logs_the_traffic_and_still_works(device, tmp_path):
     text = log.read_text()
     assert 'TX   0000  61 73 6B 20 39 0A' in text  # "ask 9\n" as it went out
     assert 'e 9.' in text  # the reply as it came in (the spy logs each read)
-
-
-class ListChain:
-    """A request chain over a list; records each result with the frames sent by then."""
-
-    def __init__(self, link, numbers, retry_silent=0, fail_on=None):
-        self.link = link
-        self.todo = list(numbers)
-        self.retry_silent = retry_silent
-        self.fail_on = fail_on
-        self.current = None
-        self.results = []
-        self.issued = []  # when each request was handed to the link (before its write)
-
-    def next_request(self):
-        if not self.todo:
-            return None
-        self.issued.append(time.monotonic())
-        n = self.current = self.todo.pop(0)
-        return f'ask {n}\n'.encode(), lambda f: f == f're {n}'.encode(), 0.2
-
-    def on_result(self, frame):
-        self.results.append((frame, self.link.stats.frames_out))
-        if frame is None and self.retry_silent:
-            self.retry_silent -= 1
-            self.todo.insert(0, self.current)
-        if frame is not None and frame == self.fail_on:
-            raise RuntimeError('handler bug')
-
-
-def test_a_chain_sends_each_request_after_the_previous_reply_and_skips_a_silent_one(device):
-    with open_link(device.port.path) as (link, unsolicited, _):
-        device.mute = {b'2'}
-        chain = ListChain(link, [1, 2, 3])
-        assert link.request_chain(chain) == 3
-        assert [frame for frame, _ in chain.results] == [b're 1', None, b're 3']
-        # Each request went out only after the previous one was answered or given up.
-        assert device.received[-3:] == [b'ask 1', b'ask 2', b'ask 3']
-        # ask 3 waited for ask 2's timeout: from ask 2 handed to the link (before its write) to
-        # ask 3 read by the device (after its write), so a late device or host only adds to it.
-        assert device.arrivals[-1] - chain.issued[1] >= 0.19
-        assert link.stats.timeouts == 1
-        # A reply is handed over once the next request is on its way (re 1 with ask 2 sent); a
-        # timeout before the next request goes out, so the chain can still decide on a retry.
-        sent_before = link.stats.frames_out - 3
-        assert [n - sent_before for _, n in chain.results] == [2, 2, 3]
-        assert unsolicited == []
-
-
-def test_a_chain_can_retry_a_silent_request_at_once_and_survives_a_handler_bug(device):
-    with open_link(device.port.path) as (link, _, _):
-        device.mute = {b'2'}
-        chain = ListChain(link, [1, 2, 3], retry_silent=1, fail_on=b're 1')
-        assert link.request_chain(chain) == 4
-        assert device.received[-4:] == [b'ask 1', b'ask 2', b'ask 2', b'ask 3']
-        assert [frame for frame, _ in chain.results] == [b're 1', None, None, b're 3']
-        assert link.request_chain(ListChain(link, [])) == 0
-
-
-def test_a_chain_takes_a_reply_that_came_in_time_while_the_reader_was_held(device):
-    # A loaded host can hold the reader thread past a reply's deadline with the reply already
-    # in: as request(), the chain waits for the reader instead of counting the reply lost
-    # (and flushing it away with the next request).
-    held = []
-
-    def held_reader(data):
-        if b're 2' in data and not held:
-            held.append(data)
-            time.sleep(0.25)  # the reader, held by a starved host past the 0.2 s deadline
-    with open_link(device.port.path, on_rx=held_reader) as (link, unsolicited, _):
-        chain = ListChain(link, [1, 2, 3])
-        assert link.request_chain(chain) == 3
-        assert held and [frame for frame, _ in chain.results] == [b're 1', b're 2', b're 3']
-        assert link.stats.timeouts == 0 and unsolicited == []
-
-
-class HoldingChain(ListChain):
-    """A chain that sends a frame without a reply (`note N`) before each `ask N`."""
-
-    def __init__(self, link, numbers, hold_s):
-        super().__init__(link, numbers)
-        self.hold_s = hold_s
-        self.noted = False
-
-    def next_request(self):
-        if self.todo and not self.noted:
-            self.noted = True
-            self.issued.append(time.monotonic())
-            return f'note {self.todo[0]}\n'.encode(), None, self.hold_s
-        self.noted = False
-        return super().next_request()
-
-
-def test_a_frame_without_a_reply_holds_the_chain_for_its_time_without_a_result(device):
-    with open_link(device.port.path) as (link, _, _):
-        chain = HoldingChain(link, [1, 2], hold_s=0.05)
-        timeouts = link.stats.timeouts
-        assert link.request_chain(chain) == 4
-        assert device.received[-4:] == [b'note 1', b'ask 1', b'note 2', b'ask 2']
-        # Only the requests with a reply have a result; a hold is no timeout.
-        assert [frame for frame, _ in chain.results] == [b're 1', b're 2']
-        assert link.stats.timeouts == timeouts
-        # The request after a hold waited for it: from note 2 handed to the link to ask 2 read
-        # by the device (a lower bound that a late device or host only adds to).
-        assert device.arrivals[-1] - chain.issued[-2] >= 0.045
 
 
 def test_safety_14_a_port_that_fails_any_way_is_a_link_error_and_the_reader_lives_on(tmp_path):

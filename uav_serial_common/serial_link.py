@@ -29,15 +29,17 @@ except ImportError:  # pragma: no cover - not a POSIX system
     _PosixSerial = None
 
 from uav_serial_common.link_types import Decoder, LinkStats
-from uav_serial_common.request_chain import Match, RequestChain, RunningChain
 from uav_serial_common.serial_errors import (
     describe_open_error, LinkDown, LinkError, LinkTimeout, PORT_ERRORS,
 )
 
 __all__ = [
     'Decoder', 'describe_open_error', 'LinkDown', 'LinkError', 'LinkStats', 'LinkTimeout',
-    'Match', 'PORT_ERRORS', 'RequestChain', 'SerialLink',
+    'Match', 'PORT_ERRORS', 'SerialLink',
 ]
+
+Match = Callable[[Any], bool]
+"""Whether a frame is the reply a request waits for."""
 
 
 @dataclass
@@ -108,17 +110,13 @@ class SerialLink:
         self._write_lock = threading.Lock()
         self._rx_lock = threading.Lock()
         self._rx_handed_on = threading.Condition()  # the reader handed on what it read
-        # _Waiter and RunningChain objects. Copy-on-write under the lock: the reader thread reads
+        # _Waiter objects. Copy-on-write under the lock: the reader thread reads
         # it without the lock, so a waiter may close the port (a failed write) while it is offered.
         self._waiters: Tuple[Any, ...] = ()
         self._waiters_lock = threading.Lock()
         self._stop = threading.Event()
         self._port_open = threading.Event()
         self._thread: Optional[threading.Thread] = None
-        # A request chain holding the line after a frame without a reply, and until when: the
-        # reader thread ends the hold itself (no hand-off to the chain's caller).
-        self._holder: Optional[RunningChain] = None
-        self._hold_until = 0.0
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -243,70 +241,18 @@ class SerialLink:
         (and sending again on a half-duplex line) would report a silence nobody saw. Returns
         whether the reply came meanwhile.
         """
-        end = time.monotonic() + timeout
-        with self._rx_handed_on:
-            while not waiter.event.is_set() and self.unread_input():
-                remaining = end - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._rx_handed_on.wait(remaining)
+        self.wait_handed_on(timeout, waiter.event.is_set)
         return waiter.event.is_set() and waiter.frame is not None
 
-    def request_chain(self, chain: RequestChain, flush: bool = False) -> int:
-        """Run `chain` until its ``next_request()`` returns None; return the requests sent.
+    def wait_handed_on(self, timeout: float, done: Callable[[], bool] = lambda: False) -> None:
+        """Wait up to `timeout` s while the reader holds unread bytes (and `done()` is false).
 
-        Each request goes out the moment the previous one is answered (from the reader thread:
-        no thread hand-off between two links of the chain) or has timed out. Results reach
-        ``chain.on_result`` in order, one per request, on the reader thread (replies) or on this
-        thread (timeouts, None), never two at a time. Raises LinkDown when the port is not open
-        or closes meanwhile; the request in flight then gets no result.
+        Woken by the reader each time it has handed on what it read (no poll): a caller whose
+        deadline passed while bytes were still coming in looks again as soon as they are taken.
         """
-        run = RunningChain(self, chain, flush)
-        self._add_waiter(run)
-        grace: Optional[Tuple[int, float]] = None  # (request number, end) of a reader's grace
-        try:
-            with run.lock:
-                run.send_next()
-            while True:
-                in_grace = False
-                with run.lock:
-                    if run.done:
-                        break
-                    run.event.clear()  # set again by a hold the reader cannot end, or the end
-                    now = time.monotonic()
-                    remaining = run.deadline - now
-                    if remaining <= 0:
-                        # As request(): bytes that came in before the deadline and that the
-                        # reader has not handed on yet may be the reply. Expiring now would
-                        # count it lost, and the next request's flush would throw it away.
-                        if grace is None or grace[0] != run.sent:
-                            grace = (run.sent, now + run.timeout)
-                        if run.no_reply or now >= grace[1] or not self.unread_input():
-                            run.expire()
-                            continue
-                        in_grace = True
-                if in_grace:
-                    self._chain_reader_behind(run, *grace)
-                else:
-                    run.event.wait(remaining)
-                if not self._port_open.is_set():
-                    with run.lock:
-                        run.finish()
-                    raise LinkDown(f'{self.url} closed while waiting for a reply')
-            if run.error is not None:
-                raise run.error
-            return run.sent
-        finally:
-            self._remove_waiter(run)
-
-    def _chain_reader_behind(self, run: RunningChain, sent: int, end: float) -> None:
-        """Wait (until `end`) while the reader holds unread bytes that may answer request `sent`.
-
-        Woken by the reader each time it has handed on what it read, as `_reader_behind`: no
-        poll, and the chain's next request goes out as soon as the late reply is taken.
-        """
+        end = time.monotonic() + timeout
         with self._rx_handed_on:
-            while not run.done and run.sent == sent and self.unread_input():
+            while not done() and self.unread_input():
                 remaining = end - time.monotonic()
                 if remaining <= 0:
                     return
@@ -374,20 +320,7 @@ class SerialLink:
             self._receive(data)
         elif self._idle_flush_s is not None:
             self._flush_idle()
-        if self._hold_until and time.monotonic() >= self._hold_until:
-            holder, self._holder, self._hold_until = self._holder, None, 0.0
-            if holder is not None:
-                holder.end_hold()
         return backoff
-
-    def _hold(self, chain: RunningChain) -> None:
-        """Have the reader thread end `chain`'s hold at its deadline (lock of `chain` held)."""
-        if self._fast_fd is None:
-            # No timed wake-up of the reader here: the chain's caller ends the hold.
-            chain.event.set()
-            return
-        self._holder = chain
-        self._hold_until = chain.deadline
 
     def _read_port(self, port: serial.SerialBase) -> bytes:
         fd = self._fast_fd
@@ -438,10 +371,6 @@ class SerialLink:
             due = self._idle_flush_s if last is None else \
                 last + self._idle_flush_s - time.monotonic()
             timeout = min(timeout, max(due, 0.0005))
-        hold = self._hold_until
-        if hold:
-            # A chain's request without a reply holds the line: the reader ends the hold.
-            timeout = min(timeout, max(0.0, hold - time.monotonic()))
         return timeout
 
     def _write_port(self, port: serial.SerialBase, data: bytes) -> None:
