@@ -37,7 +37,7 @@ class _Window:
     began: float  # when it began (monotonic): the garbage came after
 
 
-def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
+def sweep(link: Any, ids: Iterable[int]) -> List[int]:
     """PING each id of `ids` on `link` (a ServoBusLink); return those that answered, in order.
 
     Clean, late or garbled answers all count (see the module's docstring); late and suspect ids
@@ -61,8 +61,7 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
             mark = (stats.bytes_in, stats.frames_in, decoder.bytes_discarded)
             sent.append(time.monotonic())
             try:
-                link.transact(proto.encode_ping(servo_id), servo_id, 0, priority,
-                              retries=0, flush=False)
+                link.transact(proto.encode_ping(servo_id), servo_id, 0, retries=0, flush=False)
                 answered.add(servo_id)
                 replied_at = index
             except LinkTimeout:
@@ -83,7 +82,7 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
         link._late_sink = None
     garbled: Set[int] = set()
     for servo_id in sorted((set(late) | suspects) & wanted - answered):
-        outcome = confirm(link, servo_id, priority)
+        outcome = confirm(link, servo_id)
         if outcome:
             answered.add(servo_id)
         if outcome == 'garbled':
@@ -101,7 +100,7 @@ def sweep(link: Any, ids: Iterable[int], priority: int) -> List[int]:
             if servo_id in answered or servo_id in asked or window.began - sent[k] > reach:
                 continue
             asked.add(servo_id)
-            if confirm(link, servo_id, priority):
+            if confirm(link, servo_id):
                 answered.add(servo_id)
     return [i for i in ids if i in answered]
 
@@ -123,7 +122,7 @@ def _listen(link: Any, garbage: List[_Window], last: int, anchor: int) -> None:
             return
 
 
-def confirm(link: Any, servo_id: int, priority: int) -> Optional[str]:
+def confirm(link: Any, servo_id: int) -> Optional[str]:
     """PING up to twice with a long wait: 'clean', 'garbled' or None (learns a late margin).
 
     The wait is at least the id's own reply timeout: a scan must not be quicker to call an id
@@ -135,7 +134,7 @@ def confirm(link: Any, servo_id: int, priority: int) -> Optional[str]:
     for _ in range(2):
         before = link.garbled_by_id[servo_id]
         try:
-            reply = link.transact(frame, servo_id, 0, priority, retries=0, timeout=wait)
+            reply = link.transact(frame, servo_id, 0, retries=0, timeout=wait)
         except LinkTimeout:
             if link.garbled_by_id[servo_id] != before:
                 return 'garbled'

@@ -45,7 +45,7 @@ from desheng_servo_ros.bus_runtime import BusRuntime
 from desheng_servo_ros.bus_schedule import CycleDone, ReadDone
 from desheng_servo_ros.commands import CommandPath
 from desheng_servo_ros.health import BusHealth, LOOP_FAILURE_HOLD_S  # noqa: F401 - re-exported
-from desheng_servo_ros.link import LinkError, PRIORITY_LOOP, ServoBusLink
+from desheng_servo_ros.link import LinkError, ServoBusLink
 from desheng_servo_ros.schedule import (  # noqa: F401 - the rules' constants, re-exported
     COMMAND_BURST, COMMAND_CYCLE_SHARE, COMMAND_SPACING, CommandQueue, OFFLINE_AFTER_FAILURES,
     REPROBE_PERIOD_S, shutdown_frames, sync_write_frames)
@@ -279,7 +279,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 return
             self.log_info('servo_ids is empty: scanning ids 1..250')
             try:
-                found = self.bus.scan(ALL_IDS, priority=PRIORITY_LOOP)
+                found = self.bus.scan(ALL_IDS)
             except LinkError as exc:
                 self.log_warning(f'scan interrupted: {exc}')
                 continue
@@ -296,7 +296,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
         if self.config.torque_on_start and self._wait_port_open():
             for s in self._servos:
                 try:
-                    self.bus.write(s.id, TORQUE.address, b'\x01', PRIORITY_LOOP)
+                    self.bus.write(s.id, TORQUE.address, b'\x01')
                     s.set_torque(True)
                 except LinkError as exc:
                     self.log_warning(f'torque on at start: {s.name} (id {s.id}): {exc}')

@@ -28,15 +28,8 @@ from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 from uav_serial_common.usb_latency import BASE_MARGIN_S, inspect_latency_timer, LatencyReport
 
-__all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'PRIORITY_LOOP',
-           'PRIORITY_SERVICE', 'PRIORITY_URGENT', 'DERIVED_MARGIN_S', 'ServoBusLink',
-           'REPLY_OVERHEAD', 'sync_write_frames']
-
-# Who asks (kept for the callers' signatures: the schedule puts an emergency stop first and a
-# service before the read loop, whatever they pass).
-PRIORITY_URGENT = 0
-PRIORITY_SERVICE = 1
-PRIORITY_LOOP = 2
+__all__ = ['BusBusy', 'LinkDown', 'LinkError', 'LinkTimeout', 'DERIVED_MARGIN_S',
+           'ServoBusLink', 'REPLY_OVERHEAD', 'sync_write_frames']
 
 
 class BusBusy(LinkError):
@@ -314,14 +307,15 @@ class ServoBusLink:
         return runtime
 
     def transact(self, frame: bytes, servo_id: int, reply_params: int,
-                 priority: int = PRIORITY_SERVICE, retries: Optional[int] = None,
+                 retries: Optional[int] = None,
                  timeout: Optional[float] = None, flush: bool = True) -> Reply:
         """Send one request and return the reply of ``servo_id`` with ``reply_params`` params.
 
         Sent again up to `retries` times when no reply comes (an emergency stop goes between
         two attempts: the schedule's rule); `timeout`: the wait of an attempt (default: wire
         time + margin). `flush` False keeps what arrived before the request (a scan collects
-        late replies). `priority` is the schedule's to decide (kept for the callers).
+        late replies). What goes first on the bus (an emergency stop, a service before the
+        read loop) is the schedule's to decide.
         """
         runtime = self._runtime()
         if retries is None:
@@ -346,7 +340,6 @@ class ServoBusLink:
         raise error
 
     def probe(self, frame: bytes, servo_id: int, reply_params: int,
-              priority: int = PRIORITY_SERVICE,
               flush: bool = True) -> Tuple[Optional[Reply], bool]:
         """Send one request once; return (its reply or None, whether a garbled reply came).
 
@@ -355,8 +348,7 @@ class ServoBusLink:
         """
         garbled = self.garbled_by_id[servo_id]
         try:
-            return self.transact(frame, servo_id, reply_params, priority, retries=0,
-                                 flush=flush), False
+            return self.transact(frame, servo_id, reply_params, retries=0, flush=flush), False
         except LinkTimeout:
             return None, self.garbled_by_id[servo_id] > garbled
 
@@ -378,7 +370,7 @@ class ServoBusLink:
             raise error
         return answer
 
-    def send(self, frame: bytes, priority: int = PRIORITY_SERVICE) -> None:
+    def send(self, frame: bytes) -> None:
         """Send a frame that gets no reply; returns once the schedule put it on the wire."""
         self.send_all([frame])
 
@@ -388,56 +380,51 @@ class ServoBusLink:
 
     # -- instructions ---------------------------------------------------------------------------
 
-    def ping(self, servo_id: int, priority: int = PRIORITY_SERVICE,
-             retries: Optional[int] = None, timeout: Optional[float] = None) -> Reply:
+    def ping(self, servo_id: int, retries: Optional[int] = None,
+             timeout: Optional[float] = None) -> Reply:
         """PING one servo; returns its status reply."""
-        return self.transact(proto.encode_ping(servo_id), servo_id, 0, priority, retries,
-                             timeout)
+        return self.transact(proto.encode_ping(servo_id), servo_id, 0, retries, timeout)
 
     def read(self, servo_id: int, address: int, length: int,
-             priority: int = PRIORITY_SERVICE, retries: Optional[int] = None) -> Reply:
+             retries: Optional[int] = None) -> Reply:
         """READ ``length`` bytes at ``address``."""
         return self.transact(proto.encode_read(servo_id, address, length), servo_id, length,
-                             priority, retries)
+                             retries)
 
-    def write(self, servo_id: int, address: int, data: bytes = b'',
-              priority: int = PRIORITY_SERVICE) -> Optional[Reply]:
+    def write(self, servo_id: int, address: int, data: bytes = b'') -> Optional[Reply]:
         """WRITE; unicast waits for the acknowledgement, broadcast (254) only for the wire."""
         frame = proto.encode_write(servo_id, address, data)
         if servo_id == proto.BROADCAST_ID:
-            self.send(frame, priority)
+            self.send(frame)
             return None
-        return self.transact(frame, servo_id, 0, priority)
+        return self.transact(frame, servo_id, 0)
 
-    def reg_write(self, servo_id: int, address: int, data: bytes,
-                  priority: int = PRIORITY_SERVICE) -> Reply:
+    def reg_write(self, servo_id: int, address: int, data: bytes) -> Reply:
         """REG WRITE (staged until ACTION); the servo acknowledges it (S13)."""
-        return self.transact(proto.encode_reg_write(servo_id, address, data), servo_id, 0,
-                             priority)
+        return self.transact(proto.encode_reg_write(servo_id, address, data), servo_id, 0)
 
-    def action(self, priority: int = PRIORITY_SERVICE) -> None:
+    def action(self) -> None:
         """Broadcast ACTION: staged writes execute now."""
-        self.send(proto.encode_action(), priority)
+        self.send(proto.encode_action())
 
-    def reset(self, servo_id: int, priority: int = PRIORITY_SERVICE) -> Reply:
+    def reset(self, servo_id: int) -> Reply:
         """RESET one servo to factory settings."""
-        return self.transact(proto.encode_reset(servo_id), servo_id, 0, priority)
+        return self.transact(proto.encode_reset(servo_id), servo_id, 0)
 
-    def sync_write_positions(self, targets: Sequence[Tuple[int, int, int]],
-                             priority: int = PRIORITY_SERVICE) -> list:
+    def sync_write_positions(self, targets: Sequence[Tuple[int, int, int]]) -> list:
         """SYNC WRITE (id, ticks, ms) in as few frames as fit, at the next READ boundary."""
         frames = sync_write_frames(targets)
         self.send_all(frames)
         return frames
 
-    def scan(self, ids: Iterable[int], priority: int = PRIORITY_SERVICE) -> List[int]:
+    def scan(self, ids: Iterable[int]) -> List[int]:
         """PING each id once; return the ids that answered (cleanly, late or garbled), in order.
 
         The PINGs use the normal margin, so an absent id costs a few ms; late replies are
         collected by id while the sweep goes on, garbled ones make suspects, and both are
         confirmed with a long wait (`bus_scan.sweep`; docs/protocols.md, "Scan").
         """
-        return sweep(self, ids, priority)
+        return sweep(self, ids)
 
     # -- counters -------------------------------------------------------------------------------
 

@@ -132,7 +132,7 @@ def test_an_emergency_stop_goes_ahead_of_the_requests_that_wait_for_the_bus(bus)
     # Who goes first is the schedule's (an emergency stop, then the callers in turn), no lock's.
     dev, wire, link = bus
     mark = wire.mark()
-    waiting = threading.Thread(target=lambda: pytest.raises(LinkTimeout, link.ping, 77, None, 0))
+    waiting = threading.Thread(target=lambda: pytest.raises(LinkTimeout, link.ping, 77, retries=0))
     waiting.start()  # holds the bus for its reply's margin
     wait_for(lambda: len(wire.requests(mark)) == 1, 5, what='the PING of 77 on the bus')
     queued = [threading.Thread(target=link.ping, args=(i,)) for i in (1, 2)]
