@@ -453,11 +453,24 @@ def test_safety_2_a_lost_deploy_ack_is_reported_as_deployed_and_never_retried(ri
 
 
 def unplug_when_deploy_arrives(rig):
-    """Pull the cable the moment the module receives a deploy frame: no reply gets back."""
+    """Pull the cable the moment the module receives a deploy frame: no reply gets back.
+
+    The tap runs before the module reads the chunk, so the session may see the cable gone
+    before the module has taken the frame: `deploy_taken(rig)` waits for that.
+    """
     def tap(direction, data, t):
         if direction == 'rx' and DEPLOY in data:
+            rig.deploy_chunk = rig.runner.chunks_handled + 1
             rig.runner.port.unplug()
+    rig.deploy_chunk = None
     rig.runner.add_tap(tap)
+
+
+def deploy_taken(rig):
+    """Wait until the module has read the chunk with the deploy frame the cable was pulled at."""
+    wait_for(lambda: rig.deploy_chunk is not None and
+             rig.runner.chunks_handled >= rig.deploy_chunk, 5,
+             what='the module to take the deploy frame')
 
 
 def reboot_when_deploy_arrives(rig, once=False):
@@ -476,6 +489,7 @@ def test_safety_3_a_deploy_cut_short_by_the_link_is_unknown_then_resolved(rig):
     assert result.outcome is Outcome.UNKNOWN and 'link dropped' in result.message
     assert 'did NOT deploy' not in result.message and 'refused' not in result.message
     assert rig.snap.deploy_outcome_unknown and rig.snap.unacked_deploys == 1
+    deploy_taken(rig)
     with rig.model():
         assert rig.sim.triggered  # it did deploy
     rig.runner.replug()
@@ -714,6 +728,7 @@ def test_round2_22_8_an_unknown_deploy_is_not_settled_by_a_record_answer_cut_sho
         rig.arm()
         unplug_when_deploy_arrives(rig)
         assert rig.session.deploy('DEPLOY').outcome is Outcome.UNKNOWN
+        deploy_taken(rig)
         with rig.model():
             assert rig.sim.triggered
             rig.sim.power_cycle()
@@ -897,6 +912,7 @@ def test_safety_3_an_unknown_deploy_settled_after_a_reboot_by_the_trigger_record
     rig.arm()
     unplug_when_deploy_arrives(rig)
     assert 'UNKNOWN' in rig.session.deploy('DEPLOY').message
+    deploy_taken(rig)
     with rig.model():
         assert rig.sim.triggered
         rig.sim.power_cycle()  # re-packed and switched on again while nobody watched
@@ -917,6 +933,7 @@ def test_safety_3_an_unknown_deploy_that_did_not_fire_stays_not_deployed_across_
     with rig.model():
         rig.sim.lost_commands = {p.CMD_DEPLOY}  # never reached the module
     assert 'UNKNOWN' in rig.session.deploy('DEPLOY').message
+    deploy_taken(rig)  # (and lost)
     with rig.model():
         rig.sim.lost_commands = set()
         rig.sim.power_cycle()
@@ -955,6 +972,7 @@ def test_safety_3_6_concurrent_deploys_cut_by_the_link_a_policy_change_and_a_reb
     assert not any('did NOT deploy' in m for m in messages), messages
     assert all('UNKNOWN' in m for m in messages), messages
     assert rig.wire.since(mark, p.CMD_DEPLOY) == [DEPLOY]
+    deploy_taken(rig)
     with rig.model():
         assert rig.sim.deployments == 1 and rig.sim.triggered
         rig.sim.power_cycle()

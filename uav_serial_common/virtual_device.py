@@ -68,6 +68,8 @@ class VirtualDeviceRunner:
         self.replies_corrupted = 0
         # Chunks that crossed the wire at mismatched speeds (the driver's baud was not ours).
         self.garbled_chunks = 0
+        self.chunks_handled = 0
+        """Chunks of input the model has taken (a test waits for one its tap saw)."""
         self.driver_baud: Optional[int] = None
         self._on_input = on_input
         self._on_tick = on_tick
@@ -200,6 +202,7 @@ class VirtualDeviceRunner:
                 except Exception:  # noqa: BLE001 - a model bug must not kill the device
                     self._log.exception('device model failed on input %s', data.hex(' '))
                     output = None
+                self.chunks_handled += 1
             self._send(output, reply=True, ready_at=arrival)
         if time.monotonic() >= self._tick_due:
             self._tick()
