@@ -303,14 +303,16 @@ class BusRuntime:
         if now < self._due and now - self._stepped_at < TIMER_IDLE_S:
             return min(self._due, idle)
         schedule = self.schedule
-        if schedule.awaiting(now) and self.link.unread_input() and \
-                now < schedule.reply_deadline + READER_GRACE_S:
+        # Read once, without the lock: the reader may end the wait meanwhile (inf then).
+        deadline = schedule.reply_deadline
+        if schedule.awaiting(now) and deadline < math.inf and self.link.unread_input() and \
+                now < deadline + READER_GRACE_S:
             # Bytes came in that the reader has not handed on yet: they may be the reply. On a
             # loaded host the reader can be late by more than a short deadline, and calling
             # that a timeout (and sending again on a half-duplex line) would report a silence
             # nobody saw. Woken when the reader has handed them on (its reply, if it was one,
             # stepped by then), the duty looks again at once.
-            self.link.wait_handed_on(schedule.reply_deadline + READER_GRACE_S - now)
+            self.link.wait_handed_on(deadline + READER_GRACE_S - now)
             return time.monotonic()
         self._guarded(ev.Tick(now))
         due = min(self._due, idle)
