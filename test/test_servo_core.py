@@ -431,8 +431,21 @@ def test_safety_16_set_id_is_refused_when_the_old_id_answers_more_than_once(
     assert sorted(rig.sim.ids) == [1, 2, 2, 3]
 
 
+def set_id_again_if_unsure(rig, old, new, tries=5):
+    """Call ~/set_id as its refusal tells a user to: again while the probe could not tell.
+
+    A probe READ answered late (a host stalled beside a busy loop) is refused as `lossy_bus`
+    with nothing changed; the scenario under test is the call after it.
+    """
+    for _ in range(tries):
+        result = rig.core.set_id(old, new)
+        if (result.outcome, result.cause) != (Outcome.REFUSED, 'lossy_bus'):
+            return result
+    return result
+
+
 def test_set_id_moves_a_single_servo_and_renames_its_joint(rig):
-    result = rig.core.set_id(3, 9)
+    result = set_id_again_if_unsure(rig, 3, 9)
     assert result.ok, result.message
     assert [j.id for j in rig.core.servos] == [1, 2, 9]
     assert rig.core.servos[2].name == 'servo_9' and sorted(rig.sim.ids) == [1, 2, 9]
@@ -515,7 +528,7 @@ def later(seconds, act):
 
 def test_safety_16_set_id_whose_acknowledgement_is_lost_finds_out_and_renames(rig):
     on_request(rig, proto.encode_write(3, 0x05, bytes([9])), lambda: lose_the_reply(rig))
-    result = rig.core.set_id(3, 9)
+    result = set_id_again_if_unsure(rig, 3, 9)
     assert result.ok and 'now answers at id 9' in result.message, result.message
     assert 'acknowledgement' in result.message
     assert sorted(rig.sim.ids) == [1, 2, 9] and rig.core.servos[2].name == 'servo_9'
@@ -524,14 +537,14 @@ def test_safety_16_set_id_whose_acknowledgement_is_lost_finds_out_and_renames(ri
 def test_safety_16_set_id_cut_by_an_unplug_finds_out_once_the_bus_is_back(rig):
     on_request(rig, proto.encode_write(3, 0x05, bytes([9])),
                lambda: (rig.dev.runner.port.unplug(), later(0.3, rig.dev.runner.replug)))
-    result = rig.core.set_id(3, 9)
+    result = set_id_again_if_unsure(rig, 3, 9)
     assert result.ok and 'now answers at id 9' in result.message, result.message
     assert sorted(rig.sim.ids) == [1, 2, 9] and rig.core.servos[2].name == 'servo_9'
 
 
 def test_safety_16_set_id_cut_by_an_unplug_for_good_says_the_outcome_is_unknown(rig):
     on_request(rig, proto.encode_write(3, 0x05, bytes([9])), rig.dev.runner.port.unplug)
-    result = rig.core.set_id(3, 9)
+    result = set_id_again_if_unsure(rig, 3, 9)
     assert result.outcome is Outcome.UNKNOWN and '~/scan' in result.message, result.message
     assert 'nothing changed' not in result.message
     assert sorted(rig.sim.ids) == [1, 2, 9]  # it did change: the answer must not deny it
