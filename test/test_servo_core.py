@@ -275,15 +275,20 @@ def test_two_servos_at_one_id_are_reported_as_a_duplicate_id(rig):
     assert 'two servos answer to id 2' in rig.log.text('error')
 
 
+def a_second_servo_answering_apart_at_2(rig):
+    """Put a second servo at id 2 whose replies come apart; read for three check periods."""
+    with rig.dev.runner.locked():
+        rig.sim.collisions = False
+        rig.sim.add_servo(2, allow_duplicate=True)
+    for _ in range(12):
+        rig.cycle(CHECK_PERIOD_S / 4)
+
+
 def test_two_clean_replies_to_one_request_are_a_duplicate_id_too(tmp_path):
     # On a bus that keeps the replies apart, the second one is a reply without a request.
     rig = Rig(tmp_path)
     try:
-        with rig.dev.runner.locked():
-            rig.sim.collisions = False
-            rig.sim.add_servo(2, allow_duplicate=True)
-        for _ in range(12):
-            rig.cycle(CHECK_PERIOD_S / 4)
+        a_second_servo_answering_apart_at_2(rig)
         assert 'duplicate id' in rig.core.servo_health(2).message
         assert 'replies more than requests' in rig.log.text('error')
     finally:
@@ -323,11 +328,7 @@ def test_round2_22_5_a_second_servo_after_unanswered_requests_is_still_reported(
             rig.cycle()
         wait_for(lambda: bus.replies_by_id[2] == bus.requests_by_id[2], 10.0,
                  what='the stalled cycle answered, late')
-        with rig.dev.runner.locked():
-            rig.sim.collisions = False
-            rig.sim.add_servo(2, allow_duplicate=True)
-        for _ in range(12):
-            rig.cycle(CHECK_PERIOD_S / 4)
+        a_second_servo_answering_apart_at_2(rig)
         assert 'duplicate id' in rig.core.servo_health(2).message
         assert rig.core.servo_health(1).level == OK
         assert 'replies more than requests' in rig.log.text('error')
