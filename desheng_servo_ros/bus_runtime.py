@@ -118,7 +118,6 @@ class BusRuntime:
         bus.on_link = self._on_connection
         bus.runtime = self
         self.link = bus.link
-        self._reader: Optional[threading.Thread] = None  # the link's reader thread
         self._timer = DeadlineTimer(self._duty, name='servo-bus-timer', idle_s=TIMER_IDLE_S,
                                     min_sleep_s=0.0002, on_error=self._timer_failed)
         self._handlers = {Send: self._send, Answer: self._answer, ReadDone: self._read,
@@ -135,7 +134,6 @@ class BusRuntime:
     def start(self) -> None:
         """Open the port (its reader thread) and start the timer."""
         self.link.start()
-        self._reader = self.link._thread
         self._timer.start()
 
     def stop(self) -> List[bytes]:
@@ -346,7 +344,7 @@ class BusRuntime:
                 # decoder's partial frame always (garbage must not swallow the reply); the
                 # port's input too unless the reader thread steps this (it has just taken in
                 # everything the port had, and flushing a pty is a slow ioctl).
-                self.link.flush_input(port=threading.current_thread() is not self._reader)
+                self.link.flush_input(port=not self.link.on_reader_thread())
             self.link.write(action.frame)
         except LinkError as exc:
             return [ev.LinkDown(time.monotonic(), f'write failed: {exc}')]

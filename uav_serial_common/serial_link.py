@@ -149,6 +149,10 @@ class SerialLink:
         """Return True while the port is open."""
         return self._port_open.is_set()
 
+    def on_reader_thread(self) -> bool:
+        """Whether the caller is the link's reader thread (it has taken in what the port had)."""
+        return threading.current_thread() is self._thread
+
     def wait_port_open(self, timeout: float) -> bool:
         """Wait until the port is open; returns whether it is."""
         return self._port_open.wait(timeout)
