@@ -17,7 +17,7 @@ from uav_serial_drivers.msg import Failsafe, HandsetAuxiliary, HandsetLink, Hand
 from uav_serial_drivers.srv import SendRaw
 
 from handset_link_ros import protocol as p
-from uav_serial_common.process import wait_for, wait_scale
+from uav_serial_common.process import wait_for, wait_scale, WaitTimeout
 
 T = p.CommandType
 STICKS = {'yaw_deg', 'pitch_deg', 'roll_deg', 'altitude_m'}
@@ -80,10 +80,10 @@ class Handset:
                               timeout, what=what, start=len(self.diags))
         return next(s for s in msg.status if s.name == name)
 
-    def latest(self, task):
-        msg = self.diags.last
+    def statuses(self, task, start):
+        """Return the statuses of `task` in every /diagnostics message from index `start`."""
         name = f'{self.node}: {task}'
-        return next((s for s in msg.status if s.name == name), None) if msg else None
+        return [s for m in self.diags.messages[start:] for s in m.status if s.name == name]
 
     def log_line(self, level, words, timeout=5.0):
         def find():
@@ -186,10 +186,22 @@ def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, driver
     assert len(h.setpoints) == published, 'a refused frame was published'
     assert h.log_line('WARN', ['refused SET_YAW', 'not applied (H6)'])
     # Frames rejected within the last second make the link diagnostics a warning.
+    # Every link status since the first unknown frame is looked at, not only the newest
+    # /diagnostics message (other publishers on the topic may have sent that one).
     unknown = p.build_frame(0x0C, b'')
-    diag = wait_for(lambda: h.send_raw(unknown) or (
-        (s := h.latest('link')) is not None and 'rejected in the last second' in s.message
-        and s), 10, interval=0.2, what='rejected frames in the link diagnostics')
+    start = len(h.diags)
+
+    def rejected_shown():
+        h.send_raw(unknown)
+        return next((s for s in h.statuses('link', start)
+                     if 'rejected in the last second' in s.message), None)
+    try:
+        diag = wait_for(rejected_shown, 10, interval=0.2,
+                        what='rejected frames in the link diagnostics')
+    except WaitTimeout as exc:
+        seen = h.statuses('link', start)
+        raise AssertionError(f'{exc}; {len(seen)} link statuses since, the last: '
+                             f'{seen[-1] if seen else None}') from None
     assert diag.level == DiagnosticStatus.WARN
     # The same path takes a good frame at once (counted from before it is sent: it may be
     # published before the send_raw call returns).
