@@ -78,6 +78,41 @@ def check_call(rig: ModelRig, call: Call) -> None:
         assert call.deploy_sends > 0, answer.message
 
 
+def deployable(rig: ModelRig) -> bool:
+    """Whether a deploy call now must deploy: the module armed, answering, not triggered, below
+    P11, with nothing unseen since it was read, and no reboot of the module due (a reboot
+    during the call locks it)."""
+    return (rig.plugged and rig.model.powered and rig.t >= rig.hold_until
+            and rig.reboot_at is None
+            and not rig.unseen_reboot and not rig.unseen_change
+            and not rig.model.igniter_fault
+            and rig.model.armed and not rig.model.triggered and not rig.model.protection
+            and rig.core.failed < MAX_FAILED_DEPLOYS)
+
+
+def test_round2_22_3_found_a_module_rebooting_during_the_call_is_refused_as_locked():
+    # The search (campaign run of 2026-11-27): a late heartbeat of a reboot, then (within 2 s,
+    # D3) another reboot was due; the driver respawned, and its deploy armed the module but
+    # the arm reply came late. The module was armed and answered, and the oracle asked that a
+    # deploy call deploy it, but the second reboot came during that call: the module it read
+    # was locked, and "refused: locked" was true. The oracle now waits for a reboot due.
+    rig = ModelRig(armed=True)
+    check_call(rig, rig.deploy(faults=['late_heartbeat_reboot']))
+    rig.restart_driver()
+    check_call(rig, rig.deploy(arm_if_locked=True, faults=['clean', 'clean', 'delay']))
+    assert rig.model.armed and rig.reboot_at is not None
+    assert not deployable(rig)
+    boot = rig.model.boot_count
+    call = rig.deploy()
+    check_call(rig, call)
+    assert rig.model.boot_count == boot + 1 and not rig.model.armed
+    assert call.answers[0].outcome == 'refused' and 'locked' in call.answers[0].message
+    # Once that reboot is read, a deploy arms and deploys it (the rule the oracle keeps).
+    call = rig.deploy(arm_if_locked=True)
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'deployed', call.answers[0].message
+
+
 # -- the issue-21 findings that concern deploy, and what the search found ---------------------
 
 def test_round2_22_1_a_deploy_after_an_unplug_does_not_promise_on_old_knowledge():
@@ -485,13 +520,7 @@ class ParachuteDeployModel(RuleBasedStateMachine):
         call = self.rig.deploy(token, arm, faults, gate)
         check_call(self.rig, call)
 
-    @precondition(lambda self: self.rig.plugged and self.rig.model.powered
-                  and self.rig.t >= self.rig.hold_until
-                  and not self.rig.unseen_reboot and not self.rig.unseen_change
-                  and not self.rig.model.igniter_fault
-                  and self.rig.model.armed and not self.rig.model.triggered
-                  and not self.rig.model.protection
-                  and self.rig.core.failed < MAX_FAILED_DEPLOYS)
+    @precondition(lambda self: deployable(self.rig))
     @rule()
     def a_module_that_answers_can_be_deployed(self) -> None:
         call = self.rig.deploy()
