@@ -17,13 +17,8 @@ import time
 from typing import Any, Dict, Iterable, List, Optional, Set
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.schedule import REPLY_OVERHEAD
-from uav_serial_common.pty_port import wire_time
+from desheng_servo_ros.schedule import LATE_REPLY_WINDOW_S, patient_wait
 from uav_serial_common.serial_link import LinkTimeout
-
-# How long a scan listens for late replies after its last PING, and the least it waits for a
-# reply when it confirms an id that answered late (or garbled).
-LATE_REPLY_WINDOW_S = 0.1
 # At most this many such windows after the last PING while replies keep coming.
 LISTEN_ROUNDS = 10
 
@@ -129,8 +124,7 @@ def confirm(link: Any, servo_id: int) -> Optional[str]:
     silent than the read loop is.
     """
     frame = proto.encode_ping(servo_id)
-    wait = max(link.timeout_for(len(frame), 0, servo_id),
-               wire_time(len(frame) + REPLY_OVERHEAD, link.baud) + LATE_REPLY_WINDOW_S)
+    wait = patient_wait(len(frame), 0, link.baud, link.timeout_for(len(frame), 0, servo_id))
     for _ in range(2):
         before = link.garbled_by_id[servo_id]
         try:

@@ -413,15 +413,19 @@ class BusSchedule:
             actions.append(self._send_noreply(now, step, svc.name))
         return True
 
+    def reply_timeout(self, frame_len: int, nparams: int, reply_id: int) -> float:
+        """Return an attempt's usual wait: wire time of request + reply, and the id's margin."""
+        margin = self.margin_s
+        if self.slow_margin is not None and self.slow_margin[reply_id] > margin:
+            margin = self.slow_margin[reply_id]
+        return wire_time(frame_len + nparams + REPLY_OVERHEAD, self.baud) + margin
+
     def _start(self, at: float, tx: _Tx, actions: List[Any]) -> None:
         tx.attempts += 1
         if tx.attempts == 1:
             tx.mark = (self.bytes_in, self.frames_in)
-        margin = self.margin_s
-        if self.slow_margin is not None and self.slow_margin[tx.reply_id] > margin:
-            margin = self.slow_margin[tx.reply_id]
         timeout = tx.wait if tx.wait is not None else \
-            wire_time(len(tx.frame) + tx.nparams + REPLY_OVERHEAD, self.baud) + margin
+            self.reply_timeout(len(tx.frame), tx.nparams, tx.reply_id)
         self._tx = tx
         self._tx_sent = at + wire_time(len(tx.frame), self.baud)
         self._tx_deadline = at + timeout

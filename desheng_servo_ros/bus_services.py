@@ -12,8 +12,8 @@ from typing import Any, Hashable, Optional, Tuple
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_events import Answer, QUIET_CALLS
-from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s, renamed,
-                                        set_id_refusal, sync_write_frames)
+from desheng_servo_ros.schedule import (judge_probe, patient_wait, PROBE_READS, probe_quiet_s,
+                                        renamed, set_id_refusal, sync_write_frames)
 from desheng_servo_ros.state import ID, POSITION, TORQUE
 
 
@@ -137,8 +137,13 @@ class _Service:
     def _answers(self, servo_id: int) -> Any:
         """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
         garbled = False
+        frame = proto.encode_ping(servo_id)
         for _ in range(2):
-            yield self._tx(proto.encode_ping(servo_id), servo_id, 0, 0)
+            tx = self._tx(frame, servo_id, 0, 0)
+            # As the driver (ServoServices._answers): its silence becomes the answer.
+            tx.wait = patient_wait(len(frame), 0, self.bus.baud,
+                                   self.bus.reply_timeout(len(frame), 0, servo_id))
+            yield tx
             if self._reply is not None:
                 return 'yes'
             garbled = garbled or self._garbled

@@ -315,6 +315,23 @@ def set_id_refusal(servos: Sequence[ServoRecord], old: int, new: int) -> Optiona
     return None
 
 
+# How long a reply that ends a sweep may still come (the scan listens this long after its last
+# PING), and the least a PING that decides an answer waits for its reply.
+LATE_REPLY_WINDOW_S = 0.1
+
+
+def patient_wait(frame_len: int, reply_params: int, baud: int, usual: float) -> float:
+    """Return an attempt's wait when its silence decides an answer (`usual`: the normal one).
+
+    A PING that finds an id free, or tells after a lost acknowledgement where a servo is, is
+    not judged by the margin of the read loop, which a late device or a host that stalls for a
+    few ms overruns: its silence becomes what a service answers (and a set_id onto an id whose
+    servo answered late would make two servos share it).
+    """
+    return max(usual, wire_time(frame_len + reply_params + REPLY_OVERHEAD, baud)
+               + LATE_REPLY_WINDOW_S)
+
+
 # ~/set_id's probe of the old id (S24): this many READs of its present position, one attempt
 # each, and after each reply a wait for a second servo's reply to end (probe_quiet_s).
 PROBE_READS = 5

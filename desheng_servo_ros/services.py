@@ -17,8 +17,8 @@ from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
-from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s, renamed,
-                                        set_id_refusal)
+from desheng_servo_ros.schedule import (judge_probe, patient_wait, PROBE_READS, probe_quiet_s,
+                                        renamed, set_id_refusal)
 from desheng_servo_ros.state import FACTORY_ID, FIRMWARE, ID, POSITION, Result, RUN_PRESETS, TORQUE
 from desheng_servo_ros.units import select
 from uav_serial_common.text import clip, few
@@ -234,10 +234,16 @@ class ServoServices:
         return Result.done(f'{len(chosen)} servo(s) running to preset {preset}')
 
     def _answers(self, servo_id: int) -> str:
-        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
+        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'.
+
+        Each waits patiently (schedule.patient_wait): its silence becomes the answer.
+        """
         garbled = False
+        frame = proto.encode_ping(servo_id)
+        wait = patient_wait(len(frame), 0, self.bus.baud,
+                            self.bus.timeout_for(len(frame), 0, servo_id))
         for _ in range(2):
-            reply, mangled = self.bus.probe(proto.encode_ping(servo_id), servo_id, 0)
+            reply, mangled = self.bus.probe(frame, servo_id, 0, timeout=wait)
             if reply is not None:
                 return 'yes'
             garbled = garbled or mangled
