@@ -203,14 +203,18 @@ class HandsetLinkNode(Node):
         if state.port_open and not state.frames_accepted and state.frames_malformed:
             port = '; bytes arrive but not one valid handset frame: wrong baud rate? check the ' \
                 '`baud` parameter against the modem'
+        # Said in every state: frames refused while the link waits or is lost may be why.
+        rejected = '' if not state.frames_rejected_recently else \
+            f'; {state.frames_rejected_recently} frame(s) rejected in the last second ' \
+            '(malformed, out of range or unknown type)'
         if failsafe.link_lost:
             stat.summary(ERROR, f'link lost: a stick setpoint not refreshed by a valid handset '
                                 f'frame for {config.link_timeout_s:g} s; requesting return to '
-                                f'home{port}')
+                                f'home{port}{rejected}')
             return
         if not state.connected:
             stat.summary(WARN, f'waiting for the four stick setpoints of the handset (link lost '
-                               f'after {config.link_timeout_s:g} s){port}')
+                               f'after {config.link_timeout_s:g} s){port}{rejected}')
             return
         stat.summary(OK, f'receiving {state.command_rate_hz:.1f} commands/s')
         if not state.port_open:
@@ -219,9 +223,8 @@ class HandsetLinkNode(Node):
         if state.command_rate_hz < floor:
             stat.merge_summary(WARN, f'below {LOW_RATE_FRACTION * 100:.0f} % of the expected '
                                      f'{config.expected_rate_hz:g} Hz')
-        if state.frames_rejected_recently:
-            stat.merge_summary(WARN, f'{state.frames_rejected_recently} frame(s) rejected in the '
-                                     f'last second (malformed, out of range or unknown type)')
+        if rejected:
+            stat.merge_summary(WARN, rejected[2:])
 
     def _diagnose_battery(self, stat: Status) -> None:
         failsafe = self.core.failsafe()

@@ -158,7 +158,9 @@ def test_setpoint_in_drives_the_virtual_sticks(ros, launch, driver, tmp_path):
 
 def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, driver, tmp_path):
     h = Handset(ros, launch, tmp_path, driver=driver, link_timeout_s=60.0)
-    h.setpoints.wait(lambda m: m.updated, 10, what='a first setpoint')
+    # Connected (all four sticks in) before the radio goes quiet: one setpoint is not enough
+    # on a loaded host (campaign of 2026-11-27: three frames in, "waiting for the sticks").
+    h.links.wait(lambda m: m.connected, 10, what='connected')
     h.radio(False)
     base = h.links.wait(lambda m: m.command_rate_hz == 0, 5, what='the handset silent',
                         start=len(h.links))
@@ -210,6 +212,26 @@ def test_bad_frames_are_rejected_counted_and_never_published(ros, launch, driver
     got = h.setpoints.wait(lambda m: m.updated, 5, what='the good frame', start=start)
     assert (got.updated, got.yaw_deg) == (['yaw_deg'], 45.0)
     assert h.driver.alive()
+
+
+def test_frames_rejected_while_the_link_is_lost_are_in_its_diagnostics(ros, launch, driver,
+                                                                       tmp_path):
+    # Bad frames may be why the link is lost (a handset on another encoding): the lost link's
+    # diagnostics say how many came, as a connected link's do.
+    h = Handset(ros, launch, tmp_path, driver=driver, link_timeout_s=0.5)
+    h.links.wait(lambda m: m.connected, 10, what='connected')
+    h.radio(False)
+    h.failsafes.wait(lambda m: m.link_lost, 5, what='link lost')
+    unknown = p.build_frame(0x0C, b'')
+    start = len(h.diags)
+
+    def rejected_shown():
+        h.send_raw(unknown)
+        return next((s for s in h.statuses('link', start) if s.message.startswith('link lost')
+                     and 'rejected in the last second' in s.message), None)
+    diag = wait_for(rejected_shown, 10, interval=0.2,
+                    what='rejected frames in the lost link\'s diagnostics')
+    assert diag.level == DiagnosticStatus.ERROR
 
 
 def test_radio_link_lost_requests_return_to_home_and_is_regained(ros, launch, driver,
