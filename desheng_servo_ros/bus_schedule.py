@@ -26,7 +26,7 @@ from typing import Any, Deque, Dict, Hashable, List, Optional, Sequence, Tuple
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_events import (  # noqa: F401 - the types, re-exported
     Action, Answer, Call, Command, CycleDone, Event, QUIET_CALLS, ReadDone, Send, Shutdown)
-from desheng_servo_ros.bus_services import _Service, _Tx
+from desheng_servo_ros.bus_services import _Service, _Tx, WAIT
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
                                         judge_link, judge_reply, next_on_bus, NOT_DUE,
                                         OFFLINE_AFTER_FAILURES, plan_telemetry, POSTED,
@@ -207,7 +207,7 @@ class BusSchedule:
         self.reads.reset(self._pace(now))
         for tx in (self._tx, self._retry):
             if tx is not None:
-                self._done(now, tx, None)
+                self._done(now, tx, None, cut=True)
         self._tx = self._retry = None
         self._tx_deadline = math.inf
         self._free_at = max(self._free_at, now)
@@ -407,6 +407,8 @@ class BusSchedule:
                 self.held.add(svc.token)
             elif svc.quiet:
                 self.reads.reset(self._pace(now))  # the servo list may have changed
+        elif step is WAIT:
+            return False  # off the bus until its ready_at (wake_at)
         elif isinstance(step, _Tx):
             self._start(now, step, actions)
         else:
@@ -440,9 +442,11 @@ class BusSchedule:
         """Whether bytes and no frame came since `tx` was first sent (S24: colliding replies)."""
         return self.bytes_in > tx.mark[0] and self.frames_in == tx.mark[1]
 
-    def _done(self, now: float, tx: _Tx, reply: Optional[proto.Reply]) -> None:
+    def _done(self, now: float, tx: _Tx, reply: Optional[proto.Reply],
+              cut: bool = False) -> None:
+        """End `tx` with `reply` (None: none after its retries; `cut`: by the link)."""
         if tx.owner != 'read':
-            tx.owner.result(now, reply, reply is None and self._garbled(tx))
+            tx.owner.result(now, reply, reply is None and self._garbled(tx), cut)
             return
         s, kind, started, last = tx.tag
         if reply is None:

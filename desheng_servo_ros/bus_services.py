@@ -11,10 +11,14 @@ from __future__ import annotations
 from typing import Any, Hashable, Optional, Tuple
 
 from desheng_servo_ros import protocol as proto
+from desheng_servo_ros import id_change as idc
 from desheng_servo_ros.bus_events import Answer, QUIET_CALLS
-from desheng_servo_ros.schedule import (judge_probe, patient_wait, PROBE_READS, probe_quiet_s,
-                                        renamed, set_id_refusal, sync_write_frames)
-from desheng_servo_ros.state import ID, POSITION, TORQUE
+from desheng_servo_ros.schedule import patient_wait, renamed, sync_write_frames
+from desheng_servo_ros.state import TORQUE
+
+
+WAIT = object()
+"""What a service's step is when it waits off the bus until its ``ready_at``."""
 
 
 class _Tx:
@@ -55,6 +59,7 @@ class _Service:
         self._reply: Optional[proto.Reply] = None
         self._answer_reply: Optional[proto.Reply] = None
         self._garbled = False
+        self._cut = False
         self._at = 0.0
         self.ready_at = 0.0  # its next step waits until then
 
@@ -65,13 +70,16 @@ class _Service:
         except StopIteration:
             return None
 
-    def result(self, now: float, reply: Optional[proto.Reply], garbled: bool = False) -> None:
+    def result(self, now: float, reply: Optional[proto.Reply], garbled: bool = False,
+               cut: bool = False) -> None:
         """Take the reply of the step's transaction (None: none after its retries).
 
-        `garbled`: bytes and no frame came while it was awaited.
+        `garbled`: bytes and no frame came while it was awaited; `cut`: the link went down or
+        up meanwhile (the request was lost with it).
         """
         self._reply = reply
         self._garbled = garbled
+        self._cut = cut
         self._at = now
 
     def answer(self) -> Answer:
@@ -134,65 +142,47 @@ class _Service:
         elif name == 'set_id':
             yield from self._set_id(*args)
 
-    def _answers(self, servo_id: int) -> Any:
-        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'."""
-        garbled = False
-        frame = proto.encode_ping(servo_id)
-        for _ in range(2):
-            tx = self._tx(frame, servo_id, 0, 0)
-            # As the driver (ServoServices._answers): its silence becomes the answer.
-            tx.wait = patient_wait(len(frame), 0, self.bus.baud,
-                                   self.bus.reply_timeout(len(frame), 0, servo_id))
-            yield tx
-            if self._reply is not None:
-                return 'yes'
-            garbled = garbled or self._garbled
-        return 'garbled' if garbled else 'no'
-
-    def _how_many_answer(self, servo_id: int) -> Any:
-        """Probe as the live driver does (ServoServices._how_many_answer), with judge_probe."""
-        bus = self.bus
-        kind = (servo_id, POSITION.size)
-        unsolicited = bus.unsolicited.get(kind, 0)
-        values, garbled = [], 0
-        for _ in range(PROBE_READS):
-            yield self._tx(proto.encode_read(servo_id, POSITION.address, POSITION.size),
-                           servo_id, POSITION.size, 0)
-            if self._reply is not None:
-                values.append(int.from_bytes(self._reply.params, 'big'))
-                # As the driver: a second servo's whole reply ends before the next READ (it
-                # sleeps off the bus lock: commands may go meanwhile, the read loop is paused).
-                self.ready_at = self._at + probe_quiet_s(bus.baud)
-            elif self._garbled:
-                garbled += 1
-        return judge_probe(values, garbled, bus.unsolicited.get(kind, 0) - unsolicited)
-
     def _set_id(self, old: int, new: int) -> Any:
+        """The driver's ~/set_id (id_change.set_id), each step a transaction of the schedule."""
+        result = yield from self._procedure(idc.set_id(old, new, self.bus.servos, self.bus.baud))
+        self.ok, self.text = result.ok, result.message
+
+    def _procedure(self, steps: Any) -> Any:
+        """Run an id_change procedure here; return its value."""
         bus = self.bus
-        taken = yield from self._answers(new)
-        if taken != 'no':
-            self.ok, self.text = False, f'id {new} already answers ({taken})'
-            return
-        count, why = yield from self._how_many_answer(old)
-        if count != 'one':
-            self.ok, self.text = False, (f'servo {old} does not answer' if count == 'none'
-                                         else f'more than one servo answers at id {old} ({why})')
-            return
-        # A refusal checked again where the list could have changed meanwhile.
-        refusal = set_id_refusal(bus.servos, old, new)
-        if refusal is not None:
-            self.ok, self.text = False, refusal
-            return
-        yield self._tx(proto.encode_write(old, ID.address, bytes([new])), old, 0,
-                       bus.max_retries)
-        now_at_new = yield from self._answers(new)
-        if now_at_new != 'yes':
-            self.ok, self.text = False, f'UNKNOWN whether servo {old} now has id {new}'
-            return
-        # Done only if it is alone there (a servo at the new id whose PINGs were lost).
-        after, why = yield from self._how_many_answer(new)
-        bus.servos = renamed(bus.servos, old, new)
-        if after != 'one':
-            self.ok, self.text = False, f'servo {old} took id {new}, not alone there? ({why})'
-            return
-        self.text = f'servo {old} now answers at id {new}'
+        heard: Any = None
+        while True:
+            try:
+                step = steps.send(heard)
+            except StopIteration as stop:
+                return stop.value
+            heard = None
+            if isinstance(step, idc.Ask):
+                tx = self._tx(step.frame, step.servo_id, step.nparams,
+                              bus.max_retries if step.retries is None else step.retries)
+                if step.patient:
+                    tx.wait = patient_wait(len(step.frame), step.nparams, bus.baud,
+                                           bus.reply_timeout(len(step.frame), step.nparams,
+                                                             step.servo_id))
+                tx.flush = step.flush
+                yield tx
+                if self._cut:
+                    heard = idc.Heard(None, 'the link went down during the request', lost=True)
+                else:
+                    heard = idc.Heard(self._reply, f'no reply from servo {step.servo_id}',
+                                      garbled=self._garbled)
+            elif isinstance(step, idc.Quiet):
+                # As the driver: off the bus (it sleeps off the bus lock: commands may go
+                # meanwhile, the read loop is paused).
+                self.ready_at = self._at + step.seconds
+                yield WAIT
+            elif isinstance(step, idc.Unsolicited):
+                heard = bus.unsolicited.get((step.servo_id, step.size), 0)
+            elif isinstance(step, idc.Servos):
+                heard = bus.servos
+            elif isinstance(step, idc.PortBack):
+                heard = bus.port_open
+            elif isinstance(step, idc.Rename):
+                bus.servos = renamed(bus.servos, step.old, step.new)
+            else:
+                raise TypeError(f'not a step of an id change: {step!r}')

@@ -13,19 +13,16 @@ import time
 import traceback
 from typing import Any, Callable, Optional, Sequence, Tuple
 
+from desheng_servo_ros import id_change as idc
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
-from desheng_servo_ros.schedule import (judge_probe, patient_wait, PROBE_READS, probe_quiet_s,
-                                        renamed, set_id_refusal)
-from desheng_servo_ros.state import FACTORY_ID, FIRMWARE, ID, POSITION, Result, RUN_PRESETS, TORQUE
+from desheng_servo_ros.schedule import patient_wait, renamed, set_id_refusal
+from desheng_servo_ros.state import (FACTORY_ID, FIRMWARE, ID, Outcome, Result, RUN_PRESETS,
+                                     TORQUE)
 from desheng_servo_ros.units import select
 from uav_serial_common.text import clip, few
-
-# An id change or RESET whose frame left without an acknowledgement (lost, or the link dropped)
-# is settled by asking the bus; a link that went down gets this long to come back for that.
-SETTLE_WAIT_S = 2.0
 
 # Services that change nothing on a servo: a request of theirs that went unanswered leaves no
 # outcome to find out.
@@ -55,12 +52,6 @@ def _service(method: Callable[..., Result]) -> Callable[..., Result]:
             result = Result.failed(f'internal error: {exc!r}', cause='internal')
         return result.with_message(clip(result.message))
     return call
-
-
-def _unknown(what: str, error: LinkError, then: str) -> Result:
-    """Answer an outcome the bus did not tell: never a success or refusal not seen."""
-    return Result.unknown(f'UNKNOWN whether {what}: its frame left, then {error}; {then}',
-                          cause='no_reply')
 
 
 class ServoServices:
@@ -233,109 +224,74 @@ class ServoServices:
             return Result.unknown(f'no acknowledgement from {few(failed)}', 'no_reply')
         return Result.done(f'{len(chosen)} servo(s) running to preset {preset}')
 
-    def _answers(self, servo_id: int) -> str:
-        """PING up to twice: 'yes', 'garbled' (something answers, not cleanly) or 'no'.
+    # -- the probes and ~/set_id: id_change's procedures, each step a call on the bus ----------
 
-        Each waits patiently (schedule.patient_wait): its silence becomes the answer.
-        """
-        garbled = False
-        frame = proto.encode_ping(servo_id)
-        wait = patient_wait(len(frame), 0, self.bus.baud,
-                            self.bus.timeout_for(len(frame), 0, servo_id))
-        for _ in range(2):
-            reply, mangled = self.bus.probe(frame, servo_id, 0, timeout=wait)
-            if reply is not None:
-                return 'yes'
-            garbled = garbled or mangled
-        return 'garbled' if garbled else 'no'
+    def _carry(self, step: Any) -> Any:
+        """Carry out one step of an id_change procedure on the bus (this service's thread)."""
+        if isinstance(step, idc.Ask):
+            wait = None
+            if step.patient:
+                wait = patient_wait(len(step.frame), step.nparams, self.bus.baud,
+                                    self.bus.timeout_for(len(step.frame), step.nparams,
+                                                         step.servo_id))
+            garbled = self.bus.garbled_by_id[step.servo_id]
+            try:
+                return idc.Heard(self.bus.transact(step.frame, step.servo_id, step.nparams,
+                                                   retries=step.retries, timeout=wait,
+                                                   flush=step.flush))
+            except LinkTimeout as exc:
+                return idc.Heard(None, str(exc),
+                                 garbled=self.bus.garbled_by_id[step.servo_id] > garbled)
+            except LinkError as exc:
+                return idc.Heard(None, str(exc), lost=True, left=exc.sent)
+        if isinstance(step, idc.Quiet):
+            time.sleep(step.seconds)  # off the bus: commands may go meanwhile
+            return None
+        if isinstance(step, idc.Unsolicited):
+            return self.bus.unsolicited_replies(step.servo_id, step.size)
+        if isinstance(step, idc.Servos):
+            return self._servos
+        if isinstance(step, idc.PortBack):
+            return self.bus.wait_port_open(step.seconds)
+        if isinstance(step, idc.Rename):
+            self._set_servos(renamed(self._servos, step.old, step.new))
+            return None
+        raise TypeError(f'not a step of an id change: {step!r}')
+
+    def _probe(self, steps: Any) -> Any:
+        """Run a probe of id_change; a link that went down raises its LinkError here."""
+        try:
+            return idc.run_to_end(steps, self._carry)
+        except idc.LinkLost as exc:
+            error = LinkDown(str(exc))
+            error.sent = exc.heard.left
+            raise error from None
+
+    def _answers(self, servo_id: int) -> str:
+        """PING up to twice, patiently: 'yes', 'garbled' or 'no' (id_change.answers)."""
+        return self._probe(idc.answers(servo_id))
 
     def _how_many_answer(self, servo_id: int, values_differ: bool = True) -> Tuple[str, str]:
-        """Return ('none' | 'one' | 'several', why): READs the present position a few times.
-
-        The judgement is schedule.judge_probe's (BusSchedule's set_id probe uses it too).
-        """
-        # Replies that no READ waited for, of the READs' size only: a late reply to an earlier
-        # request (a PING of the scan when the device stalled) is one reply to one request.
-        unsolicited = self.bus.unsolicited_replies(servo_id, POSITION.size)
-        frame = proto.encode_read(servo_id, POSITION.address, POSITION.size)
-        # A second whole reply follows the first at once: the next READ waits for it to end
-        # (it would collide with it on the bus). Only the first READ flushes the input: a
-        # second reply later than that (the device or the reader fell behind) is then taken by
-        # the next READ or counted unsolicited, never thrown away (thrown away, beside a busy
-        # loop, it let set_id rename two servos at one id).
-        quiet = probe_quiet_s(self.config.baud)
-        values, garbled = [], 0
-        for k in range(PROBE_READS):
-            reply, mangled = self.bus.probe(frame, servo_id, POSITION.size, flush=k == 0)
-            if reply is not None:
-                values.append(int.from_bytes(reply.params, 'big'))
-                time.sleep(quiet)
-            elif mangled:
-                garbled += 1
-        return judge_probe(values, garbled,
-                           self.bus.unsolicited_replies(servo_id, POSITION.size) - unsolicited,
-                           values_differ)
+        """Return ('none' | 'one' | 'unsure' | 'several', why): id_change.how_many_answer."""
+        return self._probe(idc.how_many_answer(servo_id, self.config.baud, values_differ))
 
     @_service
     def set_id(self, old: int, new: int) -> Result:
-        """Give the servo at `old` the id `new`, if exactly one servo answers at `old`."""
+        """Give the servo at `old` the id `new`, if exactly one servo answers at `old`.
+
+        The procedure is id_change.set_id, the one the bus model searches.
+        """
         refusal = set_id_refusal(self._servos, old, new)
         if refusal is not None:
             raise ValueError(refusal)
         with self._loop_paused():
-            taken = self._answers(new)
-            if taken != 'no':
-                how = '' if taken == 'yes' else ' (with a garbled reply: more than one servo?)'
-                raise ValueError(f'id {new} already answers on the bus{how}; pick a free id '
-                                 '(~/scan)')
-            count, why = self._how_many_answer(old)
-            if count == 'none':
-                return Result.refused('no_servo', f'servo {old} does not answer; nothing '
-                                      'changed')
-            if count == 'several':
-                return Result.refused('shared_id', (
-                    f'more than one servo answers at id {old} ({why}): a new id would go to '
-                    'all of them. Disconnect or power off all but one, then try again; nothing '
-                    'changed'))
-            if count == 'unsure':
-                return Result.refused('lossy_bus', (
-                    f'servo {old} answers, but {why}: whether it is alone at id {old} and id '
-                    f'{new} is free cannot be told; nothing changed. Try again'))
-            what = f'servo {old} now has id {new}'
-            lost = self._send_unacknowledged(
-                lambda: self.bus.write(old, ID.address, encode_value(ID, new)))
-            try:
-                if lost is not None and not self.bus.wait_port_open(SETTLE_WAIT_S):
-                    return _unknown(what, lost, f'~/scan tells (id {new} answers if it did)')
-                if self._answers(new) != 'yes':
-                    if lost is None:
-                        return Result.failed(f'servo {old} acknowledged but does not answer '
-                                             f'at id {new}; check with ~/scan')
-                    if self._answers(old) == 'yes':
-                        return Result.failed(f'servo {old} did not take id {new} ({lost}): it '
-                                             f'still answers at id {old}; nothing changed')
-                    return _unknown(what, lost, f'neither id {old} nor {new} answers now; '
-                                                'check with ~/scan')
-                # Done only if it is alone there: a servo at the new id whose PING replies
-                # were lost would now share it (the same probe as before the change).
-                after, why = self._how_many_answer(new)
-            except LinkError as exc:
-                return _unknown(what, exc, f'~/scan tells (id {new} answers if it did)')
-            self._rename(old, new)
-            if after == 'several':
-                message = (f'servo {old} took id {new}, and more than one servo answers there '
-                           f'now ({why}): id {new} was taken by a servo the probe did not hear. '
-                           'Connect them one at a time and give each its own id')
-                self.log_error(message)
-                return Result.failed(message, 'shared_id')
-            if after != 'one':
-                return Result.unknown(f'servo {old} answers at id {new}, but whether it is alone '
-                                      f'there was not seen ({why or "no reply"}); check with '
-                                      '~/scan', 'lossy_bus')
-        message = f'servo {old} now answers at id {new}' + (
-            '' if lost is None else f' (its acknowledgement was lost: {lost})')
-        self.log_info(message)
-        return Result.done(message)
+            result = idc.run_to_end(idc.set_id(old, new, self._servos, self.config.baud),
+                                    self._carry)
+        if result.cause == 'shared_id' and result.outcome == Outcome.FAILED:
+            self.log_error(result.message)
+        elif result.ok:
+            self.log_info(result.message)
+        return result
 
     def _send_unacknowledged(self, send: Callable[[], Any]) -> Optional[LinkError]:
         """Run `send`; return None if acknowledged, the error if its frame left without one.
@@ -350,9 +306,6 @@ class ServoServices:
             return exc
         return None
 
-    def _rename(self, old: int, new: int) -> None:
-        self._set_servos(renamed(self._servos, old, new))
-
     @_service
     def factory_reset(self, servo_id: int, confirm: str) -> Result:
         """RESET one servo to its factory registers (`confirm` must be ``RESET``)."""
@@ -365,22 +318,23 @@ class ServoServices:
             taken = servo_id != FACTORY_ID and self._answers(FACTORY_ID) != 'no'
             lost = self._send_unacknowledged(lambda: self.bus.reset(servo_id))
             try:
-                if lost is not None and not self.bus.wait_port_open(SETTLE_WAIT_S):
-                    return _unknown(what, lost, f'~/scan tells (a reset servo answers at the '
-                                                f'factory id {FACTORY_ID})')
+                if lost is not None and not self.bus.wait_port_open(idc.SETTLE_WAIT_S):
+                    return idc.unknown(what, str(lost), f'~/scan tells (a reset servo answers '
+                                                        f'at the factory id {FACTORY_ID})')
                 at_own = self._answers(servo_id) == 'yes'
                 at_factory = 'no' if at_own else self._how_many_answer(FACTORY_ID)[0]
             except LinkError as exc:
-                return _unknown(what, exc, '~/scan tells')
+                return idc.unknown(what, str(exc), '~/scan tells')
         if lost is not None:
             if at_own:
                 # A servo that keeps its id on RESET (S23) or one that never got it: the bus
                 # cannot tell them apart.
-                return _unknown(what, lost, f'it still answers at id {servo_id}; read its '
-                                            'registers with ~/read_register')
+                return idc.unknown(what, str(lost), f'it still answers at id {servo_id}; read '
+                                                    'its registers with ~/read_register')
             if at_factory == 'none':
-                return _unknown(what, lost, f'neither id {servo_id} nor the factory id '
-                                            f'{FACTORY_ID} answers now; check with ~/scan')
+                return idc.unknown(what, str(lost), f'neither id {servo_id} nor the factory '
+                                                    f'id {FACTORY_ID} answers now; check with '
+                                                    '~/scan')
             note = f' (its acknowledgement was lost: {lost})'
         else:
             note = ''

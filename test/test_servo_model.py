@@ -204,7 +204,8 @@ class Wire:
         self.outstanding = send if send.reply_id is not None else None
         self._out_k = len(self.log) - 1
         self.busy_until = send.deadline
-        self.decoder.reset()  # the driver flushes stale input before each request
+        if send.reply_id is not None and send.flush:
+            self.decoder.reset()  # as the runtime: stale input goes before such a request
         if not self.plugged:
             return
         end = send.at + wire_time(len(send.frame), BAUD)
