@@ -143,7 +143,7 @@ class _Service:
             yield from self._set_id(*args)
 
     def _set_id(self, old: int, new: int) -> Any:
-        """The driver's ~/set_id (id_change.set_id), each step a transaction of the schedule."""
+        """Run the driver's ~/set_id (id_change.set_id), each step a transaction here."""
         result = yield from self._procedure(idc.set_id(old, new, self.bus.servos, self.bus.baud))
         self.ok, self.text = result.ok, result.message
 

@@ -49,7 +49,7 @@ from desheng_servo_ros.link import LinkError, ServoBusLink
 from desheng_servo_ros.schedule import (  # noqa: F401 - the rules' constants, re-exported
     COMMAND_BURST, COMMAND_CYCLE_SHARE, COMMAND_SPACING, CommandQueue, OFFLINE_AFTER_FAILURES,
     REPROBE_PERIOD_S, shutdown_frames, sync_write_frames)
-from desheng_servo_ros.services import PROBE_READS, ServoServices  # noqa: F401
+from desheng_servo_ros.services import ServoServices
 from desheng_servo_ros.state import (  # noqa: F401 - the driver's types, re-exported
     ALL_IDS, BusSnapshot, ERROR, Health, new_tuple, OK, READ_STATE, READ_WIDE, Reading, Result,
     S_CURRENT, ServoBusConfig, ServoRecord, ServoSnapshot, STALE, Telemetry, TORQUE,

@@ -136,9 +136,10 @@ def how_many_answer(servo_id: int, baud: int, values_differ: bool = True) -> Ste
     The judgement is ``schedule.judge_probe``'s. Each READ waits patiently: a reply later than
     the read loop's margin (a host that stalled) is still its reply, and only a READ unanswered
     then makes the probe unsure. A second whole reply follows the first at once: each reply is
-    followed by a quiet wait for it to end (it would collide with the next READ). Only the first READ discards stale input: a second reply later than that (the device
-    or the reader fell behind) is then taken by the next READ or counted unsolicited, never
-    thrown away (thrown away, beside a busy loop, it let set_id rename two servos at one id).
+    followed by a quiet wait for it to end (it would collide with the next READ). Only the
+    first READ discards stale input: a second reply later than that (the device or the reader
+    fell behind) is then taken by the next READ or counted unsolicited, never thrown away
+    (thrown away, beside a busy loop, it let set_id rename two servos at one id).
     """
     # Replies that no READ waited for, of the READs' size only: a late reply to an earlier
     # request (a PING of the scan when the device stalled) is one reply to one request.

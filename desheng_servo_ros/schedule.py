@@ -352,9 +352,10 @@ def judge_probe(values: Sequence[int], garbled: int, unsolicited: int,
     answer twice (a READ without a reply of its own may be answered late, once: beyond those,
     more than one servo answers); their positions also rarely agree (`values_differ`: count
     that as a sign too, at the price of a moving servo looking like two). 'one' only when every
-    READ was answered in its time (its patient wait, ``patient_wait``): on a bus that loses replies a second servo's may be among
-    those lost (and a late reply is not told from a second servo's), and the PINGs that found
-    the new id free may have missed a servo there ('unsure').
+    READ was answered in its time (its patient wait, ``patient_wait``): on a bus that loses
+    replies a second servo's may be among those lost (and a late reply is not told from a
+    second servo's), and the PINGs that found the new id free may have missed a servo there
+    ('unsure').
     """
     extra = unsolicited - (PROBE_READS - len(values))
     if garbled:

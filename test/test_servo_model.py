@@ -871,9 +871,9 @@ def test_round2_22_5_found_a_renamed_servo_unplugged_before_the_answer_is_no_vio
     state.set_id_of_a_servo_not_in_the_list(ms=35.0, new=2)
     state.emergency_stop(ms=2.0)
     (token, call), = state.set_ids.items()
-    # (Found before the PINGs waited patiently, schedule.patient_wait: the same moment, now
-    # 196.5 ms later.)
-    state.wait(ms=196.5)
+    # (Found before the PINGs and READs waited patiently, schedule.patient_wait: the same
+    # moment, now 224.5 ms later.)
+    state.wait(ms=224.5)
     assert not any(a.token == token for a in state.wire.answers)
     state.disconnect_or_connect_a_servo(servo_id=2)
     state.emergency_stop(ms=2.0)
