@@ -43,8 +43,10 @@ import random
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, CycleDone,
                                             ReadDone, Send, Shutdown)
-from desheng_servo_ros.schedule import (COMMAND_SPACING, REPROBE_PERIOD_S, sync_write_frames,
+from desheng_servo_ros.schedule import (COMMAND_SPACING, PROBE_READS, probe_quiet_s,
+                                        REPLY_OVERHEAD, REPROBE_PERIOD_S, sync_write_frames,
                                         TORQUE_OFF_ALL)
+from desheng_servo_ros.state import POSITION
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
 from hypothesis import HealthCheck, settings, strategies as st
@@ -918,4 +920,21 @@ def test_round2_22_5_found_two_servos_whose_replies_come_apart_are_not_renamed_a
     state.one_transaction_at_a_time()
     state.reads_keep_at_least_half_their_rate()
     state.set_id_done_never_makes_two_servos_share_an_id()
+    state.teardown()
+
+
+def test_round2_22_5_the_models_probe_waits_after_every_reply_as_the_driver() -> None:
+    # The model's own probe used to set its quiet wait while it already handed the next READ
+    # to the bus, so every other READ left at once after a reply (the driver sleeps after each
+    # one). It now runs the driver's procedure (id_change), whose quiet wait is a step the
+    # schedule waits out.
+    state = ServoBusModel()
+    state.start(n=1, rate=50.0, retries=0, telemetry=0.05, extra=True, seed=0, pace=0.0)
+    state.set_id_of_a_servo_not_in_the_list(ms=35.0, new=2)
+    state.wait(ms=400.0)
+    frame = proto.encode_read(6, POSITION.address, POSITION.size)
+    reads = [s.at for s in state.wire.log if s.frame == frame]
+    assert len(reads) == PROBE_READS
+    reply = wire_time(len(frame) + POSITION.size + REPLY_OVERHEAD, BAUD)
+    assert all(b - a >= reply + probe_quiet_s(BAUD) for a, b in zip(reads, reads[1:])), reads
     state.teardown()
