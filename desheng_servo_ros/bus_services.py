@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from typing import Any, Hashable, Optional, Tuple
 
-from desheng_servo_ros import protocol as proto
 from desheng_servo_ros import id_change as idc
+from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_events import Answer, QUIET_CALLS
 from desheng_servo_ros.schedule import patient_wait, renamed, sync_write_frames
 from desheng_servo_ros.state import TORQUE
@@ -42,7 +42,7 @@ class _Tx:
 
 
 class _Service:
-    """A service call as a sequence of transactions (the model's version of the core's)."""
+    """A service call as a sequence of transactions (``~/set_id``: the driver's own procedure)."""
 
     def __init__(self, bus: Any, token: Hashable, name: str,
                  args: Tuple[Any, ...]) -> None:

@@ -339,21 +339,6 @@ class ServoBusLink:
         error.sent = not answer.text.startswith('shutting down') or 'had left' in answer.text
         raise error
 
-    def probe(self, frame: bytes, servo_id: int, reply_params: int, flush: bool = True,
-              timeout: Optional[float] = None) -> Tuple[Optional[Reply], bool]:
-        """Send one request once; return (its reply or None, whether a garbled reply came).
-
-        Garbled = bytes arrived but no frame at all: on a half-duplex bus, the sign of two
-        servos answering at once (S24); a plain silence is (None, False). `timeout`: the wait
-        (default: wire time + margin).
-        """
-        garbled = self.garbled_by_id[servo_id]
-        try:
-            return self.transact(frame, servo_id, reply_params, retries=0, timeout=timeout,
-                                 flush=flush), False
-        except LinkTimeout:
-            return None, self.garbled_by_id[servo_id] > garbled
-
     def call(self, name: str, *args: Any) -> Any:
         """Step a call of the schedule and return its answer, done (ok) or raised.
 

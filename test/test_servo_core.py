@@ -15,7 +15,7 @@ from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_schedule import Send
 from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAILURES,
                                     REPROBE_PERIOD_S, ServoBusConfig, ServoBusCore, WARN)
-from desheng_servo_ros.link import FORGET_AFTER_REPLIES
+from desheng_servo_ros.link import FORGET_AFTER_REPLIES, LinkTimeout
 from desheng_servo_ros.protocol import Instruction, StreamDecoder
 from desheng_servo_ros.simulation import HOLD_CURRENT_MA, IDLE_CURRENT_MA
 from desheng_servo_ros.state import Outcome, POSITION
@@ -669,8 +669,10 @@ def test_round2_22_6_a_late_reply_from_before_the_check_is_no_second_servo(rig):
     # (Its READs' replies come late behind it: 'unsure', which set_id refuses, and a scan
     # does not call a duplicate.)
     rig.dev.runner.faults.reply_delay_s = 0.06
-    reply, garbled = rig.core.bus.probe(proto.encode_ping(1), 1, 0)
-    assert reply is None and not garbled
+    garbled = rig.core.bus.garbled_by_id[1]
+    with pytest.raises(LinkTimeout):
+        rig.core.bus.transact(proto.encode_ping(1), 1, 0, retries=0)
+    assert rig.core.bus.garbled_by_id[1] == garbled
     rig.dev.runner.faults.reply_delay_s = 0.0
     assert rig.core._how_many_answer(1, values_differ=False)[0] in ('one', 'unsure')
     assert rig.core._how_many_answer(1, values_differ=False) == ('one', '')
