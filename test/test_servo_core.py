@@ -791,7 +791,15 @@ def test_the_start_up_scan_finds_a_slow_servo_and_reads_it(tmp_path):
                  all(s.online for s in rig.core.snapshot().servos), 10,
                  what='both servos online')
         assert 'found servos [3, 200]' in rig.log.text('info')
-        assert all(s.error_count == 0 for s in rig.core.snapshot().servos)
+        # The read loop waits long enough for them: with the usual 2-ms margin every READ of
+        # theirs would fail. Over 20 cycles at most a few may (a loaded host stalls beyond the
+        # margin they learned now and then: campaign of 2026-11-27), and both stay online.
+        errors = {s.id: s.error_count for s in rig.core.snapshot().servos}
+        cycles = rig.core.cycle_count
+        wait_for(lambda: rig.core.cycle_count >= cycles + 20, 10, what='20 more read cycles')
+        snap = rig.core.snapshot()
+        assert all(s.online and s.error_count - errors[s.id] <= 3 for s in snap.servos), \
+            [(s.id, s.online, s.error_count - errors[s.id]) for s in snap.servos]
     finally:
         rig.stop()
 
