@@ -54,8 +54,13 @@ def test_trigger_records_are_collected(rig):
     sim, runner, link, _, _, _ = rig
     link.request(p.encode_arm(True))
     assert link.request(p.encode_deploy()).success
-    records = link.query_records()
-    assert len(records) == 8
+    # An answer cut short (the module's frames more than 0.2 s apart: a stalled host, campaign
+    # of 2026-11-27) says so (`complete` False); a caller asks again.
+    for _ in range(3):
+        records = link.query_records()
+        if records.complete:
+            break
+    assert len(records) == 8 and records.complete
     assert records[0].serial_trigger and all(r.is_empty for r in records[1:])
 
 

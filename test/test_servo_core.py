@@ -193,7 +193,11 @@ def test_a_cycle_reads_every_servo_and_telemetry_is_spread_over_its_period(rig):
     mark = rig.tap.mark()
     for _ in range(3):
         rig.cycle(1.0 / 3 + 0.001)
-    blocks = [(r.servo_id, r.params[0], r.params[1]) for r in rig.tap.requests(mark)]
+    # (A READ sent again after its wait ran out on a loaded host is the same READ: campaign
+    # of 2026-11-27.)
+    requests = rig.tap.requests(mark)
+    blocks = [(r.servo_id, r.params[0], r.params[1]) for k, r in enumerate(requests)
+              if k == 0 or r.raw != requests[k - 1].raw]
     wide, state = (0x38, 8), (0x28, 8)
     assert blocks == [(1, *state), (1, *wide), (2, 0x38, 4), (3, 0x38, 4),
                       (1, 0x38, 4), (2, *state), (2, *wide), (3, 0x38, 4),
