@@ -17,8 +17,9 @@ class ScriptedBus:
     """Servos by id (a count each) that answer at once; faults by the request's frame."""
 
     def __init__(self, at_ids, lose_write_ack=False, cut=None, moves_on_write=True,
-                 apart=False):
+                 apart=False, after_write=None):
         self.at = dict(at_ids)
+        self.after_write = after_write  # called with `at` once the WRITE is carried out
         self.apart = apart        # two servos at one id: replies apart (else they collide)
         self.unsolicited = 0
         self.lose_write_ack = lose_write_ack
@@ -52,6 +53,8 @@ class ScriptedBus:
             new = step.frame[6]
             if self.moves_on_write and self.at.get(servo_id):
                 self.at[new] = self.at.get(new, 0) + self.at.pop(servo_id)
+            if self.after_write is not None:
+                self.after_write(self.at)
             if self.lose_write_ack:
                 return idc.Heard(None, f'no reply from servo {servo_id}')
             return idc.Heard(proto.Reply(servo_id, 0, b'', b''))
@@ -129,28 +132,17 @@ def test_a_lost_acknowledgement_of_a_servo_still_at_its_id_is_a_failure():
 
 
 def test_a_lost_acknowledgement_and_a_silent_bus_is_unknown():
-    bus = ScriptedBus({1: 1, 3: 1}, lose_write_ack=True)
-    carry = bus.carry
-
-    def silent_after_the_write(step):
-        heard = carry(step)
-        if isinstance(step, idc.Ask) and step.frame[4] == proto.Instruction.WRITE:
-            bus.at.pop(9, None)  # the servo went silent (unplugged) after its WRITE
-        return heard
-    result = idc.run_to_end(idc.set_id(3, 9, bus.servos, BAUD), silent_after_the_write)
+    # The servo goes silent (unplugged) after its WRITE.
+    bus = ScriptedBus({1: 1, 3: 1}, lose_write_ack=True, after_write=lambda at: at.pop(9, None))
+    result = set_id(bus)
     assert result.outcome == Outcome.UNKNOWN and 'neither id 3 nor 9 answers' in result.message
 
 
 def test_a_second_servo_found_at_the_new_id_after_the_change_is_a_failure():
-    bus = ScriptedBus({1: 1, 3: 1}, apart=True)
-    carry = bus.carry
-
-    def a_hidden_servo_at_9(step):
-        heard = carry(step)
-        if isinstance(step, idc.Ask) and step.frame[4] == proto.Instruction.WRITE:
-            bus.at[9] += 1  # a servo at 9 whose PINGs were lost before
-        return heard
-    result = idc.run_to_end(idc.set_id(3, 9, bus.servos, BAUD), a_hidden_servo_at_9)
+    # A servo at 9 whose PINGs were lost before the change answers there after it.
+    bus = ScriptedBus({1: 1, 3: 1}, apart=True,
+                      after_write=lambda at: at.update({9: at[9] + 1}))
+    result = set_id(bus)
     assert (result.outcome, result.cause) == (Outcome.FAILED, 'shared_id')
     assert bus.renamed == [(3, 9)]  # the joint's servo is at 9 now
 
