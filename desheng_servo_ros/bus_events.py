@@ -1,6 +1,6 @@
 """The servo bus schedule's events and actions (``bus_schedule.BusSchedule.step``).
 
-Events in: :class:`Command`, :class:`Call`, :class:`Shutdown`, and the shared
+Events in: :class:`Command`, :class:`Call`, :class:`Shutdown`, :class:`Late`, and the shared
 ``core_events`` ``Reply``, ``LinkUp``/``LinkDown`` and ``Tick``. Actions out: :class:`Send`,
 :class:`Answer`, :class:`ReadDone`, :class:`CycleDone`, and the shared ``Log`` and
 ``SetTimer``. A servo bus ``Send`` owns bus time (when the frame goes, until when the
@@ -96,11 +96,27 @@ QUIET_CALLS = frozenset({'scan', 'set_id', 'hold'})
 """Calls that need a quiet bus: the read loop stops at the next READ boundary meanwhile."""
 
 
+class Late(NamedTuple):
+    """`send` went late (a loaded host), seen at `now`.
+
+    Its write began `lag` s after its time at the least, and had ended `lag_max` s after it
+    (the host may hold the thread anywhere around the write). What the frame holds moves with
+    it: the bus, until its reply's deadline or the end of its wire time, by `lag_max` (it may
+    have left that late); the moment the request had left, after which a reply can be its
+    answer, by `lag` (a reply that came after it is not refused).
+    """
+
+    now: float
+    send: Send
+    lag: float
+    lag_max: float
+
+
 class Shutdown(NamedTuple):
     """Stop at `now`: pending commands and calls dropped, torque off the last frame."""
 
     now: float
 
 
-Event = Union[Command, Call, Shutdown, Reply, LinkUp, LinkDown, Tick]
+Event = Union[Command, Call, Late, Shutdown, Reply, LinkUp, LinkDown, Tick]
 Action = Union[Send, Answer, ReadDone, CycleDone, Log, SetTimer]

@@ -16,11 +16,14 @@ out its actions, in its order, by one handler per action type:
   a :class:`~uav_serial_common.ticket.Ticket` the caller waits on, with a timeout).
 
 Handlers: ``Send`` writes the frame (at its time: the frames of a batch follow each other's
-wire time); ``Answer`` settles the caller's ticket; ``ReadDone``/``CycleDone`` go to the
-owner's callbacks (quick ones: they run on the stepping thread, under the lock); ``Log`` logs;
-``SetTimer`` wakes the timer by then. The actions are carried out under the lock, so the frames
-leave in the order the schedule chose them, whichever thread stepped (a write to the port takes
-microseconds; a frame of a batch waits at most the wire time of the one before it).
+wire time; or later, when the frame before it went late: ``bus_schedule.Line``), and a frame
+that a loaded host wrote late is stepped back as ``Late`` (its reply's deadline, or the bus's
+free time, moves with it); ``Answer`` settles the caller's ticket; ``ReadDone``/``CycleDone``
+go to the owner's callbacks (quick ones: they run on the stepping thread, under the lock);
+``Log`` logs; ``SetTimer`` wakes the timer by then. The actions are carried out under the
+lock, so the frames leave in the order the schedule chose them, whichever thread stepped (a
+write to the port takes microseconds; a frame of a batch waits at most the wire time of the
+one before it).
 
 The read loop's pace runs on ``clock`` (a test's clock), the bus's deadlines on the monotonic
 clock (``BusSchedule.step``'s ``pace_now``).
@@ -37,7 +40,7 @@ from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.link import ServoBusLink
 from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, CycleDone,
-                                            ReadDone, Send, Shutdown)
+                                            Line, ReadDone, Send, Shutdown)
 from desheng_servo_ros.units import Joint
 from uav_serial_common import core_events as ev
 from uav_serial_common.core_runner import run_core
@@ -123,6 +126,7 @@ class BusRuntime:
         self._handlers = {Send: self._send, Answer: self._answer, ReadDone: self._read,
                           CycleDone: self._cycle, ev.Log: self._log_line,
                           ev.SetTimer: self._set_timer}
+        self._line = Line()  # when frames really went: a loaded host writes late
         self._due = math.inf  # the last step's SetTimer (inf: none)
         self._stepped_at = -math.inf  # when the schedule was last stepped (monotonic)
         self.frames_sent = 0
@@ -146,7 +150,7 @@ class BusRuntime:
         written = self.frames_sent - written  # a write to a port that is not open fails
         self._timer.stop()
         if sent and written:  # the torque off leaves the line before the port closes
-            time.sleep(max(0.0, sent[-1].deadline - time.monotonic()))
+            time.sleep(max(0.0, self._line.free_at - time.monotonic()))
         self.link.stop()
         return [a.frame for a in sent][:written]
 
@@ -335,7 +339,7 @@ class BusRuntime:
     # -- handlers -------------------------------------------------------------------------------
 
     def _send(self, action: Send) -> Optional[List[Any]]:
-        delay = action.at - time.monotonic()
+        delay = self._line.start(action) - time.monotonic()
         if delay > 0:  # a frame of a batch: after the one before it left the line
             time.sleep(delay)
         try:
@@ -345,12 +349,17 @@ class BusRuntime:
                 # port's input too unless the reader thread steps this (it has just taken in
                 # everything the port had, and flushing a pty is a slow ioctl).
                 self.link.flush_input(port=not self.link.on_reader_thread())
+            began = time.monotonic()
             self.link.write(action.frame)
         except LinkError as exc:
             return [ev.LinkDown(time.monotonic(), f'write failed: {exc}')]
+        # The thread may be held up anywhere around the write: it began after `began` and
+        # had ended by `ended` (the bus is held to the latter, a reply taken from the former).
+        ended = time.monotonic()
         self.frames_sent += 1
         self.last_frame = action.frame
-        return None
+        late = self._line.wrote(action, began, ended, ended)
+        return None if late is None else [late]
 
     @staticmethod
     def _answer(action: Answer) -> None:

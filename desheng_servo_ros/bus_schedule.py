@@ -7,14 +7,15 @@ one event with its time and returns the actions to carry out (issue 22 item 1), 
 transaction on the half-duplex bus at a time, so ``core_runner.run_core`` can drive it.
 
 Events (``bus_events.py``): :class:`Command` (a ``~/command``), :class:`Call` (a service call,
-answered once by an :class:`Answer` with its token), :class:`Shutdown`, and the shared
-``core_events`` ``Reply`` (a reply decoded off the wire), ``LinkUp``/``LinkDown`` (the port) and
-``Tick`` (time passed). Actions: :class:`Send` (a frame, when it goes and until when it holds
-the bus), :class:`Answer`, :class:`ReadDone` and :class:`CycleDone` (what the reads brought),
-``Log``, and last a shared ``SetTimer`` (when the next ``Tick`` is due; a step without one has
-no deadline). ``test/test_servo_model.py`` steps it against the device model in virtual time and
-checks the bus's safety invariants after every step; the threaded driver calls the same parts
-of ``schedule.py`` on its threads.
+answered once by an :class:`Answer` with its token), :class:`Shutdown`, :class:`Late` (a frame
+the host wrote after its time, told by whoever carries out ``Send`` through a :class:`Line`),
+and the shared ``core_events`` ``Reply`` (a reply decoded off the wire), ``LinkUp``/``LinkDown``
+(the port) and ``Tick`` (time passed). Actions: :class:`Send` (a frame, when it goes and until
+when it holds the bus), :class:`Answer`, :class:`ReadDone` and :class:`CycleDone` (what the
+reads brought), ``Log``, and last a shared ``SetTimer`` (when the next ``Tick`` is due; a step
+without one has no deadline). ``test/test_servo_model.py`` steps it against the device model
+in virtual time and checks the bus's safety invariants after every step; the driver steps the
+same schedule on its port (``bus_runtime.BusRuntime``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from typing import Any, Deque, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_events import (  # noqa: F401 - the types, re-exported
-    Action, Answer, Call, Command, CycleDone, Event, QUIET_CALLS, ReadDone, Send, Shutdown)
+    Action, Answer, Call, Command, CycleDone, Event, Late, QUIET_CALLS, ReadDone, Send,
+    Shutdown)
 from desheng_servo_ros.bus_services import _Service, _Tx, WAIT
 from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
                                         judge_link, judge_reply, next_on_bus, NOT_DUE,
@@ -37,6 +39,42 @@ from desheng_servo_ros.state import READ_STATE, READ_WIDE, ServoRecord
 from desheng_servo_ros.units import Joint
 from uav_serial_common.core_events import LinkDown, LinkUp, Log, Reply, SetTimer, Tick
 from uav_serial_common.pty_port import wire_time
+
+
+TIME_EPS = 1e-9
+"""Times closer than this are one (a float sum of wire times must not split a moment)."""
+
+
+class Line:
+    """The half-duplex line as the host really writes to it, for whoever carries out ``Send``.
+
+    The schedule plans when each frame goes; a loaded host writes a frame late, and then the
+    line is busy that much longer. :meth:`start` says when a frame may really go (its time, or
+    later while the frame before it without a reply is still on the line); :meth:`wrote` takes
+    when it went and returns the :class:`Late` event to step when it went late, by however
+    little (a reply that came before the request had really left is not its answer). The
+    driver's runtime and the model test's wire both carry out ``Send`` through one.
+    """
+
+    def __init__(self) -> None:
+        self.free_at = -math.inf
+        """When the last frame without a reply has left the line (and its guard)."""
+
+    def start(self, send: Send) -> float:
+        """Return when `send` may go: its time, or when the line is really free."""
+        return max(send.at, self.free_at)
+
+    def wrote(self, send: Send, began: float, ended: float, now: float) -> Optional[Late]:
+        """Take that the write of `send` began by `began` and ended by `ended`.
+
+        Returns the event to step at `now` when it went late.
+        """
+        lag_max = ended - send.at
+        if send.reply_id is None:
+            self.free_at = max(self.free_at, send.deadline + lag_max)
+        if lag_max <= 0.0:
+            return None
+        return Late(now, send, max(0.0, began - send.at), lag_max)
 
 
 class BusSchedule:
@@ -73,6 +111,7 @@ class BusSchedule:
         self.service: Optional['_Service'] = None
         self._tx: Optional[_Tx] = None  # awaiting its reply until _tx_deadline
         self._tx_deadline = math.inf
+        self._tx_at = now  # when the request awaiting its reply went
         self._tx_sent = now  # when the request awaiting its reply had left the line
         self._retry: Optional[_Tx] = None  # a READ to send again at the next boundary
         self._free_at = now  # a frame without a reply holds the bus until then
@@ -124,6 +163,8 @@ class BusSchedule:
             out = self.command(now, event.targets)
         elif isinstance(event, Call):
             out = self._call(now, event.token, event.name, event.args)
+        elif isinstance(event, Late):
+            out = self.late(now, event.send, event.lag, event.lag_max)
         elif isinstance(event, (LinkUp, LinkDown)):
             out = self.link(now, isinstance(event, LinkUp))
         elif isinstance(event, Shutdown):
@@ -186,10 +227,14 @@ class BusSchedule:
         self.frames_in += 1
         tx = self._tx
         self.last_taken = False
-        # A reply that came before the request had left the line answers an earlier one (a
-        # late reply of the attempt before a retry): it ends nothing.
-        if tx is not None and self._tx_sent < now < self._tx_deadline and \
-                reply.servo_id == tx.reply_id and len(reply.params) == tx.nparams:
+        # A reply whose bytes came before the request had left the line and they had had
+        # their own wire time answers an earlier one (a late reply of the attempt before a
+        # retry): it ends nothing. The request left by _tx_sent at the earliest (Late), so an
+        # answer is never refused.
+        if tx is not None and reply.servo_id == tx.reply_id and \
+                len(reply.params) == tx.nparams and now < self._tx_deadline and \
+                now >= self._tx_sent + self._reply_wire(tx) - TIME_EPS:
+            self._held(tx, now)
             self._tx = None
             self._tx_deadline = math.inf
             self._free_at = max(self._free_at, now)
@@ -205,12 +250,33 @@ class BusSchedule:
         self.port_open = up
         judge_link(self.servos, up)
         self.reads.reset(self._pace(now))
+        if self._tx is not None:
+            self._held(self._tx, now)
         for tx in (self._tx, self._retry):
             if tx is not None:
                 self._done(now, tx, None, cut=True)
         self._tx = self._retry = None
         self._tx_deadline = math.inf
         self._free_at = max(self._free_at, now)
+        return self.poll(now)
+
+    def late(self, now: float, send: Send, lag: float, lag_max: float) -> List[Any]:
+        """Take a frame written late: what it holds is held that much longer (``Late``).
+
+        A request's reply may come `lag_max` later (a deadline kept as planned would call a
+        reply on its way a silence, and the next frame would meet it on the half-duplex line),
+        and is its answer from `lag` after the planned moment its request had left; a frame
+        without a reply may leave the line `lag_max` later. The lag of a frame not the READs'
+        is no time the commands' budget earns from (as a stop's or a service's: ``pause``).
+        """
+        if send.kind != 'read':
+            self.commands.pause(send.at, lag_max)  # the bus is held that long for it
+        if send.reply_id is None:
+            self._free_at = max(self._free_at, send.deadline + lag_max)
+        elif self._tx is not None and self._tx_deadline == send.deadline:  # still awaited
+            self._tx_at += lag
+            self._tx_sent += lag
+            self._tx_deadline += lag_max
         return self.poll(now)
 
     def shutdown(self, now: float) -> List[Any]:
@@ -285,6 +351,7 @@ class BusSchedule:
         actions: List[Any] = []
         if self._tx is not None and now >= self._tx_deadline:
             tx, self._tx = self._tx, None
+            self._held(tx, self._tx_deadline)
             self._free_at = max(self._free_at, self._tx_deadline)
             self._tx_deadline = math.inf
             if self.silences is not None:
@@ -429,6 +496,7 @@ class BusSchedule:
         timeout = tx.wait if tx.wait is not None else \
             self.reply_timeout(len(tx.frame), tx.nparams, tx.reply_id)
         self._tx = tx
+        self._tx_at = at
         self._tx_sent = at + wire_time(len(tx.frame), self.baud)
         self._tx_deadline = at + timeout
         actions.append(Send(at, tx.frame, 'read' if tx.owner == 'read' else tx.owner.name,
@@ -436,7 +504,18 @@ class BusSchedule:
 
     def _send_noreply(self, at: float, frame: bytes, kind: str) -> Send:
         self._free_at = at + wire_time(len(frame), self.baud) + IDLE_GUARD_S
+        if kind != 'command':
+            self.commands.pause(at, self._free_at - at)
         return Send(at, frame, kind, None, 0, self._free_at)
+
+    def _held(self, tx: _Tx, end: float) -> None:
+        """End `tx` at `end`: one not the READs' held the bus from the commands too."""
+        if tx.owner != 'read':
+            self.commands.pause(self._tx_at, end - self._tx_at)
+
+    def _reply_wire(self, tx: _Tx) -> float:
+        """Return the wire time of `tx`'s reply."""
+        return wire_time(tx.nparams + REPLY_OVERHEAD, self.baud)
 
     def _garbled(self, tx: _Tx) -> bool:
         """Whether bytes and no frame came since `tx` was first sent (S24: colliding replies)."""

@@ -279,6 +279,16 @@ class CommandQueue:
         self.pending = {}
         return batch
 
+    def pause(self, since: float, duration: float) -> None:
+        """Let the budget's clock stand still for the `duration` another held the bus `since`.
+
+        A stop or a service: the READs did not have that time either, and commands that gained
+        bus credit from it would take it from the READs afterwards (a burst after a service).
+        A budget already whole by then gains nothing from time anyway.
+        """
+        if self.budget_at > since:
+            self.budget_at += duration
+
     def charge(self, ended_at: float, size: int, baud: int, rate_hz: float) -> None:
         """Book a batch of `size` bytes that left the line at `ended_at`."""
         wire = wire_time(size, baud)

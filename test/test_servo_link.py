@@ -107,12 +107,18 @@ def test_a_silent_servo_times_out_after_every_retry(bus):
         link.ping(77, retries=0)
 
 
-def test_frames_without_reply_hold_the_bus_for_their_wire_time(bus):
-    _, _, link = bus
+def sync_write_then_ping(link, sync_delay_s=0.0):
+    """A SYNC WRITE of 39 servos, then a PING: each frame with when its write began.
+
+    `sync_delay_s`: the SYNC WRITE's write begins that much after the runtime's time for it,
+    as on a host that had the thread away.
+    """
     writes = []
     write = link.link.write
 
     def timed_write(data):
+        if data[4] == proto.Instruction.SYNC_WRITE:
+            time.sleep(sync_delay_s)
         writes.append((time.monotonic(), bytes(data)))
         write(data)
     link.link.write = timed_write
@@ -122,9 +128,22 @@ def test_frames_without_reply_hold_the_bus_for_their_wire_time(bus):
         link.ping(1)
     finally:
         del link.link.write
-    (t_sync, sync), (t_ping, ping) = writes
-    assert sync == proto.encode_sync_write_positions(targets) and ping == proto.encode_ping(1)
+    assert [w[1] for w in writes] == [proto.encode_sync_write_positions(targets),
+                                      proto.encode_ping(1)]
+    return writes
+
+
+def test_frames_without_reply_hold_the_bus_for_their_wire_time(bus):
+    (t_sync, sync), (t_ping, _) = sync_write_then_ping(bus[2])
     # The PING is written only once the SYNC WRITE has left the wire (a lower bound only).
+    assert t_ping - t_sync >= wire_time(len(sync), 115200)
+
+
+def test_a_frame_the_host_wrote_late_still_holds_the_bus_for_its_wire_time(bus):
+    # A loaded host writes the SYNC WRITE 20 ms after its time: the PING must not follow it
+    # on the schedule's plan, which the line no longer keeps (campaign: 15 ms after a frame of
+    # 17.6 ms).
+    (t_sync, sync), (t_ping, _) = sync_write_then_ping(bus[2], sync_delay_s=0.02)
     assert t_ping - t_sync >= wire_time(len(sync), 115200)
 
 
