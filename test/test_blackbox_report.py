@@ -96,6 +96,7 @@ class Bench:
         self.events = self.ros.subscribe(TriggerEvent, '/parachute/trigger_event', latched=True)
         self.diagnostics = self.ros.subscribe(DiagnosticArray, '/diagnostics')
         self.marks = {}
+        self.attempts = 0  # calls of the half-confirmed parameter set (fault_run)
         self.driver = None
 
     def mark(self, name):
@@ -298,10 +299,17 @@ def fault_run(bench):
     # A parameter set the module confirms only half of: the half written is put back (D4).
     bench.set_params('/virtual_parachute', lost_commands=[p.CMD_FREEFALL_THRESHOLD])
     bench.mark('parameter set')
-    result = bench.set_params_at_once('/parachute', attitude_threshold_deg=50,
-                                      freefall_threshold_g=0.3)
-    assert not result.successful and 'put back attitude_threshold_deg' in result.reason, \
-        result.reason
+    # A loaded host can spend the set's time budget before the second write: refused, the
+    # first put back, "no time left" (a CI run of 2026-11-28). A caller sets again then.
+    bench.attempts = 0
+    while True:
+        bench.attempts += 1
+        result = bench.set_params_at_once('/parachute', attitude_threshold_deg=50,
+                                          freefall_threshold_g=0.3)
+        assert not result.successful and 'put back attitude_threshold_deg' in result.reason, \
+            result.reason
+        if 'no time left' not in result.reason or bench.attempts == 3:
+            break
     assert 'could NOT put back freefall_threshold_g' in result.reason, result.reason
     bench.set_params('/virtual_parachute', lost_commands=[])
     bench.mark('parameter set refused')
@@ -716,10 +724,15 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert c['checksum errors'] >= 1 and c['bytes of noise discarded'] >= 1
     assert re.search(r'[1-9]\d* checksum errors, [1-9]\d* bytes of noise', seen)
     assert c['request timeouts (as the driver counted)'] >= 2 + 4
-    # The parameter set the module confirmed only half of: refused, the half put back (D4).
-    (refused,) = events_of(summary, 'calls', 'REFUSED')
+    # The parameter set the module confirmed only half of: refused, the half put back (D4);
+    # each set a loaded host ran out of time for as well (fault_run).
+    refused = events_of(summary, 'calls', 'REFUSED')
+    assert len(refused) == bench.attempts
+    refused = refused[-1]
     assert 'attitude_threshold_deg := 50' in refused[3]
-    (put_back,) = events_of(summary, 'settings', 'put back after the refused set')
+    put_back = events_of(summary, 'settings', 'put back after the refused set')
+    assert len(put_back) == bench.attempts
+    put_back = put_back[-1]
     assert put_back[3].endswith('attitude_threshold_deg')
     # The module never heard the free-fall write, nor its put-back: the driver cannot tell
     # that from a write that took and went unacknowledged, and says it could not put it back.
@@ -728,7 +741,7 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert again[3].startswith('free-fall threshold ') and '0.3 g' not in again[3]  # before
     assert between('parameter set', 'parameter set refused',
                    [refused, put_back, unconfirmed, again])
-    assert c['settings put back'] == 1 and c.get('settings not verified', 0) == 0
+    assert c['settings put back'] == bench.attempts and c.get('settings not verified', 0) == 0
     # The deploy whose frames were lost: not deployed, as the module said when asked.
     assert len(summary.deployments) == 2, [d.paragraph for d in summary.deployments]
     lost, unknown = summary.deployments
