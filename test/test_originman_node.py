@@ -83,13 +83,16 @@ class Rig:
         The board here is a process on a loaded host, not a microcontroller: now and then it
         (or the driver's reader) is stalled past a read's 2 x 100 ms, and the driver rightly
         answers that it got no reply, the outcome unknown (never a success); a user asks again.
+        Stalled past ``offline_timeout_s`` (2.7 s once, in a campaign run beside a busy loop),
+        the board is judged offline and the call refused: asked again too.
         """
         replies = []
 
         def board_answered():
             replies.append(self.call(srv_type, f'{self.driver_name}/{name}', **fields))
             # The link's timeout, not the board's 'no reply within 5 ms' from the servo.
-            return not re.search(r'no reply within \d+ ms after', replies[-1].message)
+            return not re.search(r'no reply within \d+ ms after|the board is offline',
+                                 replies[-1].message)
         wait_for(board_answered, 30, interval=0.0, what=f'{name} answered by the board')
         assert not any(r.success for r in replies[:-1]), (name, [r.message for r in replies])
         return replies[-1]
