@@ -229,13 +229,22 @@ def test_positions_and_velocity_follow_the_servo(rig):
     assert pan.velocity == 0.0
 
 
-def test_a_lost_reply_is_retried_within_the_cycle_and_costs_nothing(rig):
-    rig.cycle()
-    retries = rig.core.bus.link.stats.retries
-    rig.dev.runner.faults.drop_next = 1
-    snap = rig.cycle()
-    assert all(s.online and s.error_count == 0 for s in snap.servos)
-    assert rig.core.bus.link.stats.retries == retries + 1
+def test_a_lost_reply_is_retried_within_the_cycle_and_costs_nothing(tmp_path):
+    # A margin a loaded host's stalls stay under (RIG_MARGIN_MS of test_servo_link): with the
+    # rig's 25 ms, the retry failed too in a campaign run of 2026-11-28 and in a run beside a
+    # model search (not reproduced in 260 runs of this test alone beside busy loops; a stall
+    # past the margin during the retry fits), and the retry is what this is about.
+    rig = Rig(tmp_path, response_timeout_ms=500.0)
+    try:
+        rig.cycle()
+        retries = rig.core.bus.link.stats.retries
+        rig.dev.runner.faults.drop_next = 1
+        snap = rig.cycle()
+        assert all(s.online and s.error_count == 0 for s in snap.servos), (
+            [(s.id, s.online, s.error_count) for s in snap.servos], rig.log.text())
+        assert rig.core.bus.link.stats.retries == retries + 1
+    finally:
+        rig.stop()
 
 
 def test_a_silent_servo_goes_offline_after_its_failures_and_is_reprobed_once_a_second(rig):
