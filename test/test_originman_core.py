@@ -60,8 +60,9 @@ class Rig:
 
     def online(self):
         self.frame_arrives()
-        self.core.poll()
-        assert self.core.online
+        # Counted when decoded, stepped into the core just after, on the reader thread (a
+        # campaign run beside a busy loop looked in between).
+        wait_for(lambda: self.core.poll() or self.core.online, 5, what='the board online')
         # The reader thread judges the board online with the frame, then calls
         # on_online_change: `online` may be seen before the callback has run (beside a busy
         # loop it was).
