@@ -774,12 +774,15 @@ def test_scan_finds_servos_whose_replies_come_late_and_reads_them_afterwards(tmp
             (result.message, rig.log.text())
         assert 'answer late' in result.message
         # Each PINGed once in the sweep, and once more with a long wait to confirm it (in a
-        # scan again, only those whose wait was not learned in the one before).
+        # scan again, only those whose wait was not learned in the one before; a confirmation
+        # a stall held past its long wait is sent once more, as bus_scan.confirm does: a
+        # campaign run of 2026-11-28).
         pings = Counter(r.servo_id for r in rig.tap.requests(mark)
                         if r.instruction == Instruction.PING)
         confirmed = pings - Counter(range(1, 251))
         assert pings - confirmed == Counter(range(1, 251)) and set(confirmed) <= {5, 100, 250}
-        assert tries > 1 or confirmed == Counter([5, 100, 250]), confirmed
+        assert tries > 1 or set(confirmed) == {5, 100, 250}, confirmed
+        assert max(confirmed.values()) <= 2, confirmed
         for servo_id in (5, 100, 250):
             assert SLOW_S < bus.margin_for(servo_id) <= 0.1
         assert bus.margin_for(7) == bus.margin_s
