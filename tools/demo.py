@@ -433,6 +433,13 @@ def run_autopilot(m: Mission, procs: Processes) -> str:
     if not reply.success:
         raise DemoFailure(f'DO_PARACHUTE RELEASE: {reply.message}')
     m.wait(lambda: m.status.triggered, 5, 'status triggered')
+    # What the autopilot received comes on a topic of its own, which may come after the reply
+    # on a loaded host (a campaign run of 2026-11-28 looked too early).
+    try:
+        m.wait(lambda: any('command 400' in x.data for x in received[start:]), 5,
+               'the motor stop at the autopilot')
+    except DemoFailure:
+        pass
     with m.lock:
         lines = [x.data for x in received[start:]]
     stop = next((x for x in lines if 'command 400' in x), None)
