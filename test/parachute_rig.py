@@ -19,6 +19,7 @@ from rcl_interfaces.srv import SetParameters
 from sensor_msgs.msg import BatteryState
 from std_msgs.msg import Bool
 from std_srvs.srv import SetBool
+from support import ask_again
 from uav_serial_common.process import LaunchedProcesses, wait_for
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
@@ -154,10 +155,8 @@ class Rig:
         # The status the rule judges the write by may go unanswered past its two tries on a
         # loaded host (the virtual module is a process): refused, nothing sent, truly. A user
         # arms again (a campaign run of 2026-11-28).
-        for _ in range(3):
-            reply = self.call(SetBool, 'arm', SetBool.Request(data=True))
-            if reply.success or 'status not read' not in reply.message:
-                break
+        reply, _ = ask_again(lambda: self.call(SetBool, 'arm', SetBool.Request(data=True)),
+                             lambda r: not r.success and 'status not read' in r.message)
         assert reply.success, reply.message
         return reply
 

@@ -37,7 +37,7 @@ from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_blackbox.report import analyse, build_report, main as report_main
-from support import FakeClock
+from support import ask_again, FakeClock
 from uav_serial_common.process import (executable_path, LaunchedProcesses, wait_for,
                                        wait_scale)
 from uav_serial_common.ros_client import RosHarness
@@ -299,17 +299,17 @@ def fault_run(bench):
     # A parameter set the module confirms only half of: the half written is put back (D4).
     bench.set_params('/virtual_parachute', lost_commands=[p.CMD_FREEFALL_THRESHOLD])
     bench.mark('parameter set')
+
     # A loaded host can spend the set's time budget before the second write: refused, the
     # first put back, "no time left" (a CI run of 2026-11-28). A caller sets again then.
-    bench.attempts = 0
-    while True:
-        bench.attempts += 1
-        result = bench.set_params_at_once('/parachute', attitude_threshold_deg=50,
-                                          freefall_threshold_g=0.3)
+    def refused(result):
         assert not result.successful and 'put back attitude_threshold_deg' in result.reason, \
             result.reason
-        if 'no time left' not in result.reason or bench.attempts == 3:
-            break
+        return 'no time left' in result.reason
+
+    result, bench.attempts = ask_again(
+        lambda: bench.set_params_at_once('/parachute', attitude_threshold_deg=50,
+                                         freefall_threshold_g=0.3), refused)
     assert 'could NOT put back freefall_threshold_g' in result.reason, result.reason
     bench.set_params('/virtual_parachute', lost_commands=[])
     bench.mark('parameter set refused')

@@ -13,6 +13,7 @@ from dps_parachute_ros.blackbox import BlackBox
 from dps_parachute_ros.link import LinkTimeout, ParachuteLink, RECORDS_QUIET_S
 from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.virtual_node import create_runner
+from support import ask_again
 from uav_serial_common.process import wait_for, wait_scale
 
 
@@ -56,10 +57,7 @@ def test_trigger_records_are_collected(rig):
     assert link.request(p.encode_deploy()).success
     # An answer cut short (the module's frames more than 0.2 s apart: a stalled host, campaign
     # of 2026-11-27) says so (`complete` False); a caller asks again.
-    for _ in range(3):
-        records = link.query_records()
-        if records.complete:
-            break
+    records, _ = ask_again(link.query_records, lambda r: not r.complete)
     assert len(records) == 8 and records.complete
     assert records[0].serial_trigger and all(r.is_empty for r in records[1:])
 

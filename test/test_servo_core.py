@@ -22,7 +22,7 @@ from desheng_servo_ros.state import Outcome, POSITION
 from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
-from support import FakeClock
+from support import ask_again, FakeClock
 from uav_serial_common.core_events import Reply
 from uav_serial_common.process import wait_for, WaitTimeout
 
@@ -765,11 +765,13 @@ def test_scan_finds_servos_whose_replies_come_late_and_reads_them_afterwards(tmp
         # A scan listens 100 ms for the last late replies: a host that stalls the device longer
         # than that (beside a busy loop) leaves one unheard, and the answer says what it found.
         # A user scans again then; so does this test, at most twice more.
-        for tries in range(1, 4):
-            mark = rig.tap.mark()
-            result = rig.core.scan(1, 250)
-            if result.ok and result.value['ids'] == [5, 100, 250]:
-                break
+        marks = []
+
+        def scan():
+            marks.append(rig.tap.mark())
+            return rig.core.scan(1, 250)
+        result, tries = ask_again(scan, lambda r: not (r.ok and r.value['ids'] == [5, 100, 250]))
+        mark = marks[-1]
         assert result.ok and result.value['ids'] == [5, 100, 250], \
             (result.message, rig.log.text())
         assert 'answer late' in result.message
