@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, Iterable, List, Set, Tuple
 
 from bench.common import (HandsetRig, OriginManRig, ParachuteRig, ros_client, ServoRig, wait_for,
                           workdir)
@@ -260,9 +260,7 @@ def _run_topic_cases(client, namespace: str, cases, log: _FrameLog, observe_s: f
     if not refusals.wait_above(-1, 10.0):
         return {'cases': len(cases), 'refused': 0, 'accepted': [], 'bytes_on_wire': [],
                 'errors': ['no diagnostics from the driver']}
-    t0 = time.monotonic()
-    time.sleep(observe_s)
-    background = {k for k, _ in log.keys_between(t0, time.monotonic())}
+    background = _background(log, observe_s)
     publishers: Dict[str, Any] = {}
     refused = 0
     wire: List[str] = []
@@ -295,10 +293,28 @@ def _run_topic_cases(client, namespace: str, cases, log: _FrameLog, observe_s: f
             'bytes_on_wire': wire, 'errors': errors}
 
 
-def _run_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float) -> Dict:
+def _background(log: _FrameLog, observe_s: float, polled: Iterable[Any] = (),
+                longest_s: float = 30.0) -> Set[Any]:
+    """Return the keys of the frames the idle driver sends in `observe_s` and until `polled`.
+
+    `polled`: keys the driver sends on its own within a period (a servo's telemetry READs).
+    A loaded host can hold the driver past a period, or a servo can come online late: a
+    polled frame missing from the window would count against the first case it comes in.
+    """
     t0 = time.monotonic()
     time.sleep(observe_s)
-    background = {k for k, _ in log.keys_between(t0, time.monotonic())}
+    wanted = set(polled)
+    end = t0 + longest_s
+    while True:
+        background = {k for k, _ in log.keys_between(t0, time.monotonic())}
+        if wanted <= background or time.monotonic() > end:
+            return background
+        time.sleep(0.1)
+
+
+def _run_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float,
+               polled: Iterable[Any] = ()) -> Dict:
+    background = _background(log, observe_s, polled)
     refused = 0
     wire: List[str] = []
     accepted: List[str] = []
@@ -340,12 +356,15 @@ def servo(observe_s: float = 3.0) -> Dict:
     with workdir() as directory, ServoRig(directory, [1, 2, 3], 115200) as rig, \
             ros_client('bench_bad_inputs_servo') as client:
         log = _FrameLog(_servo_key)
-        from desheng_servo_ros.protocol import StreamDecoder
+        from desheng_servo_ros.protocol import Instruction, Request, StreamDecoder
         decoder = StreamDecoder('request')
         rig.runner.add_tap(lambda d, data, t: [log.add(t, f) for f in decoder.feed(data)]
                            if d == 'rx' else None)
         rig.wait_ready()
-        return _run_cases(client, '/servo_bus', servo_cases(), log, observe_s)
+        # Each servo's position READ, and its telemetry (the state and the wide READ).
+        polled = [_servo_key(Request(i, Instruction.READ, bytes(block), b''))
+                  for i in rig.ids for block in ((0x38, 4), (0x28, 8), (0x38, 8))]
+        return _run_cases(client, '/servo_bus', servo_cases(), log, observe_s, polled)
 
 
 def parachute(observe_s: float = 3.0) -> Dict:
