@@ -29,10 +29,10 @@ from desheng_servo_ros.bus_events import (  # noqa: F401 - the types, re-exporte
     Action, Answer, Call, Command, CycleDone, Event, Late, QUIET_CALLS, ReadDone, Send,
     Shutdown)
 from desheng_servo_ros.bus_services import _Service, _Tx, WAIT
-from desheng_servo_ros.schedule import (CommandQueue, EMPTY, IDLE_GUARD_S, judge_failure,
-                                        judge_link, judge_reply, next_on_bus, NOT_DUE,
-                                        OFFLINE_AFTER_FAILURES, plan_telemetry, POSTED,
-                                        ReadSchedule, REPLY_OVERHEAD, REPROBE_PERIOD_S, RETRY,
+from desheng_servo_ros.schedule import (CommandQueue, EMPTY, exchange_wire, IDLE_GUARD_S,
+                                        judge_failure, judge_link, judge_reply, next_on_bus,
+                                        NOT_DUE, OFFLINE_AFTER_FAILURES, plan_telemetry, POSTED,
+                                        ReadSchedule, reply_wire, REPROBE_PERIOD_S, RETRY,
                                         set_id_refusal, shutdown_frames, sync_write_frames,
                                         Target, TORQUE_OFF_ALL, YIELD)
 from desheng_servo_ros.state import READ_STATE, READ_WIDE, ServoRecord
@@ -269,11 +269,15 @@ class BusSchedule:
         without a reply may leave the line `lag_max` later. The lag of a frame not the READs'
         is no time the commands' budget earns from (as a stop's or a service's: ``pause``).
         """
+        awaited = send.reply_id is not None and self._tx is not None and \
+            self._tx_deadline == send.deadline
         if send.kind != 'read':
-            self.commands.pause(send.at, lag_max)  # the bus is held that long for it
+            # The bus is held that long for it; an awaited request's hold from the moment it
+            # left is booked when it ends (``_held``), so here only the time before that.
+            self.commands.pause(send.at, lag if awaited else lag_max)
         if send.reply_id is None:
             self._free_at = max(self._free_at, send.deadline + lag_max)
-        elif self._tx is not None and self._tx_deadline == send.deadline:  # still awaited
+        elif awaited:
             self._tx_at += lag
             self._tx_sent += lag
             self._tx_deadline += lag_max
@@ -487,7 +491,7 @@ class BusSchedule:
         margin = self.margin_s
         if self.slow_margin is not None and self.slow_margin[reply_id] > margin:
             margin = self.slow_margin[reply_id]
-        return wire_time(frame_len + nparams + REPLY_OVERHEAD, self.baud) + margin
+        return exchange_wire(frame_len, nparams, self.baud) + margin
 
     def _start(self, at: float, tx: _Tx, actions: List[Any]) -> None:
         tx.attempts += 1
@@ -515,7 +519,7 @@ class BusSchedule:
 
     def _reply_wire(self, tx: _Tx) -> float:
         """Return the wire time of `tx`'s reply."""
-        return wire_time(tx.nparams + REPLY_OVERHEAD, self.baud)
+        return reply_wire(tx.nparams, self.baud)
 
     def _garbled(self, tx: _Tx) -> bool:
         """Whether bytes and no frame came since `tx` was first sent (S24: colliding replies)."""

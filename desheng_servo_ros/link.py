@@ -23,7 +23,7 @@ from typing import Any, Callable, Deque, Dict, Iterable, List, Optional, Sequenc
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_scan import sweep
 from desheng_servo_ros.protocol import Reply, StreamDecoder
-from desheng_servo_ros.schedule import REPLY_OVERHEAD, sync_write_frames
+from desheng_servo_ros.schedule import exchange_wire, REPLY_OVERHEAD, sync_write_frames
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.serial_link import LinkDown, LinkError, LinkTimeout, SerialLink
 from uav_serial_common.usb_latency import BASE_MARGIN_S, inspect_latency_timer, LatencyReport
@@ -169,8 +169,7 @@ class ServoBusLink:
         key = (request_len, reply_params)
         wire = self._wire.get(key)
         if wire is None:
-            wire = self._wire[key] = wire_time(request_len + reply_params + REPLY_OVERHEAD,
-                                               self.baud)
+            wire = self._wire[key] = exchange_wire(request_len, reply_params, self.baud)
         return wire + self.margin_for(servo_id)
 
     def _on_port_open(self, port: Any) -> None:

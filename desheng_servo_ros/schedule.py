@@ -52,6 +52,17 @@ IDLE_GUARD_S = 0.0001
 # Reply frame = FF F5 ID LEN STATUS params CHK.
 REPLY_OVERHEAD = 6
 
+
+def reply_wire(reply_params: int, baud: int) -> float:
+    """Return the wire time of a reply with `reply_params` params."""
+    return wire_time(reply_params + REPLY_OVERHEAD, baud)
+
+
+def exchange_wire(frame_len: int, reply_params: int, baud: int) -> float:
+    """Return the wire time of a request of `frame_len` bytes and its reply."""
+    return wire_time(frame_len, baud) + reply_wire(reply_params, baud)
+
+
 # What goes on the bus between two READs of the chain (next_on_bus).
 YIELD, POSTED, RETRY, READ = range(4)
 
@@ -338,8 +349,7 @@ def patient_wait(frame_len: int, reply_params: int, baud: int, usual: float) -> 
     few ms overruns: its silence becomes what a service answers (and a set_id onto an id whose
     servo answered late would make two servos share it).
     """
-    return max(usual, wire_time(frame_len + reply_params + REPLY_OVERHEAD, baud)
-               + LATE_REPLY_WINDOW_S)
+    return max(usual, exchange_wire(frame_len, reply_params, baud) + LATE_REPLY_WINDOW_S)
 
 
 # ~/set_id's probe of the old id (S24): this many READs of its present position, one attempt
