@@ -251,7 +251,8 @@ class _Refusals:
             return self.cond.wait_for(lambda: self.count > count, timeout)
 
 
-def _run_topic_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float) -> Dict:
+def _run_topic_cases(client, namespace: str, cases, log: _FrameLog,
+                     background: Set[Any]) -> Dict:
     """Publish each bad message; refused = counted in diagnostics; nothing new on the wire."""
     from diagnostic_msgs.msg import DiagnosticArray
     import uav_serial_drivers.msg
@@ -260,7 +261,6 @@ def _run_topic_cases(client, namespace: str, cases, log: _FrameLog, observe_s: f
     if not refusals.wait_above(-1, 10.0):
         return {'cases': len(cases), 'refused': 0, 'accepted': [], 'bytes_on_wire': [],
                 'errors': ['no diagnostics from the driver']}
-    background = _background(log, observe_s)
     publishers: Dict[str, Any] = {}
     refused = 0
     wire: List[str] = []
@@ -312,9 +312,7 @@ def _background(log: _FrameLog, observe_s: float, polled: Iterable[Any] = (),
         time.sleep(0.1)
 
 
-def _run_cases(client, namespace: str, cases, log: _FrameLog, observe_s: float,
-               polled: Iterable[Any] = ()) -> Dict:
-    background = _background(log, observe_s, polled)
+def _run_cases(client, namespace: str, cases, log: _FrameLog, background: Set[Any]) -> Dict:
     refused = 0
     wire: List[str] = []
     accepted: List[str] = []
@@ -364,7 +362,8 @@ def servo(observe_s: float = 3.0) -> Dict:
         # Each servo's position READ, and its telemetry (the state and the wide READ).
         polled = [_servo_key(Request(i, Instruction.READ, bytes(block), b''))
                   for i in rig.ids for block in ((0x38, 4), (0x28, 8), (0x38, 8))]
-        return _run_cases(client, '/servo_bus', servo_cases(), log, observe_s, polled)
+        return _run_cases(client, '/servo_bus', servo_cases(), log,
+                          _background(log, observe_s, polled))
 
 
 def parachute(observe_s: float = 3.0) -> Dict:
@@ -377,7 +376,8 @@ def parachute(observe_s: float = 3.0) -> Dict:
         rig.runner.add_tap(lambda d, data, t: [log.add(t, f) for f in decoder.feed(data)]
                            if d == 'rx' else None)
         rig.wait_ready()
-        return _run_cases(client, '/parachute', parachute_cases(), log, observe_s)
+        return _run_cases(client, '/parachute', parachute_cases(), log,
+                          _background(log, observe_s))
 
 
 def originman(observe_s: float = 3.0) -> Dict:
@@ -391,9 +391,10 @@ def originman(observe_s: float = 3.0) -> Dict:
                                                for f in parser.feed(data)]
                            if d == 'rx' else None)
         rig.wait_ready()
-        services = _run_cases(client, '/originman_board', originman_cases(), log, observe_s)
+        background = _background(log, observe_s)
+        services = _run_cases(client, '/originman_board', originman_cases(), log, background)
         topics = _run_topic_cases(client, '/originman_board', originman_topic_cases(), log,
-                                  observe_s)
+                                  background)
     return {key: services[key] + topics[key] for key in services}
 
 
