@@ -125,6 +125,7 @@ class ParachuteLink:
         self._record_rx_at = 0.0
         self._tail_owed = 0  # frames of the last records answer that had not come when it ended
         self._tail_until = 0.0
+        self._power_ups = 0  # reboots told (void_answers): an answer across one never ends
         self.timeouts = 0
         self.serial = SerialLink(
             url, baud, self._decoder, on_frame=self._on_frame, on_connection=on_connection,
@@ -227,6 +228,7 @@ class ParachuteLink:
                     self._collector_cond.wait(self._tail_until - time.monotonic())
                 self._tail_owed = 0
                 self._collector = records
+                power_ups = self._power_ups
             try:
                 if self.blackbox is not None:
                     self.blackbox.record('request', hex=p.encode_trigger_records_query().hex(' '),
@@ -250,8 +252,10 @@ class ParachuteLink:
             finally:
                 with self._collector_cond:
                     self._collector = None
-                    # Frames still to come (P15), for at most one more timeout.
-                    self._tail_owed = max_records - len(records)
+                    # Frames still to come (P15), for at most one more timeout; none when the
+                    # module rebooted meanwhile.
+                    self._tail_owed = max_records - len(records) \
+                        if power_ups == self._power_ups else 0
                     self._tail_until = time.monotonic() + timeout
             if not records:
                 if not self.port_open:
@@ -261,6 +265,17 @@ class ParachuteLink:
             return p.TriggerRecords(records)
         finally:
             lock.release()
+
+    def void_answers(self) -> None:
+        """Take it that the module rebooted: the rest of a records answer will not come.
+
+        A power-up does not go on with the answer of the power-up before (P5, P15): the next
+        query does not wait for that answer's tail, nor does the one in progress leave one owed.
+        """
+        with self._collector_cond:
+            self._power_ups += 1
+            self._tail_owed = 0
+            self._collector_cond.notify_all()
 
     # -- reader thread ----------------------------------------------------------------------------
 

@@ -43,6 +43,7 @@ class Initialization:
                                      fresh=False, initialized=False)
         if verdict == SAME_POWER_UP:
             return
+        self.link.void_answers()
         for action in heartbeat_actions(verdict):
             if isinstance(action, Log):
                 self._carry_log(action)
@@ -159,6 +160,7 @@ class Initialization:
             self.listener.on_diagnostics()
         if rebooted:
             self._log('warn', f'module boot count {previous} -> {count}: it rebooted')
+            self.link.void_answers()
             self._void_pending('the module rebooted while the request was pending')
             if reinit:
                 self._schedule('init', force=True)

@@ -185,6 +185,67 @@ def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_r
         os.close(slave)
 
 
+def test_an_answer_cut_by_a_reboot_leaves_no_tail_for_the_next_query_to_wait_for(tmp_path):
+    """The module reboots while it answers a records query (a campaign run: the driver's query
+    met the test's reboot on a loaded host). A power-up does not go on with the answer, so the
+    next query (the re-read after the reboot) must not wait a timeout for its tail: the driver
+    stayed "not initialized" for 1 s after the reboot.
+
+    The module (this test, on a raw pty) answers the first query with three records and its
+    power-up heartbeat, the second with eight records; the listener, as the session does, tells
+    the link of the reboot.
+    """
+    master, slave = os.openpty()
+    heartbeats = []
+
+    def on_message(msg):
+        if isinstance(msg, p.Heartbeat):
+            heartbeats.append(msg)
+            link.void_answers()
+    link = ParachuteLink(os.ttyname(slave), 115200, on_message)
+    link.start()
+    os.set_blocking(master, True)
+    stop = threading.Event()
+
+    def module():
+        asked, answers = b'', 0
+        while not stop.is_set():
+            if not select.select([master], [], [], 0.05)[0]:
+                continue
+            asked += os.read(master, 64)
+            while p.encode_trigger_records_query() in asked:
+                asked = asked.split(p.encode_trigger_records_query(), 1)[1]
+                answers += 1
+                answer = [p.encode_trigger_record(1, answers, p.SOURCE_SERIAL, 60, 5, 30, True,
+                                                  False, 20, 180) for _ in range(8)]
+                if answers == 1:
+                    os.write(master, b''.join(answer[:3]) + p.encode_module_heartbeat())
+                else:
+                    os.write(master, b''.join(answer))
+
+    device = threading.Thread(target=module, daemon=True)
+    answers = []
+    try:
+        assert link.serial.wait_port_open(5 * wait_scale())
+        device.start()
+        # A long timeout: a tail left owed would hold the next query that long.
+        first = link.query_records(timeout=60.0)
+        assert [r.uptime_s for r in first] == [1, 1, 1] and not first.complete
+        assert len(heartbeats) == 1
+        asker = threading.Thread(target=lambda: answers.append(link.query_records()),
+                                 daemon=True)
+        asker.start()
+        wait_for(lambda: answers, 10.0, what='the second answer, not held for a tail')
+        assert [r.uptime_s for r in answers[0]] == [2] * 8 and answers[0].complete
+    finally:
+        stop.set()
+        if device.is_alive():
+            device.join(5.0)
+        link.stop()
+        os.close(master)
+        os.close(slave)
+
+
 def test_issue22_a_record_query_lets_the_tail_of_an_answer_cut_short_pass_first(tmp_path):
     """An answer paused past the quiet gap ends the list early (cut short: not complete); its
     rest comes later. A query right after it waited for nothing: it began its own list with
