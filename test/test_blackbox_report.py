@@ -751,7 +751,13 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert lost.paragraph.count('no acknowledgement of the deploy frame') == 2
     assert lost.paragraph.count('the module answers it is NOT triggered') == 2
     assert len(events_of(summary, 'link', 'no reply to deploy')) == 4
-    assert len(events_of(summary, 'link', 'no reply to triggered?')) == 2
+    # The module lost the triggered queries of the deploy of unknown outcome: two. (A module
+    # process stalled past the 1-s timeout on a loaded host adds one elsewhere, truly: campaign
+    # s10b, run 1, during the lost deploy, whose outcome its next query then told.)
+    unanswered = [e for e in events_of(summary, 'link', 'no reply to triggered?')
+                  if marks['unknown deploy'] < at_wall(summary, e[0])
+                  < marks['unknown deploy answered']]
+    assert len(unanswered) == 2, events_of(summary, 'link', 'no reply to triggered?')
     # The deploy of unknown outcome, read after the reconnect: it did not deploy (D12).
     assert marks['unknown deploy'] < unknown.t < marks['unknown deploy answered']
     assert unknown.outcome == 'not deployed'
