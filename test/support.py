@@ -49,3 +49,8 @@ def ask_again(ask: Callable[[], T], again: Callable[[T], bool],
         if not again(answer):
             break
     return answer, count
+
+
+def stamp_s(msg) -> float:
+    """Return a stamped ROS message's ``header.stamp`` in seconds."""
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9

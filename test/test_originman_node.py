@@ -27,6 +27,7 @@ from rclpy.parameter import Parameter as RclpyParameter
 from sensor_msgs.msg import BatteryState, Imu, JointState
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
+from support import stamp_s
 from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_drivers.msg import (BusServoCommand, BusServoStateArray, ButtonEvent,
                                     BuzzerPattern, LedPattern, MotorSpeeds, OledText,
@@ -300,10 +301,6 @@ def test_a_servo_sweep_shows_in_joint_states_and_every_service_answers(ros, laun
     assert state['motor_set_points'] == [0.0] * 4
 
 
-def _stamp(msg):
-    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-
-
 class KeepAlive:
     """A thread that sends a motor command, then an empty one every ``period_s``.
 
@@ -380,9 +377,9 @@ def test_motors_stop_when_the_commands_stop_and_any_message_keeps_them(ros, laun
                 end = rig.board_state(lambda s: s['time'] > first['time'] + 4 * timeout, 15,
                                       'time passing')
         ended = time.time()
-        imu.wait(lambda m: _stamp(m) >= ended, 10, 'an IMU message after the window',
+        imu.wait(lambda m: stamp_s(m) >= ended, 10, 'an IMU message after the window',
                  start=imu_start)
-        stamps = [_stamp(m) for m in imu.messages[imu_start:]]
+        stamps = [stamp_s(m) for m in imu.messages[imu_start:]]
         stamps = stamps[:next(i for i, t in enumerate(stamps) if t >= ended) + 1]
         gaps.append((round(keep_alive.longest_gap(), 3),
                      round(max(b - a for a, b in zip(stamps, stamps[1:])), 3)))

@@ -13,6 +13,7 @@ import pytest
 from uav_serial_common.process import wait_for
 from servo_rig import start_rig, stop_rig
 from std_srvs.srv import Trigger
+from support import stamp_s
 from uav_serial_drivers.msg import ServoCommand
 from uav_serial_drivers.srv import (FactoryReset, GoToPreset, ReadRegister, ScanBus, SetId,
                                     SetTorque, WritePositions, WriteRegister)
@@ -88,10 +89,6 @@ def test_the_bus_diagnostics_say_what_the_port_is_and_the_reply_margin(rig):
     assert values['reply margin [ms]'] == '250.0 (response_timeout_ms)'
     log = rig.node.output()
     assert log.count('serial port latency:') == 1 and 'pseudo-terminal' in log
-
-
-def stamp_s(msg):
-    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
 
 def test_joint_states_are_stamped_when_their_positions_were_read(rig):
