@@ -97,6 +97,7 @@ class Bench:
         self.diagnostics = self.ros.subscribe(DiagnosticArray, '/diagnostics')
         self.marks = {}
         self.attempts = 0  # calls of the half-confirmed parameter set (fault_run)
+        self.refusal = ''  # the answer to its last call
         self.driver = None
 
     def mark(self, name):
@@ -311,6 +312,7 @@ def fault_run(bench):
         lambda: bench.set_params_at_once('/parachute', attitude_threshold_deg=50,
                                          freefall_threshold_g=0.3), refused)
     assert 'could NOT put back freefall_threshold_g' in result.reason, result.reason
+    bench.refusal = result.reason
     bench.set_params('/virtual_parachute', lost_commands=[])
     bench.mark('parameter set refused')
     bench.set_params('/virtual_parachute', lost_commands=[p.CMD_DEPLOY])
@@ -714,10 +716,10 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert len(events_of(summary, 'module', 'read afresh after the reconnect')) == 2
     # Lost polls while the module did not hear them.
     lost_polls = events_of(summary, 'link', 'no reply to light level')
+    # (A module process stalled past the 1-s timeout on a loaded host loses a poll elsewhere
+    # too, truly: campaign s10c, run 7; the corrupted reply below may be one's reply too.)
     assert len([e for e in lost_polls
-                if at_wall(summary, e[0]) < marks['polls answered again']]) >= 2
-    for seconds, *_ in lost_polls:  # (the corrupted reply below may be one's reply too)
-        assert replugged[0] < at_wall(summary, seconds) < marks['noise']
+                if replugged[0] < at_wall(summary, e[0]) < marks['polls answered again']]) >= 2
     # Noise: frames with a bad checksum never reach the black box; the driver's counters do.
     noise = events_of(summary, 'link', 'bad checksum')
     assert between('polls answered again', 'parameter set refused', noise)
@@ -736,11 +738,17 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert put_back[3].endswith('attitude_threshold_deg')
     # The module never heard the free-fall write, nor its put-back: the driver cannot tell
     # that from a write that took and went unacknowledged, and says it could not put it back.
-    unconfirmed, again = events_of(summary, 'settings', 'did not confirm the write')
-    assert unconfirmed[3].startswith('free-fall threshold 0.3 g')
-    assert again[3].startswith('free-fall threshold ') and '0.3 g' not in again[3]  # before
-    assert between('parameter set', 'parameter set refused',
-                   [refused, put_back, unconfirmed, again])
+    writes = events_of(summary, 'settings', 'did not confirm the write')
+    assert writes[0][3].startswith('free-fall threshold 0.3 g')
+    if 'another request for FreefallThreshold is still running' in bench.refusal:
+        # The put-back met a read of the same register (the module lost those too) that held
+        # the link past the set's time on a loaded host: not sent, and the answer says so
+        # (campaign s10c, run 6).
+        assert len(writes) == 1, writes
+    else:
+        (again,) = writes[1:]
+        assert again[3].startswith('free-fall threshold ') and '0.3 g' not in again[3]  # before
+    assert between('parameter set', 'parameter set refused', [refused, put_back, *writes])
     assert c['settings put back'] == bench.attempts and c.get('settings not verified', 0) == 0
     # The deploy whose frames were lost: not deployed, as the module said when asked.
     assert len(summary.deployments) == 2, [d.paragraph for d in summary.deployments]
