@@ -255,11 +255,12 @@ def test_positions_and_velocity_follow_the_servo(rig):
 
 
 def test_a_lost_reply_is_retried_within_the_cycle_and_costs_nothing(tmp_path):
-    # A margin a loaded host's stalls stay under (RIG_MARGIN_MS of test_servo_link): with the
-    # rig's 25 ms, the retry failed too in a campaign run of 2026-11-28 and in a run beside a
-    # model search (not reproduced in 260 runs of this test alone beside busy loops; a stall
-    # past the margin during the retry fits), and the retry is what this is about.
-    rig = Rig(tmp_path, response_timeout_ms=500.0)
+    # A margin a loaded host's stalls stay under: with the rig's 25 ms, the retry failed too in
+    # a campaign run of 2026-11-28 and in a run beside a model search; with 500 ms, in campaign
+    # s10c (run 7), where a virtual module's process stalled 1.3 s in another run. Not
+    # reproduced alone (260 runs beside busy loops); a stall past the margin during the retry
+    # fits, and the retry is what this is about. (It costs the margin once: the dropped reply.)
+    rig = Rig(tmp_path, response_timeout_ms=2000.0)
     try:
         rig.cycle()
         retries = rig.core.bus.link.stats.retries
