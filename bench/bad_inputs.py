@@ -376,8 +376,15 @@ def parachute(observe_s: float = 3.0) -> Dict:
         rig.runner.add_tap(lambda d, data, t: [log.add(t, f) for f in decoder.feed(data)]
                            if d == 'rx' else None)
         rig.wait_ready()
+        # What the driver sends of its own when it reads the module afresh (a module process
+        # stalled past the offline judgement on a loaded host, then back): its queries and the
+        # stream turned on. None of them changes the module.
+        from dps_parachute_ros import protocol as p
+        own = {p.encode_heartbeat(), p.encode_streaming(True)} | {
+            getattr(p, name)() for name in dir(p)
+            if name.startswith('encode_') and name.endswith('_query')}
         return _run_cases(client, '/parachute', parachute_cases(), log,
-                          _background(log, observe_s))
+                          _background(log, observe_s) | own)
 
 
 def originman(observe_s: float = 3.0) -> Dict:
