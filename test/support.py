@@ -1,4 +1,4 @@
-"""Helpers that several test modules share: a fake clock, a byte stream cut up, asking again."""
+"""Helpers that several test modules share: a fake clock, byte streams, asking again, stamps."""
 
 from __future__ import annotations
 
