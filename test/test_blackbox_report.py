@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import glob
 import json
+import math
 from pathlib import Path
 import re
 import struct
@@ -713,7 +714,12 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert len(closed) == 2
     for down, up, event in zip(unplugged, replugged, closed):
         assert down <= at_wall(summary, event[0]) <= up
-    assert len(events_of(summary, 'module', 'read afresh after the reconnect')) == 2
+    # Each reconnect read afresh. (Named by the last cause the driver saw: a module process
+    # stalled into "offline" just before an unplug names it so, campaign s10f run 1.)
+    rereads = events_of(summary, 'module', 'module read afresh')
+    for down, until in zip(unplugged, unplugged[1:] + [math.inf]):
+        assert any(down <= at_wall(summary, e[0]) < until for e in rereads), (down, rereads)
+    assert events_of(summary, 'module', 'read afresh after the reconnect')
     # Lost polls while the module did not hear them.
     lost_polls = events_of(summary, 'link', 'no reply to light level')
     # (A module process stalled past the 1-s timeout on a loaded host loses a poll elsewhere
