@@ -185,6 +185,26 @@ def test_issue22_5_records_end_on_a_gap_the_reader_saw_not_on_a_late_caller_or_r
         os.close(slave)
 
 
+def records_module(master, stop, answer):
+    """A module on the pty's `master` side: `answer(k, records)` for the k-th records query.
+
+    The eight records of answer k have uptime k. Not started; it ends when `stop` is set.
+    """
+    def run():
+        asked, answers = b'', 0
+        while not stop.is_set():
+            if not select.select([master], [], [], 0.05)[0]:
+                continue  # (no blocking read: the test joins this thread before closing)
+            asked += os.read(master, 64)
+            while p.encode_trigger_records_query() in asked:
+                asked = asked.split(p.encode_trigger_records_query(), 1)[1]
+                answers += 1
+                answer(answers, [p.encode_trigger_record(1, answers, p.SOURCE_SERIAL, 60, 5, 30,
+                                                         True, False, 20, 180)
+                                 for _ in range(8)])
+    return threading.Thread(target=run, daemon=True)
+
+
 def test_an_answer_cut_by_a_reboot_leaves_no_tail_for_the_next_query_to_wait_for(tmp_path):
     """The module reboots while it answers a records query (a campaign run: the driver's query
     met the test's reboot on a loaded host). A power-up does not go on with the answer, so the
@@ -207,23 +227,12 @@ def test_an_answer_cut_by_a_reboot_leaves_no_tail_for_the_next_query_to_wait_for
     os.set_blocking(master, True)
     stop = threading.Event()
 
-    def module():
-        asked, answers = b'', 0
-        while not stop.is_set():
-            if not select.select([master], [], [], 0.05)[0]:
-                continue
-            asked += os.read(master, 64)
-            while p.encode_trigger_records_query() in asked:
-                asked = asked.split(p.encode_trigger_records_query(), 1)[1]
-                answers += 1
-                answer = [p.encode_trigger_record(1, answers, p.SOURCE_SERIAL, 60, 5, 30, True,
-                                                  False, 20, 180) for _ in range(8)]
-                if answers == 1:
-                    os.write(master, b''.join(answer[:3]) + p.encode_module_heartbeat())
-                else:
-                    os.write(master, b''.join(answer))
-
-    device = threading.Thread(target=module, daemon=True)
+    def answer(k, records):
+        if k == 1:
+            os.write(master, b''.join(records[:3]) + p.encode_module_heartbeat())
+        else:
+            os.write(master, b''.join(records))
+    device = records_module(master, stop, answer)
     answers = []
     try:
         assert link.serial.wait_port_open(5 * wait_scale())
@@ -261,23 +270,11 @@ def test_issue22_a_record_query_lets_the_tail_of_an_answer_cut_short_pass_first(
     os.set_blocking(master, True)
     stop = threading.Event()
 
-    def module():
-        asked, answers = b'', 0
-        while not stop.is_set():
-            if not select.select([master], [], [], 0.05)[0]:
-                continue  # (no blocking read: the test joins this thread before closing)
-            asked += os.read(master, 64)
-            while p.encode_trigger_records_query() in asked:
-                asked = asked.split(p.encode_trigger_records_query(), 1)[1]
-                answers += 1
-                answer = [p.encode_trigger_record(1, answers, p.SOURCE_SERIAL, 60, 5, 30, True,
-                                                  False, 20, 180) for _ in range(8)]
-                os.write(master, b''.join(answer[:3]))
-                if stop.wait(2 * RECORDS_QUIET_S):
-                    return
-                os.write(master, b''.join(answer[3:]))
-
-    device = threading.Thread(target=module, daemon=True)
+    def answer(k, records):
+        os.write(master, b''.join(records[:3]))
+        if not stop.wait(2 * RECORDS_QUIET_S):
+            os.write(master, b''.join(records[3:]))
+    device = records_module(master, stop, answer)
     try:
         assert link.serial.wait_port_open(5 * wait_scale())
         device.start()
