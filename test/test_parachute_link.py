@@ -205,6 +205,16 @@ def records_module(master, stop, answer):
     return threading.Thread(target=run, daemon=True)
 
 
+def close_module(stop, device, link, master, slave):
+    """Stop the module thread and the link, and close the pty."""
+    stop.set()
+    if device.is_alive():
+        device.join(5.0)
+    link.stop()
+    os.close(master)
+    os.close(slave)
+
+
 def test_an_answer_cut_by_a_reboot_leaves_no_tail_for_the_next_query_to_wait_for(tmp_path):
     """The module reboots while it answers a records query (a campaign run: the driver's query
     met the test's reboot on a loaded host). A power-up does not go on with the answer, so the
@@ -247,12 +257,7 @@ def test_an_answer_cut_by_a_reboot_leaves_no_tail_for_the_next_query_to_wait_for
         wait_for(lambda: answers, 10.0, what='the second answer, not held for a tail')
         assert [r.uptime_s for r in answers[0]] == [2] * 8 and answers[0].complete
     finally:
-        stop.set()
-        if device.is_alive():
-            device.join(5.0)
-        link.stop()
-        os.close(master)
-        os.close(slave)
+        close_module(stop, device, link, master, slave)
 
 
 def test_issue22_a_record_query_lets_the_tail_of_an_answer_cut_short_pass_first(tmp_path):
@@ -283,9 +288,4 @@ def test_issue22_a_record_query_lets_the_tail_of_an_answer_cut_short_pass_first(
         assert [r.uptime_s for r in first] == [1, 1, 1] and not first.complete
         assert {r.uptime_s for r in second} == {2}, [r.uptime_s for r in second]
     finally:
-        stop.set()
-        if device.is_alive():
-            device.join(5.0)
-        link.stop()
-        os.close(master)
-        os.close(slave)
+        close_module(stop, device, link, master, slave)
