@@ -62,7 +62,11 @@ class Rig:
         self.frame_arrives()
         # Counted when decoded, stepped into the core just after, on the reader thread (a
         # campaign run beside a busy loop looked in between).
-        wait_for(lambda: self.core.poll() or self.core.online, 5, what='the board online')
+
+        def polled_online():
+            self.core.poll()  # (it returns nothing: the duties due, then look)
+            return self.core.online
+        wait_for(polled_online, 5, what='the board online')
         # The reader thread judges the board online with the frame, then calls
         # on_online_change: `online` may be seen before the callback has run (beside a busy
         # loop it was).
