@@ -43,13 +43,12 @@ class Initialization:
                                      fresh=False, initialized=False)
         if verdict == SAME_POWER_UP:
             return
-        self.link.void_answers()
         for action in heartbeat_actions(verdict):
             if isinstance(action, Log):
                 self._carry_log(action)
             else:
                 self._carry_record(action)
-        self._void_pending('the module rebooted while the request was pending')
+        self._rebooted_voids()
         self._schedule('init', force=True)
         self._emit_status()
         self.listener.on_diagnostics()
@@ -57,6 +56,15 @@ class Initialization:
             # The second heartbeat of this power-up may have waited (in the port) for all of
             # this to finish, long on a loaded host: the 0.2 s run from here, not from before.
             self._power_ups.handled(self.clock())
+
+    def _rebooted_voids(self) -> None:
+        """Void what a reboot ends, whoever found it (a power-up heartbeat, a new boot count).
+
+        The module's pending trigger request, and the rest of a records answer in flight: a
+        power-up goes on with neither.
+        """
+        self.link.void_answers()
+        self._void_pending('the module rebooted while the request was pending')
 
     def _initialize(self) -> None:
         """Read the module afresh and bring it to the desired settings (D2)."""
@@ -160,8 +168,7 @@ class Initialization:
             self.listener.on_diagnostics()
         if rebooted:
             self._log('warn', f'module boot count {previous} -> {count}: it rebooted')
-            self.link.void_answers()
-            self._void_pending('the module rebooted while the request was pending')
+            self._rebooted_voids()
             if reinit:
                 self._schedule('init', force=True)
         return epoch
