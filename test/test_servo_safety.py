@@ -159,8 +159,15 @@ def test_safety_16_set_id_across_an_unplug_finds_out_what_the_servo_did(rig):
             rig.dev.runner.unplug(duration_s=0.3)  # the cable back 0.3 s later
     rig.dev.runner.add_tap(tap)
     resp = rig.call(SetId, 'set_id', id=3, new_id=9)
-    assert resp.success and 'now answers at id 9' in resp.message, resp.message
-    assert 'acknowledgement was lost' in resp.message
+    if resp.success:
+        assert 'now answers at id 9' in resp.message, resp.message
+        assert 'acknowledgement was lost' in resp.message
+    else:
+        # Found at id 9 all the same; the probe that tells whether it is alone there waits a
+        # patient margin per READ, which a host stalled longer than that overruns: then the
+        # answer is that this was not seen, truly (campaign s10f). Not a refusal, not a failure.
+        assert 'servo 3 answers at id 9, but whether it is alone there was not seen' in \
+            resp.message, resp.message
     assert sorted(rig.sim.ids) == [1, 2, 9]
     start = len(rig.joints)
     msg = rig.joints.wait(lambda m: 'servo_9' in m.name, 10, start=start,
