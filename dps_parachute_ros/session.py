@@ -144,6 +144,7 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         self._config = config
         self._snap = Snapshot(policy=config.trigger_request_policy)
         self._epoch = 0                     # +1 whenever the module may have changed unseen
+        self._arms = 0                      # arm and lock frames sent (a read before is older)
         self._reboots = 0                   # reboots seen (a deploy's core compares them)
         self._boot_read_reboots = -1        # _reboots when the boot count was last read
         self._sent_since_boot_read = 0      # deploy frames since then (P11)
@@ -308,18 +309,42 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
             self._lock.notify_all()
             return self._snap
 
-    def _update_if(self, epoch: int, **changes: Any) -> bool:
-        """Apply a read result only if the module cannot have changed since it was asked."""
+    def _update_if(self, epoch: int, arms: Optional[int] = None, **changes: Any) -> bool:
+        """Apply a read result only if the module cannot have changed since it was asked.
+
+        `arms`: the arm and lock frames sent when it was asked (`_arms_sent`); an armed state
+        read before one is not taken (`_newer_armed`).
+        """
         with self._lock:
             if epoch != self._epoch:
                 return False
-            self._snap = self._snap.evolve(**changes)
+            self._snap = self._snap.evolve(**self._newer_armed(arms, changes))
             self._lock.notify_all()
             return True
+
+    def _newer_armed(self, arms: Optional[int], changes: Dict[str, Any]) -> Dict[str, Any]:
+        """Return `changes` without an armed state older than the last arm or lock frame.
+
+        A read's result is taken by the thread that asked, maybe after an arm frame that
+        another thread sent and read back since: the older answer must not undo the newer one
+        (an armed module taken for locked refuses a deploy). Caller holds _lock.
+        """
+        if arms is None or arms == self._arms or 'armed' not in changes:
+            return changes
+        changes = dict(changes)
+        del changes['armed']
+        if self._snap.armed is None:
+            changes.pop('fresh', None)  # not re-read: armed is still unknown
+        return changes
 
     def _current_epoch(self) -> int:
         with self._lock:
             return self._epoch
+
+    def _arms_sent(self) -> int:
+        """Return the count of arm and lock frames that left (for `_update_if`'s `arms`)."""
+        with self._lock:
+            return self._arms
 
     def _offline_text(self, snap: Snapshot) -> str:
         return f'module offline ({snap.offline_reason})'

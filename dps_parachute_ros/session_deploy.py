@@ -46,6 +46,8 @@ ACTUATION_WAIT_S = 10.0
 """A deploy or arm waits this long for one already running."""
 SAFETY_SYNC_S = 0.5
 """Longest wait for the black box's fsync on a safety event; none while it is failing."""
+ARM_FRAMES = (p.encode_arm(True), p.encode_arm(False))
+"""The frames that change the armed state (besides a deploy, which locks the module, P11)."""
 DEPLOY_OUTCOMES = {'refused': Outcome.REFUSED, 'already deployed': Outcome.DONE,
                    'deployed': Outcome.DONE, 'not deployed': Outcome.FAILED,
                    'unknown': Outcome.UNKNOWN}
@@ -63,7 +65,10 @@ class DeployProcedure:
     def _on_tx(self, data: bytes) -> None:
         # Every deploy frame that leaves counts until the module answers one, whatever ends
         # the wait (P11, D6): a timeout, a dropped link, a shutdown.
-        if data == DEPLOY_FRAME:
+        if data in ARM_FRAMES:
+            with self._lock:
+                self._arms += 1  # an armed state read before it is older (_newer_armed)
+        elif data == DEPLOY_FRAME:
             with self._lock:
                 self._deploy_frame_left = True
                 self._deploy_frame_at = self.clock()
@@ -234,9 +239,10 @@ class DeployProcedure:
         kind = DEPLOY_OUTCOMES.get(answer.outcome, Outcome.DONE if answer.ok else Outcome.FAILED)
         return Result(kind, answer.message, latency_ms=answer.latency_ms)
 
-    def _deploy_request(self, send: Request, armed_read: List[Tuple[int, bool]]) -> List[Event]:
+    def _deploy_request(self, send: Request,
+                        armed_read: List[Tuple[int, bool, int]]) -> List[Event]:
         """Carry out one request of the deploy procedure; the event that ends its wait."""
-        epoch = self._current_epoch()
+        epoch, arms = self._current_epoch(), self._arms_sent()
         deploy = send.frame == DEPLOY_FRAME
         if deploy:
             armed_read.clear()
@@ -259,15 +265,15 @@ class DeployProcedure:
         if isinstance(reply, p.BootCount):
             self._note_boot_count(reply.count)
         elif isinstance(reply, p.Status):
-            self._on_status(reply, 'query', epoch)
+            self._on_status(reply, 'query', epoch, arms)
         elif isinstance(reply, p.ArmedState):
-            self._update_if(epoch, armed=reply.armed)
-            armed_read[:] = [(epoch, reply.armed)]
+            self._update_if(epoch, arms, armed=reply.armed)
+            armed_read[:] = [(epoch, reply.armed, arms)]
         elif isinstance(reply, p.TriggeredState):
             if armed_read and armed_read[0][0] == epoch:
                 # Armed and triggered read in one epoch: a re-read (D15).
-                self._set_triggered(reply.triggered, 'query', epoch, armed=armed_read[0][1],
-                                    fresh=True)
+                self._set_triggered(reply.triggered, 'query', epoch, armed_read[0][2],
+                                    armed=armed_read[0][1], fresh=True)
             elif epoch == self._current_epoch():
                 self._set_triggered(reply.triggered, via='query')
         elif isinstance(reply, p.DeployAck):
@@ -282,7 +288,7 @@ class DeployProcedure:
         """
         if not snap.port_open:
             return snap
-        epoch = self._current_epoch()
+        epoch, arms = self._current_epoch(), self._arms_sent()
         try:
             # A reboot first (D15); a module silent to this one query is judged by the next.
             epoch = self._note_boot_count(
@@ -294,14 +300,14 @@ class DeployProcedure:
             return self.snapshot
         try:
             # Armed and triggered in one frame; the two queries if it does not answer that.
-            self._on_status(self._req(p.encode_status_query(), retries=1), 'query', epoch)
+            self._on_status(self._req(p.encode_status_query(), retries=1), 'query', epoch, arms)
         except LinkTimeout:
             try:
                 armed = self._req(p.encode_armed_query(), retries=1).armed
                 triggered = self._req(p.encode_triggered_query(), retries=1).triggered
             except LinkError:
                 return self.snapshot
-            self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True)
+            self._set_triggered(triggered, 'query', epoch, arms, armed=armed, fresh=True)
         except LinkError:
             pass
         return self.snapshot
@@ -340,7 +346,6 @@ class DeployProcedure:
             return Result.refused('triggered', (
                 'cannot arm: the module has deployed (triggered); a triggered module is never '
                 're-armed. Re-pack it and switch it off and on; nothing sent'))
-        epoch = self._current_epoch()
         try:
             danger = self._gate([('armed', True)], '~/arm') if want and judge else ''
             if danger:
@@ -349,6 +354,9 @@ class DeployProcedure:
             if reply.armed != want:
                 return Result.failed(f'module answered {reply.raw.hex(" ")} to {word}: '
                                      f'it stays {"armed" if reply.armed else "locked"}')
+            # The read-back is of the module as it is when asked: a reboot found while the
+            # gate or the frame was on its way does not void it (one found after it does).
+            epoch, arms = self._current_epoch(), self._arms_sent()
             try:
                 state = self._req(p.encode_armed_query(), retries=1)
             except LinkTimeout:
@@ -357,7 +365,7 @@ class DeployProcedure:
                 state = self._req(p.encode_status_query(), retries=1)
         except LinkError as exc:
             return Result.unknown(f'{word} not confirmed: {exc}', cause='no_reply')
-        self._update_if(epoch, armed=state.armed)
+        taken = self._update_if(epoch, arms, armed=state.armed)
         self.blackbox.record('state', armed=state.armed, via=word)
         self._safety_sync()
         self._emit_status()
@@ -365,4 +373,9 @@ class DeployProcedure:
         if state.armed != want:
             return Result.failed(f'module acknowledged {word} but the query says '
                                  f'{"armed" if state.armed else "locked"}')
+        if want and not taken:
+            # A reboot locks the module, and one may have come after the query was answered.
+            return Result.unknown('arm not confirmed: the query says armed, but the module may '
+                                  'have rebooted since (a reboot locks it); it is read afresh',
+                                  cause='rebooted')
         return Result.done('armed (verified by query)' if want else 'locked (verified by query)')

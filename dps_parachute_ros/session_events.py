@@ -34,15 +34,16 @@ class DeploymentEvents:
     """The deployment events of `ParachuteSession` (a mixin: it uses the session's state)."""
 
     def _set_triggered(self, triggered: Optional[bool], via: str, epoch: Optional[int] = None,
-                       **also: Any) -> Optional[Snapshot]:
+                       arms: Optional[int] = None, **also: Any) -> Optional[Snapshot]:
         """Take a triggered state read, with other fields, in one update.
 
         Returns the snapshot before it, or None when `epoch` shows that the module may have
-        changed since it was read (nothing is taken then).
+        changed since it was read (nothing is taken then). `arms`: as `_update_if`'s.
         """
         with self._lock:
             if epoch is not None and epoch != self._epoch:
                 return None
+            also = self._newer_armed(arms, also)
             before = self._snap
             if triggered is not None:
                 also['triggered'] = triggered

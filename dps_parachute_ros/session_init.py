@@ -77,9 +77,11 @@ class Initialization:
                                           reinit=False)
             # Armed and triggered first: a deploy waiting for them never waits behind a stream
             # the module does not turn on.
+            arms = self._arms_sent()
             armed = self._req(p.encode_armed_query(), retries=1).armed
             triggered = self._req(p.encode_triggered_query(), retries=1).triggered
-            if self._set_triggered(triggered, 'query', epoch, armed=armed, fresh=True) is None:
+            if self._set_triggered(triggered, 'query', epoch, arms, armed=armed,
+                                   fresh=True) is None:
                 return  # it rebooted meanwhile: that schedules another initialization
             self._start_stream()
             with self._lock:

@@ -81,9 +81,9 @@ class Preflight:
         return [(True, 'online', f'answers (boot count {self.snapshot.boot_count})')]
 
     def _pf_armed(self) -> List[Check]:
-        epoch = self._current_epoch()
+        epoch, arms = self._current_epoch(), self._arms_sent()
         armed = self._req(p.encode_armed_query(), retries=1).armed
-        self._update_if(epoch, armed=armed)
+        self._update_if(epoch, arms, armed=armed)
         return [(armed, 'armed', 'armed' if armed else 'LOCKED: arm it with ~/arm')]
 
     def _pf_triggered(self) -> List[Check]:
@@ -129,9 +129,9 @@ class Preflight:
         return [(True, 'trigger requests confirmed', 'trigger_request_policy confirm')]
 
     def _pf_conditions(self) -> List[Check]:
-        epoch = self._current_epoch()
+        epoch, arms = self._current_epoch(), self._arms_sent()
         status = self._req(p.encode_status_query(), retries=1)
-        self._on_status(status, via='query', epoch=epoch)
+        self._on_status(status, via='query', epoch=epoch, arms=arms)
         snap = self.snapshot
         tilt, accel = float(status.tilt_deg), float(status.accel_g)
         met = conditions(self._trigger_settings(snap), tilt, accel)

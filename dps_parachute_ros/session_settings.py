@@ -271,7 +271,7 @@ class SettingsTransaction:
 
     def _settings_request(self, send: Request) -> List[Any]:
         """Carry out one request of the settings core; the event that ends its wait."""
-        epoch = self._current_epoch()
+        epoch, arms = self._current_epoch(), self._arms_sent()
         try:
             reply = self._req(send.frame, retries=send.retries)
         except LinkBusy as exc:
@@ -281,7 +281,7 @@ class SettingsTransaction:
         except LinkError as exc:
             return [Timeout(self.clock(), str(exc))]
         if isinstance(reply, p.Status):
-            self._on_status(reply, via='query', epoch=epoch)
+            self._on_status(reply, via='query', epoch=epoch, arms=arms)
         elif isinstance(reply, p.AutoTriggerFlags):
             self._set_flags(reply)
         return [Reply(self.clock(), reply)]

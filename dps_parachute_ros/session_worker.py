@@ -173,10 +173,11 @@ class Worker:
         # reboot re-initializes. The answer also keeps it online while its stream is silent.
         before = self._current_epoch()
         epoch = self._note_boot_count(self._req(p.encode_boot_count_query()).count)
+        arms = self._arms_sent()
         status = self._req(p.encode_status_query())
         if epoch != before or epoch != self._current_epoch():
             return
-        self._on_status(status, via='poll', epoch=epoch)
+        self._on_status(status, via='poll', epoch=epoch, arms=arms)
         self._stream_fallback(f'no status frame for {silent:.1f} s although the module answers')
 
     def _stream_fallback(self, why: str) -> None:
@@ -197,10 +198,11 @@ class Worker:
         self.listener.on_diagnostics()
 
     def _poll(self) -> None:
-        epoch = self._current_epoch()
+        epoch, arms = self._current_epoch(), self._arms_sent()
         if not self.snapshot.streaming:
             # The status first: it is what the online judgement and a deploy need.
-            self._on_status(self._req(p.encode_status_query()), via='poll', epoch=epoch)
+            self._on_status(self._req(p.encode_status_query()), via='poll', epoch=epoch,
+                            arms=arms)
         values = {}
         for name, frame, field_ in (('light_v', p.encode_light_level_query(), 'volts'),
                                     ('charging', p.encode_charging_query(), 'charging'),
@@ -218,8 +220,10 @@ class Worker:
         self.listener.on_battery(self.snapshot)
         self.listener.on_diagnostics()
 
-    def _on_status(self, status: p.Status, via: str, epoch: Optional[int] = None) -> None:
-        # A status frame tells armed and triggered as they are now: a re-read (D15).
+    def _on_status(self, status: p.Status, via: str, epoch: Optional[int] = None,
+                   arms: Optional[int] = None) -> None:
+        # A status frame tells armed and triggered as they are now: a re-read (D15). One of
+        # the stream is taken in the order of the wire; an answer, as of when it was asked.
         restored = False
         with self._lock:
             self._last_status_time = self.clock()
@@ -234,7 +238,8 @@ class Worker:
             self._log('info', 'the status stream is back', key='stream-back', every_s=30.0)
             self.blackbox.record('state', event='status stream restored')
             self.listener.on_diagnostics()
-        before = self._set_triggered(status.triggered, via, epoch, tilt_deg=float(status.tilt_deg),
+        before = self._set_triggered(status.triggered, via, epoch, arms,
+                                     tilt_deg=float(status.tilt_deg),
                                      accel_g=float(status.accel_g), armed=status.armed,
                                      fresh=True)
         if before is None:

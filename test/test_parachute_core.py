@@ -611,6 +611,74 @@ def test_safety_7_a_deploy_right_after_a_reboot_never_goes_out_on_old_knowledge(
     assert rig.session.deploy('DEPLOY', True).ok
 
 
+def test_an_arm_read_back_after_a_heartbeat_in_its_gate_is_what_the_driver_knows(tmp_path):
+    # Campaign s11a, run 5 (its black box): while the arm's gate read the status, a heartbeat
+    # (the power-up's late second, handled as a possible reboot) came, with a status frame the
+    # module sent before the arm reached it (locked). The arm was read back armed after both,
+    # and said so, but the driver dropped that read-back as of an older power-up and kept
+    # "locked": the deploy that followed was refused ("the module is locked").
+    gate = threading.Event()
+
+    def tap(rig, direction, data):
+        if direction == 'rx' and gate.is_set() and p.encode_status_query() in data:
+            gate.clear()
+            rig.runner.inject_garbage(p.encode_module_heartbeat()
+                                      + p.encode_status_frame(0, 10, False, False))
+    rig = Rig(tmp_path, tap=tap)
+    try:
+        assert rig.snap.armed is False and rig.snap.fresh
+        # The re-read that the heartbeat starts does not end (its triggered query is lost):
+        # only the arm's own read-back can tell the driver that the module is armed.
+        with rig.model():
+            rig.sim.lost_commands = {p.CMD_TRIGGERED}
+        gate.set()
+        result = rig.session.arm(True)
+        assert not gate.is_set(), 'the gate read no status'
+        assert result.outcome is Outcome.DONE, result.message
+        assert rig.snap.armed is True and rig.sim.armed
+        mark = rig.wire.mark()
+        result = rig.session.deploy('DEPLOY')
+        assert result.outcome is Outcome.DONE, result.message
+        assert rig.wire.since(mark, p.CMD_DEPLOY) == [p.encode_deploy()]
+        events = [r.get('event') for r in rig.records() if r['kind'] == 'state']
+        assert 'module reboot (unsolicited heartbeat)' in events, events
+    finally:
+        rig.close()
+
+
+def test_an_armed_state_read_before_an_arm_frame_never_undoes_its_read_back(tmp_path):
+    # A re-read asks armed, then triggered, and takes both at once. An arm went out between
+    # the two (the triggered query's reply lost: the re-read asks again after its timeout;
+    # the status stream, on meanwhile, let the arm go): the armed state the re-read took was
+    # older than the arm's own read-back, and undid it.
+    rereading, arming = threading.Event(), []
+
+    def tap(rig, direction, data):
+        if direction == 'rx' and rereading.is_set() and p.encode_triggered_query() in data:
+            rereading.clear()
+            rig.runner.faults.drop_next = 1
+            arming.append(threading.Thread(target=lambda: arming.append(
+                rig.session.arm(True))))
+            arming[0].start()
+    rig = Rig(tmp_path, tap=tap)
+    try:
+        wait_for(lambda: rig.snap.streaming, 5, what='the status stream')
+        mark = rig.wire.mark()
+        rereading.set()
+        rig.runner.inject_garbage(p.encode_module_heartbeat())  # a reboot, as far as it knows
+        wait_for(lambda: len(arming) == 2, 5, what='the arm during the re-read')
+        arming[0].join(5)
+        assert arming[1].outcome is Outcome.DONE, arming[1].message
+        rig.wait_ready()
+        # The arm went out between the re-read's armed query and its triggered query's retry.
+        codes = [frame[2] for frame in rig.wire.since(mark)
+                 if frame[2] in (p.CMD_ARMED, p.CMD_TRIGGERED, p.CMD_ARM)]
+        assert codes[:4] == [p.CMD_ARMED, p.CMD_TRIGGERED, p.CMD_ARM, p.CMD_ARMED], codes
+        assert rig.sim.armed and rig.snap.armed is True, rig.snap
+    finally:
+        rig.close()
+
+
 def test_safety_7_a_reboot_during_a_deploy_stops_its_retry(rig):
     rig.arm()
     with rig.model():
