@@ -311,17 +311,25 @@ def test_a_silent_servo_goes_offline_after_its_failures_and_is_reprobed_once_a_s
     assert rig.core.bus_health().level == OK
 
 
-def test_two_servos_at_one_id_are_reported_as_a_duplicate_id(rig):
-    rig.cycle()
-    with rig.dev.runner.locked():
-        rig.sim.add_servo(2, allow_duplicate=True, position_ticks=1000)
-    for _ in range(12):
-        rig.cycle(CHECK_PERIOD_S / 4)
-    health = rig.core.servo_health(2)
-    assert health.level == ERROR and 'duplicate id' in health.message
-    assert rig.core.bus_health().level == ERROR and 'id(s) 2' in rig.core.bus_health().message
-    assert rig.core.servo_health(1).level == OK
-    assert 'two servos answer to id 2' in rig.log.text('error')
+def test_two_servos_at_one_id_are_reported_as_a_duplicate_id(tmp_path):
+    # The device thread shares this process: beside a busy loop it missed the usual 25-ms
+    # margin five times for servo 1, which went offline, truly (campaign s11a, run 6). The
+    # point is which servo the duplicate is told of: a margin the stalls do not reach.
+    rig = Rig(tmp_path, response_timeout_ms=250.0)
+    try:
+        rig.cycle()
+        with rig.dev.runner.locked():
+            rig.sim.add_servo(2, allow_duplicate=True, position_ticks=1000)
+        for _ in range(12):
+            rig.cycle(CHECK_PERIOD_S / 4)
+        health = rig.core.servo_health(2)
+        assert health.level == ERROR and 'duplicate id' in health.message
+        assert rig.core.bus_health().level == ERROR and \
+            'id(s) 2' in rig.core.bus_health().message
+        assert rig.core.servo_health(1).level == OK
+        assert 'two servos answer to id 2' in rig.log.text('error')
+    finally:
+        rig.stop()
 
 
 def a_second_servo_answering_apart_at_2(rig):
