@@ -35,6 +35,11 @@ class Wire:
         if direction == 'rx':
             with self._lock:
                 self._rx.append(bytes(data))
+        else:
+            self._reply(data)
+
+    def _reply(self, data: bytes) -> None:
+        """Take what the device put on the wire (nothing here)."""
 
     def mark(self) -> int:
         """Return a position; `requests(mark)` decodes what was sent after it."""
@@ -46,6 +51,19 @@ class Wire:
         with self._lock:
             data = b''.join(self._rx[mark:])
         return StreamDecoder('request').feed(data)
+
+    def requests_ending(self, mark: int = 0) -> list:
+        """Return (the mark at which each request's last byte had come, the request).
+
+        Taken after a call was queued, a mark tells what left after it: a request that ends
+        after it was on the wire then, or sent later.
+        """
+        with self._lock:
+            chunks = self._rx[mark:]
+        decoder, found = StreamDecoder('request'), []
+        for i, chunk in enumerate(chunks):
+            found.extend((mark + i + 1, r) for r in decoder.feed(chunk))
+        return found
 
     def commands(self, mark: int = 0) -> list:
         """Return the requests since `mark` other than the read loop's own READs."""

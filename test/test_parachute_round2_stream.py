@@ -17,7 +17,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from dps_parachute_ros import protocol as p
 from parachute_rig import NODE, Rig as NodeRig
 import pytest
-from std_srvs.srv import SetBool, Trigger
+from std_srvs.srv import Trigger
 from test_parachute_core import in_thread, Rig
 from uav_serial_common.process import wait_for
 from uav_serial_drivers.msg import TriggerEvent
@@ -258,8 +258,7 @@ def test_round2_2_over_ros_a_dead_stream_is_reported_and_the_module_armed_and_de
         check = rig.call(Trigger, 'preflight_check')
         assert not check.success and 'FAIL status stream' in check.message, check.message
         for _ in range(3):
-            reply = rig.call(SetBool, 'arm', SetBool.Request(data=True))
-            assert reply.success, reply.message
+            rig.arm()
         reply = rig.call(Deploy, 'deploy', Deploy.Request(confirm='DEPLOY'))
         assert reply.success, reply.message
         event = rig.events.wait(lambda m: True, 5, what='the trigger event')

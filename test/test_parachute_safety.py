@@ -17,7 +17,7 @@ from parachute_rig import NODE, parameter_value, Rig
 import pytest
 from rcl_interfaces.msg import Parameter
 from rcl_interfaces.srv import GetParameters, SetParametersAtomically
-from std_srvs.srv import SetBool, Trigger
+from std_srvs.srv import Trigger
 from uav_serial_common.process import wait_for, wait_scale
 from uav_serial_drivers.msg import TriggerRequest
 from uav_serial_drivers.srv import Deploy, SetThresholds
@@ -198,7 +198,7 @@ def test_safety_21_preflight_check_over_ros(make_rig):
     rig.wait_ready()
     reply = rig.call(Trigger, 'preflight_check')
     assert not reply.success and reply.message.startswith('FAIL armed: LOCKED'), reply.message
-    assert rig.call(SetBool, 'arm', SetBool.Request(data=True)).success
+    rig.arm()
     reply = rig.call(Trigger, 'preflight_check')
     assert reply.success, reply.message
     assert len(reply.message.splitlines()) == 14 and 'FAIL' not in reply.message

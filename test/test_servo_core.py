@@ -16,12 +16,13 @@ from desheng_servo_ros.bus_schedule import Send
 from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAILURES,
                                     REPROBE_PERIOD_S, ServoBusConfig, ServoBusCore, WARN)
 from desheng_servo_ros.link import FORGET_AFTER_REPLIES, LinkTimeout
-from desheng_servo_ros.protocol import Instruction, StreamDecoder
+from desheng_servo_ros.protocol import Instruction
 from desheng_servo_ros.simulation import HOLD_CURRENT_MA, IDLE_CURRENT_MA
 from desheng_servo_ros.state import Outcome, POSITION
 from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
+from servo_rig import Wire
 from support import ask_again, FakeClock
 from uav_serial_common.core_events import Reply
 from uav_serial_common.process import wait_for, WaitTimeout
@@ -48,39 +49,16 @@ class Log:
         return '\n'.join(t for lv, t in self.lines if level in (None, lv))
 
 
-class Tap:
-    """Every request the driver put on the wire, decoded."""
+class Tap(Wire):
+    """Every request the driver put on the wire, decoded; and how many frames the device sent."""
 
     def __init__(self, runner):
-        self.data = []
-        self.replies = 0  # frames the device put on the wire
-        self.lock = threading.Lock()
-        runner.add_tap(self._tap)
+        self.replies = 0
+        super().__init__(runner)
 
-    def _tap(self, direction, data, t):
-        with self.lock:
-            if direction == 'rx':
-                self.data.append(bytes(data))
-            else:
-                self.replies += 1
-
-    def mark(self):
-        with self.lock:
-            return len(self.data)
-
-    def requests(self, mark=0):
-        with self.lock:
-            data = b''.join(self.data[mark:])
-        return StreamDecoder('request').feed(data)
-
-    def requests_ending(self, mark=0):
-        """Return (the mark at which each request's last byte had come, the request)."""
-        with self.lock:
-            chunks = self.data[mark:]
-        decoder, found = StreamDecoder('request'), []
-        for i, chunk in enumerate(chunks):
-            found.extend((mark + i + 1, r) for r in decoder.feed(chunk))
-        return found
+    def _reply(self, data):
+        with self._lock:
+            self.replies += 1
 
 
 class Rig:
