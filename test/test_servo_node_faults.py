@@ -112,7 +112,9 @@ def test_a_lost_reply_is_read_again_at_once_and_costs_the_servo_nothing(rig):
     msg = rig.states.wait(all_online, 5, start=start + 3, what='states after the drop')
     # The READ was sent again within the same cycle: no failed transaction, no data gap.
     assert [s.error_count for s in msg.servos] == errors
-    rig.diag('/servo_bus: bus', lambda s: bus_value(s, 'retries') == retries + 1,
+    # (At least one: a device stalled past the margin meanwhile adds its own, truly, and the
+    # diagnostics, once a second, may show both at once.)
+    rig.diag('/servo_bus: bus', lambda s: bus_value(s, 'retries') >= retries + 1,
              start=len(rig.diags))
 
 
