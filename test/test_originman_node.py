@@ -269,7 +269,7 @@ def test_a_servo_sweep_shows_in_joint_states_and_every_service_answers(ros, laun
                             'limits')['bus_servos'][0]
     assert (servo['offset'], servo['voltage_limits'], servo['temperature_limit_c']) == \
         (-12, [5000, 8400], 70)
-    taken = rig.call(SetBusServoId, f'{DRIVER}/bus_servo/set_id', id=3, new_id=2)
+    taken = answered(SetBusServoId, 'bus_servo/set_id', id=3, new_id=2)  # (reads only)
     assert not taken.success and 'taken' in taken.message
     assert rig.call(SetBusServoId, f'{DRIVER}/bus_servo/set_id', id=3, new_id=7).success
     states.wait(lambda m: [s.id for s in m.servos] == [1, 2, 7] and m.servos[2].online, 10,

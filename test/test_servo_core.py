@@ -965,8 +965,9 @@ def test_round2_22_an_emergency_stop_goes_between_two_attempts_of_a_service_requ
         wire = [r.raw for r in rig.tap.requests(read)]
         stop = proto.encode_write(proto.BROADCAST_ID, 0x28, b'\x00')
         assert stop in wire, wire
-        # Torque off right after the attempt on the wire, not after the other two.
-        assert wire.index(stop) == 1, [w.hex() for w in wire]
+        # Torque off between two attempts, not after the last: right after the attempt on
+        # the wire, or the next if this thread was stalled past the first's 300 ms.
+        assert wire.index(stop) in (1, 2), [w.hex() for w in wire]
         assert wire.count(ask) == 3 and results and not results[0].ok
     finally:
         rig.stop()

@@ -151,8 +151,11 @@ def test_an_emergency_stop_goes_ahead_of_the_requests_that_wait_for_the_bus(bus)
     # Who goes first is the schedule's (an emergency stop, then the callers in turn), no lock's.
     dev, wire, link = bus
     mark = wire.mark()
-    waiting = threading.Thread(target=lambda: pytest.raises(LinkTimeout, link.ping, 77, retries=0))
-    waiting.start()  # holds the bus for its reply's margin
+    # It holds the bus for its wait (long: this thread has that long to queue the rest, which
+    # a loaded host may stall for the margin of a usual request).
+    waiting = threading.Thread(target=lambda: pytest.raises(LinkTimeout, link.ping, 77,
+                                                            retries=0, timeout=1.5))
+    waiting.start()
     wait_for(lambda: len(wire.requests(mark)) == 1, 5, what='the PING of 77 on the bus')
     queued = [threading.Thread(target=link.ping, args=(i,)) for i in (1, 2)]
     for t in queued:
