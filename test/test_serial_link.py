@@ -260,12 +260,9 @@ def test_flushing_while_bytes_arrive_is_not_taken_for_a_disconnect(tmp_path):
         assert link.wait_port_open(2)
         writer.start()
         wait_for(lambda: unsolicited, 2, what='the stream')
-        deadline = time.monotonic() + 1.0
-        flushes = 0
-        while time.monotonic() < deadline:
+        # Many flushes, however long a loaded host takes for them (a count, not a second).
+        for _ in range(50_000):
             link.flush_input()
-            flushes += 1
-        assert flushes > 100
         assert states == [True] and link.port_open and link.stats.reconnects == 0, \
             link.last_error
     finally:
