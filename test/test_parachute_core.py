@@ -646,6 +646,30 @@ def test_an_arm_read_back_after_a_heartbeat_in_its_gate_is_what_the_driver_knows
         rig.close()
 
 
+def test_an_arm_whose_read_back_a_heartbeat_overtook_is_unknown_until_read_again(tmp_path):
+    # A heartbeat (a reboot, as far as the driver can tell) that comes before the answer to
+    # the arm's read-back: the module may have rebooted after answering, and a reboot locks
+    # it. Not "armed": unknown, and the re-read that the heartbeat starts tells.
+    armed = {'sent': False}
+
+    def tap(rig, direction, data):
+        if direction != 'rx':
+            return
+        if p.encode_arm(True) in data:
+            armed['sent'] = True
+        elif armed['sent'] and p.encode_armed_query() in data:
+            armed['sent'] = False
+            rig.runner.inject_garbage(p.encode_module_heartbeat())
+    rig = Rig(tmp_path, tap=tap)
+    try:
+        result = rig.session.arm(True)
+        assert (result.outcome, result.cause) == (Outcome.UNKNOWN, 'rebooted'), result.message
+        rig.wait_ready()
+        assert rig.sim.armed and rig.snap.armed is True, rig.snap
+    finally:
+        rig.close()
+
+
 def test_an_armed_state_read_before_an_arm_frame_never_undoes_its_read_back(tmp_path):
     # A re-read asks armed, then triggered, and takes both at once. An arm went out between
     # the two (the triggered query's reply lost: the re-read asks again after its timeout;
