@@ -14,13 +14,15 @@ lock are described there). Threads:
   the release gate (``release_gate``, when the node sets one) before the first frame, and its
   one answer. ``arm`` decides around blocking requests.
 - the thread that writes a frame (a deploy's caller): ``_on_tx`` counts every deploy frame as
-  it leaves, whatever ends the wait for its answer.
+  it leaves, whatever ends the wait for its answer, and every arm or lock frame (``_arms``: an
+  armed state read before one is older than its read-back and is not taken).
 - serial reader: ``_on_deploy_reply`` takes a late acknowledgement (a deploy call takes the one
   it waits for).
 
-Owns, guarded by ``_lock``: ``_deploy_frame_left``, ``_deploy_frame_at``, ``_unknown_boot``; the
-``armed``, ``unacked_deploys``, ``failed_deploys`` and ``deploy_outcome_unknown`` fields of the
-snapshot. Other: ``_actuation``, ``_attempts`` (the attempts kept for a restart).
+Owns, guarded by ``_lock``: ``_deploy_frame_left``, ``_deploy_frame_at``, ``_unknown_boot``,
+``_arms``; the ``armed``, ``unacked_deploys``, ``failed_deploys`` and
+``deploy_outcome_unknown`` fields of the snapshot. Other: ``_actuation``, ``_attempts`` (the
+attempts kept for a restart).
 """
 
 from __future__ import annotations
