@@ -348,6 +348,7 @@ class DeployProcedure:
             return Result.refused('triggered', (
                 'cannot arm: the module has deployed (triggered); a triggered module is never '
                 're-armed. Re-pack it and switch it off and on; nothing sent'))
+        sent_before = self._arms_sent()
         try:
             danger = self._gate([('armed', True)], '~/arm') if want and judge else ''
             if danger:
@@ -366,6 +367,11 @@ class DeployProcedure:
                 # is still verified (and can be armed for a deploy).
                 state = self._req(p.encode_status_query(), retries=1)
         except LinkError as exc:
+            if self._arms_sent() != sent_before:
+                # Its frame left and what it did was not seen: neither armed nor locked is
+                # known (a deploy would be judged on a guess). The module is read afresh (D15).
+                self._update(armed=None, fresh=False)
+                self._schedule('init', force=True)
             return Result.unknown(f'{word} not confirmed: {exc}', cause='no_reply')
         taken = self._update_if(epoch, arms, armed=state.armed)
         self.blackbox.record('state', armed=state.armed, via=word)

@@ -670,6 +670,29 @@ def test_an_arm_whose_read_back_a_heartbeat_overtook_is_unknown_until_read_again
         rig.close()
 
 
+def test_an_arm_not_read_back_leaves_the_armed_state_unknown_and_reads_it_again(tmp_path):
+    # The arm frame left and neither the armed query nor the status answered: not "locked"
+    # (a deploy would be refused on a guess, or go on one), unknown, until the module is read
+    # afresh.
+    def tap(rig, direction, data):
+        if direction == 'rx' and p.encode_arm(True) in data:
+            rig.sim.lost_commands = {p.CMD_ARMED, p.CMD_STATUS}
+    rig = Rig(tmp_path, tap=tap, stream_status=False)  # (a stream frame answers the status)
+    try:
+        result = rig.session.arm(True)
+        assert (result.outcome, result.cause) == (Outcome.UNKNOWN, 'no_reply'), result.message
+        assert rig.snap.armed is None and not rig.snap.fresh
+        with rig.model():
+            rig.sim.lost_commands = set()
+        rig.clock.advance(1.0)  # a re-read the lost replies cut short is tried again 1 s later
+        rig.wait_ready()
+        assert rig.sim.armed and rig.snap.armed is True
+        result = rig.session.deploy('DEPLOY')
+        assert result.outcome is Outcome.DONE, result.message
+    finally:
+        rig.close()
+
+
 def test_an_armed_state_read_before_an_arm_frame_never_undoes_its_read_back(tmp_path):
     # A re-read asks armed, then triggered, and takes both at once. An arm went out between
     # the two (the triggered query's reply lost: the re-read asks again after its timeout;
