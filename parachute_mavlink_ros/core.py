@@ -113,6 +113,7 @@ class LinkCore:
         self.triggered = False
         self.preflight_ok: Optional[bool] = None
         self.preflight_failures: List[str] = []
+        self._announced: List[str] = []  # the failures the last "preflight FAIL" said
         self._preflight_call: Optional[int] = None
         self._next_preflight = now
         self._preflight_again = False
@@ -428,13 +429,17 @@ class LinkCore:
         # The "armed" check is what STANDBY and ACTIVE differ by, not a failure.
         failures = [line[5:] for line in event.message.splitlines()
                     if line.startswith('FAIL') and not line[5:].startswith('armed:')]
-        was_ok, was = self.preflight_ok, self.preflight_failures
+        was_ok = self.preflight_ok
         self.preflight_ok = not failures
         self.preflight_failures = failures
-        if failures and (failures != was or was_ok is not False) and self.armed:
+        # Said once armed, even when first seen while locked (the check after the arm finds
+        # the same failures: a host where the periodic check ran in between never said them).
+        if failures and self.armed and failures != self._announced:
             self._text('critical', 'preflight FAIL: ' + '; '.join(failures)[:150])
+            self._announced = failures
         elif was_ok is False and not failures:
             self._text('notice', 'preflight checks pass')
+            self._announced = []
 
     def _on_deployed(self, event: Deployed, now: float) -> None:
         self.triggered = True

@@ -90,6 +90,31 @@ def test_round2_23_heartbeat_status_follows_the_parachute_node():
     assert clock.core.system_status() == c.MAV_STATE_EMERGENCY
 
 
+def test_round2_23_preflight_failures_found_while_locked_are_said_once_armed():
+    # (test_mavlink_link, campaign s11d run 3: the periodic check found the empty battery
+    # while the module was locked; the check after the arm found the same, and nothing was said.)
+    clock = Clock()
+    ready(clock, armed=False)
+    clock.advance(10.0)  # the periodic preflight check, while locked
+    call = [a for a in clock.of(c.Call) if a.service == 'preflight_check'][-1]
+    clock.feed(c.Answer(call.call_id, False, 'FAIL battery: 3.2 V on battery\n'
+                                             'FAIL armed: LOCKED: arm it with ~/arm'))
+    mark = clock.mark()
+    assert not clock.sent('statustext', mark)
+    clock.feed(c.ParachuteState(True, True, False))  # armed: checked again
+    call = [a for a in clock.of(c.Call) if a.service == 'preflight_check'][-1]
+    clock.feed(c.Answer(call.call_id, False, 'FAIL battery: 3.2 V on battery\nOK   armed: ok'))
+    texts = [s.fields['text'] for s in clock.sent('statustext', mark)]
+    assert len([t for t in texts if 'preflight FAIL' in t and 'battery' in t]) == 1, texts
+    assert clock.core.system_status() == c.MAV_STATE_CRITICAL
+    # Said once: the next periodic check with the same failures says nothing more.
+    mark = clock.mark()
+    clock.advance(10.0)
+    call = [a for a in clock.of(c.Call) if a.service == 'preflight_check'][-1]
+    clock.feed(c.Answer(call.call_id, False, 'FAIL battery: 3.2 V on battery\nOK   armed: ok'))
+    assert not [s for s in clock.sent('statustext', mark) if 'preflight' in s.fields['text']]
+
+
 def test_round2_23_system_id_zero_sends_nothing_until_an_autopilot_heartbeat():
     clock = Clock(system_id=0)
     clock.advance(5.0)
