@@ -341,6 +341,11 @@ class ParachuteSession(TriggerRequests, OnlineJudgement, Worker, Initialization,
         with self._lock:
             return self._epoch
 
+    def _asked(self) -> Tuple[int, int]:
+        """Return (epoch, arm and lock frames sent) at once: what a read is taken against."""
+        with self._lock:
+            return self._epoch, self._arms
+
     def _arms_sent(self) -> int:
         """Return the count of arm and lock frames that left (for `_update_if`'s `arms`)."""
         with self._lock:

@@ -244,7 +244,7 @@ class DeployProcedure:
     def _deploy_request(self, send: Request,
                         armed_read: List[Tuple[int, bool, int]]) -> List[Event]:
         """Carry out one request of the deploy procedure; the event that ends its wait."""
-        epoch, arms = self._current_epoch(), self._arms_sent()
+        epoch, arms = self._asked()
         deploy = send.frame == DEPLOY_FRAME
         if deploy:
             armed_read.clear()
@@ -290,7 +290,7 @@ class DeployProcedure:
         """
         if not snap.port_open:
             return snap
-        epoch, arms = self._current_epoch(), self._arms_sent()
+        epoch, arms = self._asked()
         try:
             # A reboot first (D15); a module silent to this one query is judged by the next.
             epoch = self._note_boot_count(
@@ -359,7 +359,7 @@ class DeployProcedure:
                                      f'it stays {"armed" if reply.armed else "locked"}')
             # The read-back is of the module as it is when asked: a reboot found while the
             # gate or the frame was on its way does not void it (one found after it does).
-            epoch, arms = self._current_epoch(), self._arms_sent()
+            epoch, arms = self._asked()
             try:
                 state = self._req(p.encode_armed_query(), retries=1)
             except LinkTimeout:

@@ -81,7 +81,7 @@ class Preflight:
         return [(True, 'online', f'answers (boot count {self.snapshot.boot_count})')]
 
     def _pf_armed(self) -> List[Check]:
-        epoch, arms = self._current_epoch(), self._arms_sent()
+        epoch, arms = self._asked()
         armed = self._req(p.encode_armed_query(), retries=1).armed
         self._update_if(epoch, arms, armed=armed)
         return [(armed, 'armed', 'armed' if armed else 'LOCKED: arm it with ~/arm')]
@@ -129,7 +129,7 @@ class Preflight:
         return [(True, 'trigger requests confirmed', 'trigger_request_policy confirm')]
 
     def _pf_conditions(self) -> List[Check]:
-        epoch, arms = self._current_epoch(), self._arms_sent()
+        epoch, arms = self._asked()
         status = self._req(p.encode_status_query(), retries=1)
         self._on_status(status, via='query', epoch=epoch, arms=arms)
         snap = self.snapshot

@@ -271,7 +271,7 @@ class SettingsTransaction:
 
     def _settings_request(self, send: Request) -> List[Any]:
         """Carry out one request of the settings core; the event that ends its wait."""
-        epoch, arms = self._current_epoch(), self._arms_sent()
+        epoch, arms = self._asked()
         try:
             reply = self._req(send.frame, retries=send.retries)
         except LinkBusy as exc:

@@ -198,7 +198,7 @@ class Worker:
         self.listener.on_diagnostics()
 
     def _poll(self) -> None:
-        epoch, arms = self._current_epoch(), self._arms_sent()
+        epoch, arms = self._asked()
         if not self.snapshot.streaming:
             # The status first: it is what the online judgement and a deploy need.
             self._on_status(self._req(p.encode_status_query()), via='poll', epoch=epoch,
