@@ -770,7 +770,10 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     assert marks['lost deploy'] < lost.t < marks['unknown deploy']
     assert 'it did NOT deploy' in lost.paragraph
     assert lost.paragraph.count('no acknowledgement of the deploy frame') == 2
-    assert lost.paragraph.count('the module answers it is NOT triggered') == 2
+    # At least one answer per missing acknowledgement. (Another read of the triggered state
+    # that a loaded host put inside the call, a re-read or a query answered after its retry,
+    # is told the same way: campaign s11f, run 10.)
+    assert lost.paragraph.count('the module answers it is NOT triggered') >= 2
     assert len(events_of(summary, 'link', 'no reply to deploy')) == 4
     # The module lost the triggered queries of the deploy of unknown outcome: two. (A module
     # process stalled past the 1-s timeout on a loaded host adds one elsewhere, truly: campaign

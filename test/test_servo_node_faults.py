@@ -101,21 +101,36 @@ def test_garbage_on_the_line_is_skipped(rig):
 
 
 def test_a_lost_reply_is_read_again_at_once_and_costs_the_servo_nothing(rig):
-    msg = rig.states.wait(all_online, 5, start=len(rig.states), what='all online')
-    errors = [s.error_count for s in msg.servos]
     retries = bus_value(rig.diag('/servo_bus: bus', lambda s: True, start=len(rig.diags)),
                         'retries')
+    # The READ is sent again within the same cycle: no failed transaction, no data gap. A
+    # device process stalled past the margin on a loaded host fails a transaction of its own,
+    # truly (campaign s11f, run 10), so a drop that met one is dropped again, up to three
+    # times: a driver that did not read again at once costs the servo an error every time.
+    costs = []
+    for _ in range(3):
+        errors, after = drop_one_reply(rig)
+        if after == errors:
+            break
+        costs.append((errors, after))
+    else:
+        pytest.fail(f'every lost reply cost a servo an error: {costs}')
+    # (At least one: a device stalled past the margin meanwhile adds its own, truly, and the
+    # diagnostics, once a second, may show both at once.)
+    rig.diag('/servo_bus: bus', lambda s: bus_value(s, 'retries') >= retries + 1,
+             start=len(rig.diags))
+
+
+def drop_one_reply(rig):
+    """Drop the device's next reply; return the servos' error counts before and after."""
+    msg = rig.states.wait(all_online, 5, start=len(rig.states), what='all online')
+    errors = [s.error_count for s in msg.servos]
     dropped = rig.dev.runner.replies_dropped
     rig.dev.runner.faults.drop_next = 1
     wait_for(lambda: rig.dev.runner.replies_dropped == dropped + 1, 5, what='a reply dropped')
     start = len(rig.states)
     msg = rig.states.wait(all_online, 5, start=start + 3, what='states after the drop')
-    # The READ was sent again within the same cycle: no failed transaction, no data gap.
-    assert [s.error_count for s in msg.servos] == errors
-    # (At least one: a device stalled past the margin meanwhile adds its own, truly, and the
-    # diagnostics, once a second, may show both at once.)
-    rig.diag('/servo_bus: bus', lambda s: bus_value(s, 'retries') >= retries + 1,
-             start=len(rig.diags))
+    return errors, [s.error_count for s in msg.servos]
 
 
 def bus_value(status, key):
