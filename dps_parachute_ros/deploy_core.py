@@ -8,15 +8,19 @@ event carries its time (``now``, monotonic seconds), and `DeployCore.step` retur
 to carry out in order. ``uav_serial_common.core_runner`` carries them out over a link; the model
 test (test/test_parachute_model.py) over the device model, in virtual time.
 
-A deploy call is a generator that yields each `Request` (or `PassGate`) and gets back the event
-that ended the wait. One call runs at a time; a call while one runs is refused, nothing sent.
+A deploy or arm call is a generator that yields each `Request` (or `PassGate`, `JudgeArm`)
+and gets back the event that ended the wait. One call runs at a time; a call while one runs is
+refused, nothing sent.
 
 The rules, each in one place: a deploy frame only on an armed state read since the last known
 reboot (D15); at most two deploy frames of a power-up without a successful acknowledgement,
 counted from the moment the frame may leave and kept across runs (``SaveAttempts``; a new core
 takes them back, P11); the decision is recorded (synced) before the frame leaves; every call is
 answered once, and never "refused"/"did NOT deploy" when the module deployed nor "deployed" when
-it did not: when that is not known the answer says UNKNOWN.
+it did not: when that is not known the answer says UNKNOWN. An arm (`ArmCall`) goes only on an
+armed and triggered state read since the last reboot seen, to a module not triggered, after the
+settings core's check that it would not deploy the module at once (what came in while that ran
+is judged again); "armed" or "locked" only when a query read it back after the reply (P7).
 """
 
 from __future__ import annotations
@@ -25,15 +29,18 @@ from typing import Any, Generator, List, Optional, Set, Tuple, Type, Union
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_events import (  # noqa: F401 (the core's vocabulary, re-exported)
-    Action, Busy, DeployAnswer, DeployCall, Event, GateDone, guard_text, LinkDown, LinkUp, Log,
-    MAX_FAILED_DEPLOYS, PassGate, Rebooted, Record, Reply, Report, Request, REQUEST_TIMEOUT_S,
-    SaveAttempts, Stored, SYNC_WAIT, Timeout, why)
+    Action, ArmAnswer, ArmCall, ArmJudged, Busy, DeployAnswer, DeployCall, Event, GateDone,
+    guard_text, JudgeArm, LinkDown, LinkUp, Log, MAX_FAILED_DEPLOYS, PassGate, Rebooted, Record,
+    Reply, Report, Request, REQUEST_TIMEOUT_S, SaveAttempts, Stored, SYNC_WAIT, Timeout, why)
 from dps_parachute_ros.deploy_knowledge import (  # noqa: F401 (re-exported)
     DeployKnowledge, POWER_UP_HEARTBEATS_S)
+from uav_serial_common.result import Outcome, Result
 
 DEPLOY_TOKEN = 'DEPLOY'
 DEPLOY_FRAME = p.encode_deploy()
-_Wait = Generator[Union[Request, PassGate], Event, None]
+_Wait = Generator[Union[Request, PassGate, JudgeArm], Event, None]
+ARM_CHECKS = 2
+"""An arm checks the module at most this often when it changes while checked; then refuses."""
 
 
 class DeployCore(DeployKnowledge):
@@ -60,13 +67,17 @@ class DeployCore(DeployKnowledge):
     def step(self, event: Event) -> List[Action]:
         """Take one event; return the actions to carry out, in order."""
         self._now = event.now
-        if isinstance(event, DeployCall):
-            if self._call is not None:
+        if isinstance(event, (DeployCall, ArmCall)):
+            if self._call is None:
+                self._call = (self._deploy(event) if isinstance(event, DeployCall)
+                              else self._arm_call(event))
+                self._advance(None)
+            elif isinstance(event, DeployCall):
                 self._answer('refused', 'deploy refused: another deploy or arm is still '
                              'running; nothing sent')
             else:
-                self._call = self._deploy(event)
-                self._advance(None)
+                self._out.append(ArmAnswer(Result.refused(
+                    'busy', 'another deploy or arm is still running; nothing sent')))
         elif self._call is not None and self._answers_wait(event):
             if isinstance(event, Reply):
                 self._take(event.message, solicited=True)
@@ -85,6 +96,8 @@ class DeployCore(DeployKnowledge):
         wait = self._waiting
         if isinstance(wait, PassGate):
             return isinstance(event, GateDone)
+        if isinstance(wait, JudgeArm):
+            return isinstance(event, ArmJudged)
         if wait is None:
             return False
         if isinstance(event, Reply):
@@ -193,14 +206,83 @@ class DeployCore(DeployKnowledge):
         # No record of it in an answer cut short is no answer (P15): not "it did NOT deploy".
         return True if fired else (False if records.complete else None)
 
-    def _arm(self) -> Generator[Request, Event, str]:
-        """Arm for a deploy (``arm_if_locked``: firing is the point); '' or why it failed."""
-        event = yield self._request(p.encode_arm(True), p.ArmReply, retries=1)
+    def _arm_call(self, call: ArmCall) -> _Wait:
+        """`~/arm`: arm or lock, verified by a query (P7); never an arm that fires (D16, P21).
+
+        An arm goes only on an armed and triggered state read since the last reboot seen
+        (D15), to a module not triggered, and after the settings core's check that arming
+        would not deploy it at once; a lock always may go to a module that answers.
+        """
+        want = call.want
+        word = 'arm' if want else 'lock'
+        self._out.append(Record.of('request', what=word))
+        for checks in range(ARM_CHECKS):
+            if not self.online or (want and not self.fresh):
+                yield from self._reread()
+            if not self.online:
+                self._arm_answer(Result.refused('offline', f'cannot {word}: module offline '
+                                                f'({self.offline_reason}); nothing sent'))
+                return
+            if want and not self.fresh:
+                self._arm_answer(Result.refused('not_reread', (
+                    'cannot arm: the module may have rebooted and has not been re-read, so '
+                    'whether it has deployed is not known; nothing sent')))
+                return
+            if want and self.triggered:
+                self._arm_answer(Result.refused('triggered', (
+                    'cannot arm: the module has deployed (triggered); a triggered module is '
+                    'never re-armed. Re-pack it and switch it off and on; nothing sent')))
+                return
+            if not want:
+                break
+            reboots = self.reboots
+            judged = yield JudgeArm('~/arm')
+            assert isinstance(judged, ArmJudged)
+            if judged.problem:
+                self._arm_answer(Result.refused('no_reply', (
+                    'cannot arm: whether arming would deploy the module at once is not known '
+                    f'({judged.problem}); nothing sent')))
+                return
+            if judged.danger:
+                self._arm_answer(Result.refused('would_deploy',
+                                                f'cannot arm, nothing sent: {judged.danger}'))
+                return
+            if self.reboots == reboots and self.online and self.fresh and not self.triggered:
+                break
+            # What came in while the check ran (a reboot, a silence, a deployment) is judged
+            # as the check was: on the module read afresh (D15).
+        else:
+            self._arm_answer(Result.refused('not_reread', (
+                f'cannot arm: the module changed while it was checked, {ARM_CHECKS} times (a '
+                'reboot, a silence or a deployment); nothing sent. Try again in a moment.')))
+            return
+        result = yield from self._arm(want)
+        self._arm_answer(result)
+
+    def _arm_answer(self, result: Result) -> None:
+        self._out.append(ArmAnswer(result))
+
+    def _arm(self, want: bool) -> Generator[Request, Event, Result]:
+        """Send the arm (or lock) frame and read the armed state back; what became of it.
+
+        DONE only when the reply and the query agree (P7). UNKNOWN when the frame left and
+        what it did was not seen (the armed state is then unknown: read afresh, D15), or when
+        a reboot seen after the query was asked may have locked the module since.
+        """
+        word = 'arm' if want else 'lock'
+        event = yield self._request(p.encode_arm(want), p.ArmReply, retries=1)
+        if isinstance(event, (Busy, LinkDown)) and not getattr(event, 'frame_left', False):
+            return Result.refused('busy' if isinstance(event, Busy) else 'offline',
+                                  f'{word} not sent: {why(event)}')
         if not isinstance(event, Reply):
-            return f'arm not confirmed: {why(event)}'
+            self._armed_unknown()
+            return Result.unknown(f'{word} not confirmed: {why(event)}', cause='no_reply')
         reply = event.message
-        if not reply.armed:
-            return f'module answered {reply.raw.hex(" ")} to arm: it stays locked'
+        if reply.armed != want:
+            return Result.failed(f'module answered {reply.raw.hex(" ")} to {word}: it stays '
+                                 f'{"armed" if reply.armed else "locked"}')
+        # The read-back is of the module as it is when asked: a reboot found while the frame
+        # was on its way does not void it (one found after it does).
         reboots = self.reboots
         event = yield self._request(p.encode_armed_query(), p.ArmedState, retries=1)
         if isinstance(event, Timeout):
@@ -208,14 +290,26 @@ class DeployCore(DeployKnowledge):
             # still verified.
             event = yield self._request(p.encode_status_query(), p.Status, retries=1)
         if not isinstance(event, Reply):
-            return f'arm not confirmed: {why(event)}'
+            self._armed_unknown()
+            return Result.unknown(f'{word} not confirmed: {why(event)}', cause='no_reply')
         armed = event.message.armed
-        if reboots == self.reboots:
+        taken = reboots == self.reboots
+        if taken:
             self.armed = armed
-        self._out.append(Record.of('state', SYNC_WAIT, armed=armed, via='arm'))
-        if not armed:
-            return 'module acknowledged arm but the query says locked'
-        return ''
+        self._out.append(Record.of('state', SYNC_WAIT, armed=armed, via=word))
+        if armed != want:
+            return Result.failed(f'module acknowledged {word} but the query says '
+                                 f'{"armed" if armed else "locked"}')
+        if want and not taken:
+            # A reboot locks the module, and one may have come after the query was answered.
+            return Result.unknown('arm not confirmed: the query says armed, but the module may '
+                                  'have rebooted since (a reboot locks it); it is read afresh',
+                                  cause='rebooted')
+        return Result.done(f'{"armed" if want else "locked"} (verified by query)')
+
+    def _armed_unknown(self) -> None:
+        """Forget the armed state: an arm or lock frame left unseen; read afresh first (D15)."""
+        self.armed, self.fresh, self._stale = None, False, True
 
     def _deploy(self, call: DeployCall) -> _Wait:
         t0 = call.now
@@ -262,9 +356,9 @@ class DeployCore(DeployKnowledge):
                              'cannot deploy); arm it with ~/arm or set arm_if_locked; nothing '
                              'sent')
                 return False
-            problem = yield from self._arm()
-            if problem:
-                self._answer('refused', f'deploy refused: arming failed: {problem}')
+            armed = yield from self._arm(True)
+            if armed.outcome is not Outcome.DONE:
+                self._answer('refused', f'deploy refused: arming failed: {armed.message}')
                 return False
         return True
 

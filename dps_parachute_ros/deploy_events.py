@@ -13,11 +13,12 @@ from typing import Optional, Tuple, Union
 from dps_parachute_ros.release_gate import GateDone, PassGate
 from uav_serial_common.core_events import (Busy, LinkDown, LinkUp, Log, Rebooted, Record,
                                            Reply, Request, SYNC_WAIT, Timeout)
+from uav_serial_common.result import Result
 
-__all__ = ['Busy', 'DeployAnswer', 'DeployCall', 'GateDone', 'LinkDown', 'LinkUp', 'Log',
-           'PassGate', 'Rebooted', 'Record', 'Reply', 'Report', 'Request', 'SaveAttempts',
-           'Stored', 'SYNC_WAIT', 'Timeout', 'guard_text', 'why', 'MAX_FAILED_DEPLOYS',
-           'REQUEST_TIMEOUT_S', 'Event', 'Action']
+__all__ = ['ArmAnswer', 'ArmCall', 'ArmJudged', 'Busy', 'DeployAnswer', 'DeployCall',
+           'GateDone', 'JudgeArm', 'LinkDown', 'LinkUp', 'Log', 'PassGate', 'Rebooted', 'Record',
+           'Reply', 'Report', 'Request', 'SaveAttempts', 'Stored', 'SYNC_WAIT', 'Timeout',
+           'guard_text', 'why', 'MAX_FAILED_DEPLOYS', 'REQUEST_TIMEOUT_S', 'Event', 'Action']
 
 MAX_FAILED_DEPLOYS = 2
 """P11: three unsuccessful attempts in a row put the module into protection; we stop at two."""
@@ -37,7 +38,29 @@ class DeployCall:
     gate: bool = False
 
 
-Event = Union[DeployCall, Reply, Timeout, LinkDown, LinkUp, Busy, Rebooted, GateDone]
+@dataclass(frozen=True)
+class ArmCall:
+    """`~/arm` asked: arm the module (`want` True) or lock it (P7)."""
+
+    now: float
+    want: bool
+
+
+@dataclass(frozen=True)
+class ArmJudged:
+    """What `JudgeArm` found.
+
+    `danger`: why arming now would deploy the module at once (D16, P21); `problem`: the module
+    did not answer what the check needs (nothing was sent then).
+    """
+
+    now: float
+    danger: str = ''
+    problem: str = ''
+
+
+Event = Union[DeployCall, ArmCall, Reply, Timeout, LinkDown, LinkUp, Busy, Rebooted, GateDone,
+              ArmJudged]
 
 
 # -- actions (and those of ``uav_serial_common.core_events``) -----------------------------------
@@ -89,7 +112,25 @@ class Stored:
     since_read: int = 0
 
 
-Action = Union[Request, Record, SaveAttempts, PassGate, DeployAnswer, Log, Report]
+@dataclass(frozen=True)
+class JudgeArm:
+    """Ask whether arming now would deploy the module at once (D16).
+
+    The settings core's one check; the caller answers with `ArmJudged`.
+    """
+
+    origin: str = '~/arm'
+
+
+@dataclass(frozen=True)
+class ArmAnswer:
+    """The one answer to an `ArmCall`: DONE only when the reply and a query agree (P7)."""
+
+    result: Result
+
+
+Action = Union[Request, Record, SaveAttempts, PassGate, JudgeArm, DeployAnswer, ArmAnswer, Log,
+               Report]
 
 
 def guard_text(failed: int, unacked: int) -> str:

@@ -12,7 +12,8 @@ lock are described there). Threads:
   ``uav_serial_common.core_runner``: its requests over the link (a reply, a timeout or the
   link down is the next event), its records (the decision synced before the frame leaves),
   the release gate (``release_gate``, when the node sets one) before the first frame, and its
-  one answer. ``arm`` decides around blocking requests.
+  one answer. ``arm`` runs the same core (an `ArmCall`); its check that arming would not
+  deploy the module at once is the settings core's (``_gate``).
 - the thread that writes a frame (a deploy's caller): ``_on_tx`` counts every deploy frame as
   it leaves, whatever ends the wait for its answer, and every arm or lock frame (``_arms``: an
   armed state read before one is older than its read-back and is not taken).
@@ -30,12 +31,13 @@ from __future__ import annotations
 from dataclasses import replace
 import time
 from types import SimpleNamespace
-from typing import Any, List, Optional, Tuple
+from typing import Any, List, Optional, Tuple, Union
 
 from dps_parachute_ros import protocol as p
-from dps_parachute_ros.deploy_core import (DEPLOY_FRAME, DEPLOY_TOKEN, DeployAnswer, DeployCall,
-                                           DeployCore, Event, Report, SaveAttempts)
-from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError, LinkTimeout
+from dps_parachute_ros.deploy_core import (ArmAnswer, ArmCall, ArmJudged, DEPLOY_FRAME,
+                                           DEPLOY_TOKEN, DeployAnswer, DeployCall, DeployCore,
+                                           Event, JudgeArm, Report, SaveAttempts)
+from dps_parachute_ros.link import LinkBusy, LinkDown, LinkError
 from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.state import Outcome, Result, Snapshot
 from uav_serial_common.core_events import Busy, Log, Record, Reply, Request, Timeout
@@ -182,11 +184,29 @@ class DeployProcedure:
         return Result.refused(cause, message)
 
     def _run_deploy(self, call: DeployCall) -> Result:
+        """Run one deploy call on the deploy core; take its answer into the session."""
+        done = self._run_core(call)
+        answer = next(action for action in done if isinstance(action, DeployAnswer))
+        if answer.counts is not None:
+            with self._lock:
+                self._snap = replace(self._snap, failed_deploys=answer.counts[0],
+                                     unacked_deploys=answer.counts[1])
+        if answer.outcome == 'unknown':
+            with self._lock:
+                self._unknown_boot = self._snap.boot_count
+            self._update(deploy_outcome_unknown=True)
+            self.listener.on_diagnostics()
+        if answer.ok:
+            self._emit_status()
+        kind = DEPLOY_OUTCOMES.get(answer.outcome, Outcome.DONE if answer.ok else Outcome.FAILED)
+        return Result(kind, answer.message, latency_ms=answer.latency_ms)
+
+    def _run_core(self, call: Union[DeployCall, ArmCall]) -> List[Any]:
         """Step a `DeployCore` that mirrors this session's knowledge, and carry out its actions.
 
         Before each event the core is told what the session knows now (its reader, worker and
         monitor threads keep that); a reply is taken into the session first, as any request's
-        is, and then given to the core.
+        is, and then given to the core. Returns the actions carried out.
         """
         core = DeployCore(mirror=True, request_timeout_s=self.config.request_timeout_s)
         armed_read: List[Tuple[int, bool]] = []  # (epoch, armed) of an armed query, for fresh
@@ -221,25 +241,19 @@ class DeployProcedure:
                 self.release_gate.before_release(action.what)  # every refusal is decided
             return [GateDone(self.clock())]
 
-        done = run_core(SimpleNamespace(step=step), [call], {
+        def judge(action: JudgeArm) -> List[Event]:
+            try:
+                danger = self._gate([('armed', True)], action.origin)
+            except LinkError as exc:
+                return [ArmJudged(self.clock(), problem=str(exc))]
+            return [ArmJudged(self.clock(), danger=danger)]
+
+        return run_core(SimpleNamespace(step=step), [call], {
             Request: request, Record: self._carry_record, SaveAttempts: save, PassGate: gate,
-            Log: self._carry_log,
+            JudgeArm: judge, Log: self._carry_log,
             Report: lambda action: None,  # (mirror: the session reports its deployments)
-            DeployAnswer: lambda action: None})  # (taken from what run_core carried out)
-        answer = next(action for action in done if isinstance(action, DeployAnswer))
-        if answer.counts is not None:
-            with self._lock:
-                self._snap = replace(self._snap, failed_deploys=answer.counts[0],
-                                     unacked_deploys=answer.counts[1])
-        if answer.outcome == 'unknown':
-            with self._lock:
-                self._unknown_boot = self._snap.boot_count
-            self._update(deploy_outcome_unknown=True)
-            self.listener.on_diagnostics()
-        if answer.ok:
-            self._emit_status()
-        kind = DEPLOY_OUTCOMES.get(answer.outcome, Outcome.DONE if answer.ok else Outcome.FAILED)
-        return Result(kind, answer.message, latency_ms=answer.latency_ms)
+            # (the answers are taken from what run_core carried out)
+            DeployAnswer: lambda action: None, ArmAnswer: lambda action: None})
 
     def _deploy_request(self, send: Request,
                         armed_read: List[Tuple[int, bool, int]]) -> List[Event]:
@@ -259,7 +273,9 @@ class DeployProcedure:
             return [Busy(self.clock(), str(exc))]
         except LinkDown as exc:
             with self._lock:
-                left = self._deploy_frame_left or not deploy
+                # (A frame that changes the armed state is counted as it leaves, _on_tx.)
+                left = (self._deploy_frame_left if deploy
+                        else self._arms != arms if send.frame in ARM_FRAMES else True)
             return [CoreLinkDown(self.clock(), str(exc), left, self._stopping.is_set())]
         except LinkError as exc:
             return [Timeout(self.clock(), str(exc))]
@@ -282,108 +298,39 @@ class DeployProcedure:
             self._on_deploy_reply(reply, late=False)
         return [Reply(self.clock(), reply)]
 
-    def _reread(self, snap: Snapshot) -> Snapshot:
-        """Ask the module what a deploy or an arm needs, when the driver's knowledge is old.
-
-        A module that answers is online (its answer is a frame), however it was judged before:
-        an offline verdict or a re-read still to come never refuses a module that answers.
-        """
-        if not snap.port_open:
-            return snap
-        epoch, arms = self._asked()
-        try:
-            # A reboot first (D15); a module silent to this one query is judged by the next.
-            epoch = self._note_boot_count(
-                self._req(p.encode_boot_count_query(), silence_ok=snap.online).count)
-        except LinkTimeout:
-            if not snap.online:
-                return self.snapshot  # silent: offline it is
-        except LinkError:
-            return self.snapshot
-        try:
-            # Armed and triggered in one frame; the two queries if it does not answer that.
-            self._on_status(self._req(p.encode_status_query(), retries=1), 'query', epoch, arms)
-        except LinkTimeout:
-            try:
-                armed = self._req(p.encode_armed_query(), retries=1).armed
-                triggered = self._req(p.encode_triggered_query(), retries=1).triggered
-            except LinkError:
-                return self.snapshot
-            self._set_triggered(triggered, 'query', epoch, arms, armed=armed, fresh=True)
-        except LinkError:
-            pass
-        return self.snapshot
-
     def arm(self, want: bool) -> Result:
-        """`~/arm`: arm or lock; success only when the reply and a query agree (P7)."""
-        self.blackbox.record('request', what='arm' if want else 'lock')
+        """`~/arm`: arm or lock; success only when the reply and a query agree (P7).
+
+        The rules are `DeployCore`'s (``_arm_call``: D15, D16, P21); this thread carries out
+        its actions over the link, serialized with deploy by ``_actuation``.
+        """
+        word = 'arm' if want else 'lock'
         if not self._actuation.acquire(timeout=ACTUATION_WAIT_S):
-            return Result.refused('busy', 'another deploy or arm is still running; nothing sent')
-        try:
-            result = self._arm(want)
-        finally:
-            self._actuation.release()
+            self.blackbox.record('request', what=word)
+            result = Result.refused('busy', 'another deploy or arm is still running; nothing sent')
+        else:
+            try:
+                snap = self.snapshot
+                if want and snap.online and not snap.fresh:
+                    self._wait_fresh()  # the worker's re-read, already under way (D15)
+                result = self._run_arm(want)
+            finally:
+                self._actuation.release()
         self._log('info' if result.ok else 'warn', result.message)
         return result
 
-    def _arm(self, want: bool, judge: bool = True) -> Result:
-        """Arm or lock, verified; an arm that would fire at once is refused (D16, P21).
-
-        `judge` False: arming for a deploy (``arm_if_locked``), where firing is the point.
-        """
-        word = 'arm' if want else 'lock'
-        snap = self.snapshot
-        if want and snap.online and not snap.fresh:
-            snap = self._wait_fresh()
-        if not snap.online or (want and not snap.fresh):
-            snap = self._reread(snap)
-        if not snap.online:
-            return Result.refused('offline', f'cannot {word}: {self._offline_text(snap)}; '
-                                  'nothing sent')
-        if want and not snap.fresh:
-            return Result.refused('not_reread', (
-                'cannot arm: the module may have rebooted and has not been re-read, so whether '
-                'it has deployed is not known; nothing sent'))
-        if want and snap.triggered:
-            return Result.refused('triggered', (
-                'cannot arm: the module has deployed (triggered); a triggered module is never '
-                're-armed. Re-pack it and switch it off and on; nothing sent'))
+    def _run_arm(self, want: bool) -> Result:
+        """Step the deploy core through one `ArmCall`; take into the session what it did."""
         sent_before = self._arms_sent()
-        try:
-            danger = self._gate([('armed', True)], '~/arm') if want and judge else ''
-            if danger:
-                return Result.refused('would_deploy', f'cannot arm, nothing sent: {danger}')
-            reply = self._req(p.encode_arm(want), retries=1)
-            if reply.armed != want:
-                return Result.failed(f'module answered {reply.raw.hex(" ")} to {word}: '
-                                     f'it stays {"armed" if reply.armed else "locked"}')
-            # The read-back is of the module as it is when asked: a reboot found while the
-            # gate or the frame was on its way does not void it (one found after it does).
-            epoch, arms = self._asked()
-            try:
-                state = self._req(p.encode_armed_query(), retries=1)
-            except LinkTimeout:
-                # The status frame tells armed too: a module silent to the armed query alone
-                # is still verified (and can be armed for a deploy).
-                state = self._req(p.encode_status_query(), retries=1)
-        except LinkError as exc:
-            if self._arms_sent() != sent_before:
-                # Its frame left and what it did was not seen: neither armed nor locked is
-                # known (a deploy would be judged on a guess). The module is read afresh (D15).
-                self._update(armed=None, fresh=False)
-                self._schedule('init', force=True)
-            return Result.unknown(f'{word} not confirmed: {exc}', cause='no_reply')
-        taken = self._update_if(epoch, arms, armed=state.armed)
-        self.blackbox.record('state', armed=state.armed, via=word)
-        self._safety_sync()
+        done = self._run_core(ArmCall(self.clock(), want))
+        result = next(action for action in done if isinstance(action, ArmAnswer)).result
+        if self._arms_sent() == sent_before:
+            return result
+        if result.outcome is Outcome.UNKNOWN and result.cause == 'no_reply':
+            # Its frame left and what it did was not seen: neither armed nor locked is
+            # known (a deploy would be judged on a guess). The module is read afresh (D15).
+            self._update(armed=None, fresh=False)
+            self._schedule('init', force=True)
         self._emit_status()
         self.listener.on_diagnostics()
-        if state.armed != want:
-            return Result.failed(f'module acknowledged {word} but the query says '
-                                 f'{"armed" if state.armed else "locked"}')
-        if want and not taken:
-            # A reboot locks the module, and one may have come after the query was answered.
-            return Result.unknown('arm not confirmed: the query says armed, but the module may '
-                                  'have rebooted since (a reboot locks it); it is read afresh',
-                                  cause='rebooted')
-        return Result.done('armed (verified by query)' if want else 'locked (verified by query)')
+        return result

@@ -16,8 +16,8 @@ from typing import Any, Dict, List, Optional, Set, Tuple
 
 from dps_parachute_ros import protocol as p
 from dps_parachute_ros.deploy_core import (
-    DEPLOY_FRAME, DeployAnswer, DeployCall, DeployCore, POWER_UP_HEARTBEATS_S, Report,
-    SaveAttempts, Stored)
+    ArmAnswer, ArmCall, ArmJudged, DEPLOY_FRAME, DeployAnswer, DeployCall, DeployCore, JudgeArm,
+    POWER_UP_HEARTBEATS_S, Report, SaveAttempts, Stored)
 from dps_parachute_ros.release_gate import GateDone, PassGate
 from dps_parachute_ros.simulation import VirtualParachute
 from uav_serial_common.core_events import (LinkDown, LinkUp, Log, Record, Reply, Request,
@@ -48,6 +48,10 @@ FAULTS = ('clean', 'drop_request', 'drop_reply', 'corrupt', 'delay', 'garbage', 
 with the reply, its second is lost, and it reboots again 0.3 s later (within the 2 s of a late
 heartbeat: the second power-up's first heartbeat looks like the first's late second)."""
 HEARTBEAT = p.encode_module_heartbeat()
+ARM_FRAME, LOCK_FRAME = p.encode_arm(True), p.encode_arm(False)
+JUDGEMENTS = ('safe', 'safe', 'would deploy', 'no answer')
+"""What the settings core's check before an arm finds (D16): nothing, that arming would deploy
+the module at once, or that the module did not answer what the check needs."""
 REBOOT_KINDS = ('seen', 'quiet', 'late', 'lost_second_then_reboot')
 """How a generated reboot reaches the driver (D3): its heartbeats seen or lost, its second taken
 late by a reader that stalled, or lost and another reboot following."""
@@ -101,6 +105,19 @@ class Call:
     triggered_before: bool = False
 
 
+@dataclass
+class ArmRun:
+    """One arm (or lock) call and what became of it."""
+
+    want: bool
+    judgement: str
+    boot_before: int
+    answers: List[ArmAnswer] = field(default_factory=list)
+    arm_sends: int = 0              # arm or lock frames that left for the module
+    judged: int = 0                 # times the settings core's check was asked
+    problems: List[str] = field(default_factory=list)
+
+
 class ModelRig:
     """The core, the model and the wire between them; see the module docstring."""
 
@@ -121,6 +138,9 @@ class ModelRig:
         self.actions: List[Any] = []
         self.calls: List[Call] = []
         self.call: Optional[Call] = None
+        self.arm_calls: List[ArmRun] = []
+        self.arm_call: Optional[ArmRun] = None
+        self.triggered_read: Optional[bool] = None  # since the last known reboot or reconnect
         self.unacked: Dict[int, int] = {}      # model boot count -> deploy frames unacked
         self.armed_read = False                # an armed=True read since the last known reboot
         self.last_heartbeat = -1e9
@@ -150,6 +170,7 @@ class ModelRig:
             core = DeployCore(stored)
         self.core = core
         self.armed_read = False
+        self.triggered_read = None
         self.last_boot_told = None
         self._unhold()  # (a new process opens the port afresh)
         if self.plugged:
@@ -172,6 +193,18 @@ class ModelRig:
         self.faults = []
         return call
 
+    def arm(self, want: bool = True, faults: Optional[List[str]] = None,
+            judgement: str = 'safe') -> ArmRun:
+        """One `~/arm` (or lock), `faults` applied to its requests in turn; its ArmRun."""
+        self.faults = list(faults or [])
+        call = ArmRun(want, judgement, self.model.boot_count)
+        self.arm_calls.append(call)
+        self.arm_call = call
+        self._run([ArmCall(self.t, want)])
+        self.arm_call = None
+        self.faults = []
+        return call
+
     def restart_driver(self) -> None:
         """Respawn the driver: a new core, with the attempts the old one kept."""
         saved = self.saved
@@ -188,6 +221,7 @@ class ModelRig:
         if not self.plugged:
             self.plugged = True
             self.armed_read = False
+            self.triggered_read = None
             self._run([LinkUp(self.t)])
 
     def power_cycle(self, quiet: bool = False, late_s: float = 0.0,
@@ -273,7 +307,8 @@ class ModelRig:
     def _run(self, events: List[Any]) -> None:
         run_core(self, events, {
             Request: self._send, Record: self._keep, Log: self._keep, Report: self._keep,
-            SaveAttempts: self._save, PassGate: self._gate, DeployAnswer: self._answer})
+            SaveAttempts: self._save, PassGate: self._gate, DeployAnswer: self._answer,
+            JudgeArm: self._judge, ArmAnswer: self._arm_answer})
 
     def step(self, event: Any) -> List[Any]:
         """Step the core; a mirror core as the session does: its keeper takes the event first.
@@ -294,7 +329,7 @@ class ModelRig:
             return self.core.step(event)
         keeper = self.keeper
         assert keeper is not None
-        if not isinstance(event, (DeployCall, GateDone)):
+        if not isinstance(event, (DeployCall, ArmCall, GateDone, ArmJudged)):
             for action in keeper.step(event):
                 if isinstance(action, SaveAttempts):
                     self.saved = action
@@ -326,6 +361,28 @@ class ModelRig:
         self.actions.append(action)
         return [GateDone(self.t)]
 
+    def _judge(self, action: JudgeArm) -> List[Any]:
+        self.actions.append(action)
+        call = self.arm_call
+        assert call is not None
+        call.judged += 1
+        if call.judgement == 'would deploy':
+            return [ArmJudged(self.t, danger='the attitude threshold is below the tilt now')]
+        if call.judgement == 'no answer':
+            return [ArmJudged(self.t, problem='no reply to the status query')]
+        return [ArmJudged(self.t)]
+
+    def _arm_answer(self, action: ArmAnswer) -> None:
+        self.actions.append(action)
+        call = self.arm_call
+        if call is not None:
+            call.answers.append(action)
+        result = action.result
+        keeper = self.keeper
+        if keeper is not None and call is not None and call.arm_sends and \
+                result.outcome.value == 'unknown' and result.cause == 'no_reply':
+            keeper.armed, keeper.fresh = None, False  # what the session takes from it
+
     def _answer(self, action: DeployAnswer) -> None:
         self.actions.append(action)
         if self.call is not None:
@@ -350,16 +407,19 @@ class ModelRig:
         self.actions.append(send)
         if send.frame == DEPLOY_FRAME:
             self._check_before_deploy_frame()
+        elif send.frame in (ARM_FRAME, LOCK_FRAME):
+            self._check_before_arm_frame(send.frame == ARM_FRAME)
         if not self.plugged:
             return [LinkDown(self.t, 'unplugged', frame_left=False)]
         events: List[Any] = []
-        for _ in range(send.retries + 1):
+        for attempt in range(send.retries + 1):
             fault = self.faults.pop(0) if self.faults else 'clean'
             self.applied.append(fault)
             sent_at = self.t
             if fault == 'unplug_before':
                 self.unplug_quietly()
-                return events + [LinkDown(self.t, 'unplugged', frame_left=False)]
+                # (An attempt before this one left: the request's frame did.)
+                return events + [LinkDown(self.t, 'unplugged', frame_left=attempt > 0)]
             out_parts: List[Tuple[bytes, int]] = []
             if fault in REBOOT_FAULTS:
                 self.t += REBOOT_S
@@ -376,6 +436,8 @@ class ModelRig:
                         self.hold_until = self.t + stall
                     if again is not None:
                         self.reboot_at = self.t + again
+            if send.frame in (ARM_FRAME, LOCK_FRAME) and self.arm_call is not None:
+                self.arm_call.arm_sends += 1
             if send.frame == DEPLOY_FRAME:
                 self._count_deploy_frame()
                 if self.keeper is not None:  # the session's _on_tx
@@ -484,19 +546,21 @@ class ModelRig:
         if isinstance(msg, p.Heartbeat):
             self.heard_boots.add(boot)
             if now - self.last_heartbeat > POWER_UP_HEARTBEATS_S:
-                self.armed_read = False
+                self.armed_read, self.triggered_read = False, None
             self.last_heartbeat = now
         elif isinstance(msg, p.BootCount):
             if msg.count == self.model.boot_count:
                 self.unseen_reboot = False
             if self.last_boot_told is not None and msg.count != self.last_boot_told:
-                self.armed_read = False
+                self.armed_read, self.triggered_read = False, None
             self.last_boot_told = msg.count
         elif isinstance(msg, (p.ArmedState, p.Status)):
             self.armed_read = msg.armed
             self.armed_boot = boot
             if msg.armed == self.model.armed:
                 self.unseen_change = False
+        if isinstance(msg, (p.Status, p.TriggeredState)):
+            self.triggered_read = msg.triggered
         elif isinstance(msg, p.DeployAck) and msg.success:
             self.unacked[boot] = 0
 
@@ -505,6 +569,19 @@ class ModelRig:
         self.unacked[boot] = self.unacked.get(boot, 0) + 1
         if self.call is not None:
             self.call.deploy_sends += 1
+
+    def _check_before_arm_frame(self, arm: bool) -> None:
+        call = self.arm_call
+        if call is None:
+            return  # (a deploy's arm_if_locked: firing is the point, and its frame is judged)
+        if not arm:
+            return
+        if self.triggered_read is not False:
+            call.problems.append('an arm frame on a triggered state not read (as not '
+                                 'triggered) since the last known reboot or reconnect')
+        if not call.judged or call.judgement != 'safe':
+            call.problems.append(f'an arm frame the check did not pass ({call.judgement}, '
+                                 f'asked {call.judged} times)')
 
     def _check_before_deploy_frame(self) -> None:
         if not self.armed_read:

@@ -22,10 +22,21 @@ second core that is never called). After every step:
 - never "refused" or "not deployed" when the module deployed during the call, never
   "deployed" when it never deployed; UNKNOWN only when a deploy frame left;
 - the decision recorded (synced) and the attempt kept before the deploy frame leaves;
+- arming (`~/arm`, an `ArmCall` of the same core, with or without the settings core's check
+  passing): every call answered once; "refused" only with no arm or lock frame sent, any
+  other answer only with one sent; "armed"/"locked" only when the module is so (or rebooted
+  since, which locks it); an arm frame only on a triggered state read as not triggered since
+  the last reboot the driver could know of, and only after the check passed; an UNKNOWN
+  leaves the armed state unknown (or the truth read since), never a guess; a module that
+  answers, is not triggered and has no reboot unseen or still to come can be armed;
 - a module that is armed, answers, is below the P11 limit and not triggered is deployed by a
   deploy call with the good token on a clean wire (and no reboot the driver could not see since
   it last read the boot count: until it asks, it cannot know that the module it saw triggered
   was switched off and on, or armed by another path whose status frame was lost).
+
+The search found, for arming: a reboot (a late second heartbeat, D3) taken while the check
+ran, after which the arm frame went on the state read before it (the old session did the same);
+and a rig that said the frame of a request had not left when only its retry had not.
 
 (The search found that a module deployed by another source while the driver armed it for a
 deploy is answered "refused: arming failed: ... the query says locked": true of this call, the
@@ -46,9 +57,10 @@ from dps_parachute_ros.deploy_core import DeployCore, MAX_FAILED_DEPLOYS
 from dps_parachute_ros.deploy_knowledge import LATE_HEARTBEAT_EVENT
 from model_runs import search
 from dps_parachute_ros.release_gate import GateDone
-from parachute_model_rig import (Call, FAULTS, HEARTBEAT, ModelRig, REBOOT_AFTER_S,
-                                 REBOOT_KINDS, REBOOT_S, reboot_faults)
+from parachute_model_rig import (ArmRun, Call, FAULTS, HEARTBEAT, JUDGEMENTS, ModelRig,
+                                 REBOOT_AFTER_S, REBOOT_KINDS, REBOOT_S, reboot_faults)
 from uav_serial_common.core_events import Record
+from uav_serial_common.result import Outcome
 
 
 def deployed_during(call: Call) -> bool:
@@ -76,6 +88,35 @@ def check_call(rig: ModelRig, call: Call) -> None:
             answer.message
     if answer.outcome == 'unknown':
         assert call.deploy_sends > 0, answer.message
+
+
+def check_arm(rig: ModelRig, call: ArmRun) -> None:
+    """The truth of one arm (or lock) call's answer, judged against the model."""
+    assert len(call.answers) == 1, call.answers
+    result = call.answers[0].result
+    assert not rig.core.busy
+    assert not call.problems, call.problems
+    if result.outcome is Outcome.REFUSED:
+        assert call.arm_sends == 0, result.message
+    else:
+        assert call.arm_sends > 0, result
+    if result.outcome is Outcome.DONE:
+        # As asked, unless the module rebooted since the call began (a reboot locks it).
+        assert rig.model.armed == call.want or rig.model.boot_count != call.boot_before, result
+    if result.outcome is Outcome.UNKNOWN:
+        # Never a guess kept as known: not known, or the truth read since.
+        known = knower(rig)
+        assert known.armed is None or known.armed == rig.model.armed, result
+
+
+def armable(rig: ModelRig) -> bool:
+    """Whether an arm call now on a clean wire must arm: the module answers, is not
+    triggered, with no reboot unseen or due, and no power-up heartbeat still to come (taken
+    during the call, it may be a reboot after the read-back, D3: the answer says UNKNOWN)."""
+    return (rig.plugged and rig.model.powered and rig.t >= rig.hold_until
+            and rig.reboot_at is None and not rig.unseen_reboot
+            and rig.model._second_heartbeat_at is None
+            and not rig.model.triggered and not rig.model.protection)
 
 
 def deployable(rig: ModelRig) -> bool:
@@ -320,6 +361,74 @@ def test_round2_22_1_a_clean_deploy_of_an_armed_module_deploys_it():
     assert not rig.order_problems
 
 
+# -- arming (an ArmCall of the same core) --------------------------------------------------------
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_issue22_arm_and_lock_on_a_clean_wire_are_verified_by_a_query(mirror):
+    rig = ModelRig(armed=False, mirror=mirror)
+    call = rig.arm(True)
+    check_arm(rig, call)
+    assert call.answers[0].result.outcome is Outcome.DONE and rig.model.armed
+    call = rig.arm(False)
+    check_arm(rig, call)
+    assert call.answers[0].result.outcome is Outcome.DONE and not rig.model.armed
+
+
+@pytest.mark.parametrize('judgement, cause', [('would deploy', 'would_deploy'),
+                                              ('no answer', 'no_reply')])
+def test_issue22_an_arm_the_check_does_not_pass_is_refused_with_nothing_sent(judgement, cause):
+    rig = ModelRig(armed=False)
+    call = rig.arm(True, judgement=judgement)
+    check_arm(rig, call)
+    result = call.answers[0].result
+    assert result.outcome is Outcome.REFUSED and result.cause == cause, result
+    assert call.arm_sends == 0 and not rig.model.armed
+    # A lock is never judged: it cannot deploy the module.
+    rig.model.armed = True
+    call = rig.arm(False, judgement=judgement)
+    assert call.answers[0].result.outcome is Outcome.DONE and call.judged == 0
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_issue22_an_arm_whose_reply_was_lost_is_unknown_and_no_deploy_goes_on_a_guess(mirror):
+    rig = ModelRig(armed=False, mirror=mirror)
+    rig.status_frame()  # (read: the arm frame is its first request)
+    call = rig.arm(True, faults=['drop_reply', 'drop_reply'])
+    check_arm(rig, call)
+    result = call.answers[0].result
+    assert result.outcome is Outcome.UNKNOWN and result.cause == 'no_reply', result
+    assert rig.model.armed and knower(rig).armed is None
+    # The next deploy reads the module afresh before its frame (D15).
+    deploy = rig.deploy()
+    check_call(rig, deploy)
+    assert deploy.answers[0].outcome == 'deployed' and not rig.order_problems
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_issue22_found_a_lock_whose_first_frame_left_is_never_said_not_sent(mirror):
+    # The search: the lock frame's first attempt was lost on its way, its retry met the port
+    # unplugged. "lock not sent" was false of the first: it left, and what it did is unknown.
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.status_frame()  # (read: the lock frame is its first request)
+    call = rig.arm(False, faults=['drop_request', 'unplug_before'])
+    check_arm(rig, call)
+    assert call.answers[0].result.outcome is Outcome.UNKNOWN, call.answers[0].result
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_issue22_found_a_reboot_taken_while_an_arm_is_checked_is_read_before_the_frame(mirror):
+    # The search: the module rebooted as the re-read's status query came, and the reader
+    # stalled; its late second heartbeat (D3: maybe another reboot) was taken while the
+    # settings core's check ran. The arm frame went on the state read before it: the module
+    # is read again first, and checked again.
+    rig = ModelRig(armed=True, mirror=mirror)
+    rig.deploy()
+    rig.restart_driver()
+    call = rig.arm(True, faults=['clean', 'late_heartbeat'])
+    check_arm(rig, call)
+    assert call.judged == 2 and call.answers[0].result.outcome is Outcome.DONE
+
+
 def late_heartbeats(rig: ModelRig) -> int:
     """How many late heartbeats (D3) the core recorded (a mirror core leaves that to the
     session)."""
@@ -528,6 +637,20 @@ class ParachuteDeployModel(RuleBasedStateMachine):
         assert call.answers[0].outcome == 'deployed', call.answers[0].message
         assert self.rig.model.triggered
 
+    @rule(want=st.booleans(), faults=st.lists(st.sampled_from(FAULTS), max_size=6),
+          judgement=st.sampled_from(JUDGEMENTS))
+    def arm(self, want: bool, faults: list, judgement: str) -> None:
+        call = self.rig.arm(want, faults, judgement)
+        check_arm(self.rig, call)
+
+    @precondition(lambda self: armable(self.rig))
+    @rule()
+    def a_module_that_answers_can_be_armed(self) -> None:
+        call = self.rig.arm(True)
+        check_arm(self.rig, call)
+        assert call.answers[0].result.outcome is Outcome.DONE, call.answers[0].result
+        assert self.rig.model.armed
+
     @rule(armed=st.booleans(), seen=st.booleans())
     def someone_else_arms_or_locks(self, armed: bool, seen: bool) -> None:
         """The module armed or locked by another path; `seen`: its status frame reaches us."""
@@ -586,7 +709,7 @@ class ParachuteDeployModel(RuleBasedStateMachine):
 
     @invariant()
     def every_call_answered_once_and_truly(self) -> None:
-        for call in self.rig.calls:
+        for call in [*self.rig.calls, *self.rig.arm_calls]:
             assert len(call.answers) == 1, call.answers
 
 

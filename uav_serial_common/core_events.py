@@ -132,7 +132,8 @@ class LinkUp:
 class LinkDown:
     """The port closed (unplugged, a write failed).
 
-    `frame_left`: the frame a `Request` waited on had left; `shutting_down`: the driver stops.
+    `frame_left`: a frame of the `Request` waited on had left (any of its attempts);
+    `shutting_down`: the driver stops.
     """
 
     now: float
