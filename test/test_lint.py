@@ -7,7 +7,8 @@ from xml.dom import minidom
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ['uav_serial_common', 'dps_parachute_ros', 'desheng_servo_ros',
-            'originman_board_ros', 'handset_link_ros', 'parachute_mavlink_ros']
+            'originman_board_ros', 'handset_link_ros', 'parachute_mavlink_ros',
+            'parachute_blackbox']
 PYTHON_DIRS = PACKAGES + ['test', 'bench', 'launch', 'tools']
 
 
