@@ -18,8 +18,7 @@ from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from sensor_msgs.msg import BatteryState
 from std_msgs.msg import Bool
-from std_srvs.srv import SetBool
-from support import ask_again
+from support import arm_parachute
 from uav_serial_common.process import LaunchedProcesses, wait_for
 from uav_serial_common.ros_client import RosHarness
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus, TriggerEvent, TriggerRequest
@@ -152,13 +151,7 @@ class Rig:
                          not m.armed, 10, what='fresh streaming status', start=start)
 
     def arm(self):
-        # The status the rule judges the write by may go unanswered past its two tries on a
-        # loaded host (the virtual module is a process): refused, nothing sent, truly. A user
-        # arms again (a campaign run of 2026-11-28).
-        reply, _ = ask_again(lambda: self.call(SetBool, 'arm', SetBool.Request(data=True)),
-                             lambda r: not r.success and 'status not read' in r.message)
-        assert reply.success, reply.message
-        return reply
+        return arm_parachute(self.ros, f'{NODE}/arm')
 
     def set_param(self, name, value):
         request = SetParameters.Request(parameters=[Parameter(name=name,

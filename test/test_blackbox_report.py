@@ -38,7 +38,7 @@ from dps_parachute_ros.simulation import VirtualParachute
 from dps_parachute_ros.state import Listener, SessionConfig
 from dps_parachute_ros.virtual_node import create_runner
 from parachute_blackbox.report import analyse, build_report, main as report_main
-from support import ask_again, FakeClock
+from support import arm_parachute, ask_again, FakeClock
 from uav_serial_common.process import (executable_path, LaunchedProcesses, wait_for,
                                        wait_scale)
 from uav_serial_common.ros_client import RosHarness
@@ -158,11 +158,7 @@ class Bench:
         # of the scenario may outlast the deployment and reboot it caused.
         self.status.wait(lambda m: m.accel_g >= 0.9, 5, what='|a| back to 1 g',
                          start=len(self.status) - 1)
-        # The status the arm rule reads may go unanswered on a loaded host: refused, nothing
-        # sent, truly; a user arms again (as parachute_rig.Rig.arm).
-        reply, _ = ask_again(lambda: self.call(SetBool, 'arm', SetBool.Request(data=True)),
-                             lambda r: not r.success and 'status not read' in r.message)
-        assert reply.success, reply.message
+        arm_parachute(self.ros)
 
     def fresh(self):
         """Reboot the module under the running driver and wait until it is re-initialized."""

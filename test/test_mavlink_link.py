@@ -103,7 +103,10 @@ def test_round2_23_heartbeat_is_a_parachute_with_the_module_state(fresh):
         with rig.model():
             rig.sim.cell_voltage_v = cell
             rig.sim.set_external_power(True)
-    heartbeat_status(rig, mavlink.MAV_STATE_ACTIVE, 30)  # the periodic check passes again
+    # A change of armed asks again at once (the periodic check, every 10 s, is the core's test).
+    assert rig.call(SetBool, 'arm', SetBool.Request(data=False)).success
+    rig.arm()
+    heartbeat_status(rig, mavlink.MAV_STATE_ACTIVE)
     mark = rig.hub.mark()
     rig.runner.unplug()
     try:

@@ -8,7 +8,7 @@ from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from std_srvs.srv import SetBool, Trigger
 from std_msgs.msg import String
-from support import ask_again
+from support import arm_parachute
 from uav_serial_drivers.msg import ParachuteConfig, ParachuteStatus
 from uav_serial_drivers.srv import Deploy
 
@@ -25,10 +25,7 @@ def test_driver_and_virtual_module_talk_to_each_other(ros, launch, tmp_path):
                           ros=ros, wait_service='/parachute/deploy')
     status.wait(lambda m: m.online and m.streaming, 15, what='online status')
     first = config.wait(lambda m: m.valid, 10, what='config').boot_count
-    # (A loaded host can leave the arm rule's status read unanswered: refused; arm again.)
-    reply, _ = ask_again(lambda: ros.call(SetBool, '/parachute/arm', SetBool.Request(data=True)),
-                         lambda r: not r.success and 'status not read' in r.message)
-    assert reply.success, reply.message
+    arm_parachute(ros)
     seen = state.wait(lambda m: json.loads(m.data)['armed'], 5, what='model armed')
     assert json.loads(seen.data)['plugged']
     # A power cycle of the virtual module: the driver notices and re-initializes it.

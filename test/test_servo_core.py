@@ -805,9 +805,18 @@ def test_scan_finds_servos_whose_replies_come_late_and_reads_them_afterwards(tmp
         for servo_id in (5, 100, 250):
             assert SLOW_S < bus.margin_for(servo_id) <= 0.1
         assert bus.margin_for(7) == bus.margin_s
-        # The read loop waits long enough for them: no READ of theirs fails.
-        snap = rig.cycle()
-        assert all(s.online and s.error_count == 0 for s in snap.servos)
+        # The read loop waits long enough for them: no READ of theirs fails. (A device thread
+        # that a loaded host stalls past the learned wait fails one, truly: 6 workers on 2
+        # cores did once. Then the next cycle reads them all; a wait not learned fails each.)
+        counts = []
+        for _ in range(3):
+            snap = rig.cycle()
+            counts.append([s.error_count for s in snap.servos])
+            if all(s.online for s in snap.servos) and \
+                    (not any(counts[-1]) or counts[-2:] == [counts[-1]] * 2):
+                break
+        else:
+            pytest.fail(f'their READs failed in every cycle: error counts {counts}')
     finally:
         rig.stop()
 
