@@ -216,7 +216,7 @@ class DeployCore(DeployKnowledge):
         want = call.want
         word = 'arm' if want else 'lock'
         self._out.append(Record.of('request', what=word))
-        for checks in range(ARM_CHECKS):
+        for _ in range(ARM_CHECKS):
             if not self.online or (want and not self.fresh):
                 yield from self._reread()
             if not self.online:
@@ -375,6 +375,18 @@ class DeployCore(DeployKnowledge):
                 # Silent for a moment, or a reboot or a lock seen: read it again first (D15).
                 reads = self.boot_reads
                 yield from self._reread()
+                if self.fresh and self.triggered is False and self.reboots == reboots:
+                    # The re-read asked the boot count before the status: "not triggered" may
+                    # be a power-up's after a reboot between the two whose heartbeats were
+                    # lost (the search found it). The count asked again after it tells.
+                    after = self.boot_reads
+                    yield self._request(p.encode_boot_count_query(), p.BootCount, retries=1)
+                    if self.boot_reads == after:
+                        self._unknown(f'{attempts} deploy frame(s) sent, none acknowledged; '
+                                      'the module says it is not triggered but did not answer '
+                                      'its boot count after that, so a reboot since is not '
+                                      'ruled out', t0)
+                        return
                 # Its status, read again, answers "triggered?" too.
                 said_not_triggered = said_not_triggered or (self.fresh and
                                                             self.triggered is False)

@@ -309,10 +309,11 @@ def test_round2_22_1_a_deployment_known_before_the_frame_is_not_the_frames():
 
 def test_round2_22_1_a_module_silent_to_the_triggered_query_is_read_by_its_status():
     # The frame and the triggered query are lost; the re-read's status says "not triggered"
-    # in the same power-up: a second frame goes (as before the core), then UNKNOWN (P11).
+    # in the same power-up (its boot count, asked again after it, unchanged): a second frame
+    # goes (as before the core), then UNKNOWN (P11).
     rig = ModelRig(armed=True)
     call = rig.deploy(faults=['clean', 'clean', 'drop_request', 'drop_request', 'clean',
-                              'clean', 'drop_request', 'drop_request'])
+                              'clean', 'clean', 'drop_request', 'drop_request'])
     check_call(rig, call)
     assert call.deploy_sends == 2 and call.answers[0].outcome == 'unknown', call.answers
     assert rig.core.failed == 2
@@ -359,6 +360,22 @@ def test_round2_22_1_a_clean_deploy_of_an_armed_module_deploys_it():
     call = rig.deploy()
     assert call.answers[0].outcome == 'deployed' and rig.model.triggered
     assert not rig.order_problems
+
+
+@pytest.mark.parametrize('mirror', [False, True])
+def test_issue22_found_a_reboot_between_the_boot_count_and_the_status_of_a_retry_is_seen(mirror):
+    # The bench-size search: the deploy frame deployed the module and its acknowledgement was
+    # lost; the triggered query was lost too. The re-read before a retry asked the boot count
+    # (unchanged), then the status, and the module rebooted between the two, its heartbeats
+    # lost: "not triggered, locked" came from the next power-up, and the call said "it did NOT
+    # deploy". The boot count asked again after the status shows the reboot; the trigger
+    # records then tell the deployment.
+    rig = ModelRig(armed=True, mirror=mirror)
+    call = rig.deploy(faults=['clean', 'clean', 'drop_reply', 'drop_request', 'clean',
+                              'reboot_quiet'])
+    assert deployed_during(call)
+    check_call(rig, call)
+    assert call.answers[0].outcome == 'deployed', call.answers[0].message
 
 
 # -- arming (an ArmCall of the same core) --------------------------------------------------------
