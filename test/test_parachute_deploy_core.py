@@ -148,11 +148,15 @@ def test_round2_22_1_p11_two_unacknowledged_frames_then_not_deployed_and_a_third
     assert actions[-1].frame == p.encode_boot_count_query()
     core.step(Reply(T0 + 1.02, BOOT))
     actions = core.step(Reply(T0 + 1.03, ARMED))
+    assert actions[-1].frame == p.encode_boot_count_query()  # and after its status again
+    actions = core.step(Reply(T0 + 1.04, BOOT))
     assert actions[-1].frame == DEPLOY_FRAME                 # the second attempt
     core.step(Timeout(T0 + 2))
     core.step(Reply(T0 + 2.01, NOT_TRIGGERED))
-    core.step(Reply(T0 + 2.02, BOOT))  # the same power-up: its "not triggered" holds
-    answer = answer_of(core.step(Reply(T0 + 2.03, ARMED)))
+    core.step(Reply(T0 + 2.02, BOOT))
+    core.step(Reply(T0 + 2.03, ARMED))
+    # The same power-up before and after its status: its "not triggered" holds.
+    answer = answer_of(core.step(Reply(T0 + 2.04, BOOT)))
     assert answer.outcome == 'not deployed' and 'P11' in answer.message
     assert (core.failed, core.unacked) == (2, 2)
     third = answer_of(core.step(DeployCall(T0 + 3, 'DEPLOY')))
