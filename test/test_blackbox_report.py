@@ -775,13 +775,15 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     # is told the same way: campaign s11f, run 10.)
     assert lost.paragraph.count('the module answers it is NOT triggered') >= 2
     assert len(events_of(summary, 'link', 'no reply to deploy')) == 4
-    # The module lost the triggered queries of the deploy of unknown outcome: two. (A module
-    # process stalled past the 1-s timeout on a loaded host adds one elsewhere, truly: campaign
-    # s10b, run 1, during the lost deploy, whose outcome its next query then told.)
+    # The module lost the triggered queries of the deploy of unknown outcome: one per frame.
+    # (A module process stalled past the 1-s timeout on a loaded host adds one, truly: during
+    # the lost deploy, whose outcome its next query then told, campaign s10b run 1; or in the
+    # re-read before the retry, whose status it left unanswered, so that the armed and
+    # triggered queries were asked instead, campaign s12d run 1.)
     unanswered = [e for e in events_of(summary, 'link', 'no reply to triggered?')
                   if marks['unknown deploy'] < at_wall(summary, e[0])
                   < marks['unknown deploy answered']]
-    assert len(unanswered) == 2, events_of(summary, 'link', 'no reply to triggered?')
+    assert len(unanswered) >= 2, events_of(summary, 'link', 'no reply to triggered?')
     # The deploy of unknown outcome, read after the reconnect: it did not deploy (D12).
     assert marks['unknown deploy'] < unknown.t < marks['unknown deploy answered']
     assert unknown.outcome == 'not deployed'
