@@ -77,9 +77,11 @@ class OnlineRule:
         else:
             verdict = Verdict(True)
             sent = [t for t, _ in self._silent_since.values()]
-            if sent and now - min(sent) >= timeout:
+            # (The same sums as `next_deadline`'s: at its deadline a monitor finds it offline,
+            # never online by a rounding of `now - sent`; the search found that.)
+            if sent and now >= min(sent) + timeout:
                 verdict = Verdict(False, f'no reply within {timeout:.1f} s of a request')
-            elif streaming and now - last_frame >= timeout:
+            elif streaming and now >= last_frame + timeout:
                 verdict = Verdict(False, f'no status frame for {timeout:.1f} s while streaming')
         if self.verdict.online and not verdict.online:
             self._frames_at_offline = frames

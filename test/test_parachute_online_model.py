@@ -31,6 +31,21 @@ from model_runs import search
 EPS = 1e-9
 
 
+def test_issue22_found_the_rule_is_offline_at_the_deadline_it_names():
+    # Campaign s12e run 8, the default search: a request judged at its own deadline (sent +
+    # 1.0), where `now - sent` rounds to 0.9999999999999858: the module stayed online at the
+    # time the monitor was woken for (which then wakes at once again).
+    rule = OnlineRule(1.0)
+    rule.port_opened(0)
+    sent = 127.32256972129319
+    assert (sent + 1.0) - sent < 1.0  # (such a time)
+    assert rule.judge(sent - 5.0, True, 1, sent - 5.0, False).online
+    rule.request_sent(1, sent, 1)
+    due = rule.next_deadline(1, sent - 5.0, False)
+    assert due == sent + 1.0
+    assert not rule.judge(due, True, 1, sent - 5.0, False).online
+
+
 class OnlineModel(RuleBasedStateMachine):
     """The D2 rule against the truth of a line the test drives."""
 
