@@ -406,12 +406,18 @@ def test_issue22_an_arm_the_check_does_not_pass_is_refused_with_nothing_sent(jud
     assert call.answers[0].result.outcome is Outcome.DONE and call.judged == 0
 
 
+def arm_on_a_read_module(mirror: bool, armed: bool, want: bool, faults: list):
+    """Arm (or lock) a module whose state was read, `faults` on its frame first; checked."""
+    rig = ModelRig(armed=armed, mirror=mirror)
+    rig.status_frame()  # (read: the arm or lock frame is its first request)
+    call = rig.arm(want, faults=faults)
+    check_arm(rig, call)
+    return rig, call
+
+
 @pytest.mark.parametrize('mirror', [False, True])
 def test_issue22_an_arm_whose_reply_was_lost_is_unknown_and_no_deploy_goes_on_a_guess(mirror):
-    rig = ModelRig(armed=False, mirror=mirror)
-    rig.status_frame()  # (read: the arm frame is its first request)
-    call = rig.arm(True, faults=['drop_reply', 'drop_reply'])
-    check_arm(rig, call)
+    rig, call = arm_on_a_read_module(mirror, False, True, ['drop_reply', 'drop_reply'])
     result = call.answers[0].result
     assert result.outcome is Outcome.UNKNOWN and result.cause == 'no_reply', result
     assert rig.model.armed and knower(rig).armed is None
@@ -425,10 +431,7 @@ def test_issue22_an_arm_whose_reply_was_lost_is_unknown_and_no_deploy_goes_on_a_
 def test_issue22_found_a_lock_whose_first_frame_left_is_never_said_not_sent(mirror):
     # The search: the lock frame's first attempt was lost on its way, its retry met the port
     # unplugged. "lock not sent" was false of the first: it left, and what it did is unknown.
-    rig = ModelRig(armed=True, mirror=mirror)
-    rig.status_frame()  # (read: the lock frame is its first request)
-    call = rig.arm(False, faults=['drop_request', 'unplug_before'])
-    check_arm(rig, call)
+    _, call = arm_on_a_read_module(mirror, True, False, ['drop_request', 'unplug_before'])
     assert call.answers[0].result.outcome is Outcome.UNKNOWN, call.answers[0].result
 
 
