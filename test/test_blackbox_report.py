@@ -752,14 +752,17 @@ def test_link_faults_noise_and_deploys_that_went_wrong(fault_run, bench, tmp_pat
     # of the attitude threshold's.)
     writes = [w for w in events_of(summary, 'settings', 'did not confirm the write')
               if w[3].startswith('free-fall threshold ')]
-    assert writes[0][3].startswith('free-fall threshold 0.3 g')
     if 'another request for FreefallThreshold is still running' in bench.refusal:
-        # The put-back met a read of the same register (the module lost those too) that held
-        # the link past the set's time on a loaded host: not sent, and the answer says so
-        # (campaign s10c, run 6).
-        assert len(writes) == 1, writes
+        # A read of the same register held the link past the set's time on a loaded host
+        # (the module lost those reads too): the write that met it was not sent, and the
+        # answer says so. The put-back (campaign s10c, run 6), or the write and the put-back
+        # both: after a module stall the driver reads the module afresh, retrying each
+        # second, and each try holds the register for two unanswered queries (what the
+        # refusal of campaign s12f run 1 allows, with no free-fall write in its black box).
+        assert len(writes) <= 1, writes
     else:
-        (again,) = writes[1:]
+        first, again = writes
+        assert first[3].startswith('free-fall threshold 0.3 g')
         assert again[3].startswith('free-fall threshold ') and '0.3 g' not in again[3]  # before
     assert between('parameter set', 'parameter set refused', [refused, put_back, *writes])
     assert c['settings put back'] == bench.attempts and c.get('settings not verified', 0) == 0
