@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import Any
 
 import pytest
 
@@ -74,26 +75,62 @@ with no process, pty or ROS graph (``make test-core``; ``make test`` runs every 
 
 
 LONGEST_FIRST = (
-    'test_fault_campaign.py', 'test_servo_safety.py', 'test_blackbox_report.py',
-    'test_originman_node.py', 'test_mavlink_link.py', 'test_parachute_core.py',
-    'test_handset_node.py', 'test_user_errors.py', 'test_shutdown_noise.py',
-    'test_parachute_safety.py', 'test_servo_node_faults.py', 'test_servo_core.py',
-    'test_demo.py', 'test_lint.py', 'test_parachute_round2_stream.py', 'test_executables.py',
-    'test_parachute_virtual.py', 'test_originman_round2.py', 'test_servo_node_shutdown.py',
+    'test_demo.py', 'test_fault_campaign.py', 'test_servo_safety.py', 'test_blackbox_report.py',
+    'test_originman_node.py', 'test_mavlink_link.py', 'test_shutdown_noise.py',
+    'test_handset_node.py', 'test_servo_node_faults.py', 'test_executables.py',
+    'test_user_errors.py', 'test_parachute_safety.py', 'test_lint.py',
 )
-"""The files that take longest (summed test time, 2026-11-27), longest first. `make test`
-hands files to its workers in collection order (``--no-loadscope-reorder``): started first,
-the long files no longer make the tail of the run while the other workers idle (xdist's own
-order, most tests first, started them last). Files not named follow in their usual order."""
+"""The files with the longest tests (2026-11-28), longest first. `make test` hands tests to its
+workers one at a time, in collection order (``--no-loadscope-reorder``): started first, the
+long tests do not make the tail of the run while the other workers idle. Files not named follow
+in their usual order."""
+
+WHOLE_FILES = frozenset({
+    'test_blackbox_report.py', 'test_mavlink_link.py', 'test_parachute_node.py',
+    'test_servo_link.py', 'test_servo_node.py', 'test_servo_node_faults.py',
+})
+"""The files whose tests share a fixture set up once (a node and its virtual device for the
+whole module): each runs whole on one worker, so that fixture is set up once. Collection checks
+that every such file is named here."""
+
+
+def _shares_a_fixture(item: pytest.Item) -> bool:
+    """Whether `item` uses a fixture set up once for its module or class (not per test)."""
+    info = getattr(item, '_fixtureinfo', None)
+    return info is not None and any(
+        defs[-1].scope in ('module', 'class', 'package')
+        for defs in info.name2fixturedefs.values() if defs)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
-    """Mark the core tier's tests ``core``; put the longest files first (``LONGEST_FIRST``)."""
+    """Mark the core tier ``core``; check `WHOLE_FILES`; put the longest files first."""
+    unnamed = {item.path.name for item in items if _shares_a_fixture(item)} - WHOLE_FILES
+    if unnamed:
+        raise pytest.UsageError(f'conftest.WHOLE_FILES must name {sorted(unnamed)}: their '
+                                'tests share a module fixture')
     for item in items:
         if item.path.name in CORE_TIER:
             item.add_marker(pytest.mark.core)
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: same file order
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """With ``--dist loadgroup``: each test on its own, the `WHOLE_FILES` whole.
+
+    (pytest-xdist's own loadgroup reads ``xdist_group`` marks through a node id that pytest 9
+    no longer keeps: it would hand out each test alone, splitting the shared fixtures.)
+    """
+    if config.getvalue('dist') != 'loadgroup':
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class TestsAloneFilesWhole(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split('::', 1)[0]
+            return path if os.path.basename(path) in WHOLE_FILES else nodeid
+
+    return TestsAloneFilesWhole(config, log)
 
 
 def pytest_report_header(config: pytest.Config) -> str:
