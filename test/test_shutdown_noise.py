@@ -11,7 +11,7 @@ import signal
 import pytest
 from uav_serial_common.process import wait_for
 
-EXITS = 6
+EXITS = 4
 """Exits per driver. The old code failed 4 of 8 on the servo bus, 3 of 12 on the handset; the
 deterministic test of the cause is test_executor.py's, this one keeps the whole exit honest."""
 NOISE = ('never retrieved', 'never awaited', 'Traceback', 'InvalidHandle', 'failed')
