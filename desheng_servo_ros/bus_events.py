@@ -35,12 +35,17 @@ class Send(NamedTuple):
 
 
 class Answer(NamedTuple):
-    """A service call's answer: the `token` of its :class:`Call` (a ``transact``: its reply)."""
+    """A service call's answer: the `token` of its :class:`Call`.
+
+    `reply`: a ``transact``'s reply; `result`: the ``Result`` of a procedure of ``id_change``
+    (``set_id``, ``factory_reset``), with its outcome.
+    """
 
     token: Hashable
     ok: bool
     text: str
     reply: Optional[proto.Reply] = None
+    result: Any = None
 
 
 class ReadDone(NamedTuple):
@@ -92,7 +97,7 @@ class Call(NamedTuple):
     args: Tuple[Any, ...] = ()
 
 
-QUIET_CALLS = frozenset({'scan', 'set_id', 'hold'})
+QUIET_CALLS = frozenset({'scan', 'set_id', 'factory_reset', 'hold'})
 """Calls that need a quiet bus: the read loop stops at the next READ boundary meanwhile."""
 
 

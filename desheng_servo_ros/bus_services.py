@@ -60,6 +60,7 @@ class _Service:
         self._answer_reply: Optional[proto.Reply] = None
         self._garbled = False
         self._cut = False
+        self._result: Any = None  # an id_change procedure's Result
         self._at = 0.0
         self.ready_at = 0.0  # its next step waits until then
 
@@ -84,7 +85,7 @@ class _Service:
 
     def answer(self) -> Answer:
         """Return the call's answer."""
-        return Answer(self.token, self.ok, self.text, self._answer_reply)
+        return Answer(self.token, self.ok, self.text, self._answer_reply, self._result)
 
     def _tx(self, frame: bytes, servo_id: int, nparams: int, retries: int) -> _Tx:
         return _Tx(frame, servo_id, nparams, retries, self)
@@ -140,12 +141,16 @@ class _Service:
                     found.append(servo_id)
             self.text = f'found {found}'
         elif name == 'set_id':
-            yield from self._set_id(*args)
+            yield from self._run_procedure(idc.set_id(*args, self.bus.servos, self.bus.baud))
+        elif name == 'factory_reset':
+            servo_id, configured = args
+            yield from self._run_procedure(idc.factory_reset(servo_id, configured,
+                                                             self.bus.baud))
 
-    def _set_id(self, old: int, new: int) -> Any:
-        """Run the driver's ~/set_id (id_change.set_id), each step a transaction here."""
-        result = yield from self._procedure(idc.set_id(old, new, self.bus.servos, self.bus.baud))
-        self.ok, self.text = result.ok, result.message
+    def _run_procedure(self, steps: Any) -> Any:
+        """Run the driver's ~/set_id or ~/factory_reset (id_change), each step here."""
+        result = yield from self._procedure(steps)
+        self.ok, self.text, self._result = result.ok, result.message, result
 
     def _procedure(self, steps: Any) -> Any:
         """Run an id_change procedure here; return its value."""

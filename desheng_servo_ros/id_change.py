@@ -1,6 +1,6 @@
-"""``~/set_id`` as one procedure without I/O, which the driver and the bus model both run.
+"""``~/set_id`` and ``~/factory_reset`` as procedures without I/O, run by the driver and the model.
 
-The procedure is a generator: it yields a step and is sent what came of it, so the same lines
+Each procedure is a generator: it yields a step and is sent what came of it, so the same lines
 decide the driver's answer (``ServoServices``, each step a blocking call on the bus) and the
 model's (``bus_services``, each step a transaction of ``BusSchedule`` in virtual time, searched
 by ``test_servo_model.py``). Steps:
@@ -21,13 +21,13 @@ frame left and what it did was not seen).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Generator, Optional, Sequence, Tuple
+from typing import Any, Collection, Generator, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.registers import encode_value
 from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s,
                                         set_id_refusal)
-from desheng_servo_ros.state import ID, POSITION, Result
+from desheng_servo_ros.state import FACTORY_ID, ID, POSITION, Result
 
 # An id change whose frame left without an acknowledgement (lost, or the link dropped) is
 # settled by asking the bus; a link that went down gets this long to come back for that.
@@ -235,6 +235,78 @@ def set_id(old: int, new: int, servos: Sequence[Any], baud: int) -> Steps:
         '' if lost is None else f' (its acknowledgement was lost: {lost})'))
 
 
+def factory_reset(servo_id: int, configured: Collection[int], baud: int) -> Steps:
+    """RESET the servo at `servo_id` to its factory registers; the Result.
+
+    `configured`: the ids the driver was told (``servo_ids``), for the advice on giving the id
+    back. The id and the confirmation are checked before. A RESET moves the servo to the
+    factory id (S23): where another servo answers there, the answer warns.
+    """
+    what = f'servo {servo_id} reset to factory settings'
+    try:
+        taken = servo_id != FACTORY_ID and (yield from answers(FACTORY_ID)) != 'no'
+    except LinkLost as exc:
+        if not exc.heard.left:
+            return Result.refused('offline', f'port not open: {exc}; nothing sent')
+        return Result.refused('offline', f'the probe of the factory id was cut short ({exc}); '
+                                         'no RESET sent, nothing changed')
+    heard = yield Ask(proto.encode_reset(servo_id), servo_id, 0, retries=None)
+    if heard.reply is None and not heard.left:
+        return Result.refused('offline', f'port not open: {heard.why}; nothing sent')
+    lost = None if heard.reply is not None else heard.why
+    try:
+        if lost is not None and not (yield PortBack(SETTLE_WAIT_S)):
+            return unknown(what, lost, f'~/scan tells (a reset servo answers at the factory id '
+                                       f'{FACTORY_ID})')
+        at_own = (yield from answers(servo_id)) == 'yes'
+        if at_own:
+            at_factory = 'no'
+        elif servo_id == FACTORY_ID:
+            at_factory = 'none'  # the id it would move to is its own, which did not answer
+        else:
+            at_factory = (yield from how_many_answer(FACTORY_ID, baud))[0]
+    except LinkLost as exc:
+        return unknown(what, str(exc), '~/scan tells')
+    if lost is not None:
+        if at_own:
+            # A servo that keeps its id on RESET (S23) or one that never got it: the bus cannot
+            # tell them apart.
+            return unknown(what, lost, f'it still answers at id {servo_id}; read its registers '
+                                       'with ~/read_register')
+        if at_factory == 'none':
+            where = f'id {servo_id} (the factory id) does not answer' \
+                if servo_id == FACTORY_ID else \
+                f'neither id {servo_id} nor the factory id {FACTORY_ID} answers'
+            return unknown(what, lost, f'{where} now; check with ~/scan')
+        if taken:
+            # The servo at the factory id now may be the one that answered there before: a
+            # servo that never heard the RESET (or an id no servo has) looks the same.
+            return unknown(what, lost, f'id {servo_id} no longer answers, and the factory id '
+                                       f'{FACTORY_ID} answers as it did before the RESET; '
+                                       '~/scan and ~/read_register tell')
+        note = f' (its acknowledgement was lost: {lost})'
+    else:
+        note = ''
+    if at_own:
+        return Result.done(f'servo {servo_id} reset to factory settings (torque off)')
+    give_back = (f'give it its id back with ~/set_id {FACTORY_ID} -> {servo_id}'
+                 + (f' (this driver refuses that while servo_ids lists {servo_id}: run it '
+                    f'without {servo_id} for the change)' if servo_id in configured else ''))
+    if taken:
+        owner = next((s.name for s in (yield Servos()) if s.id == FACTORY_ID), 'another servo')
+        return Result.done(
+            f'servo {servo_id} reset to factory settings. WARNING: it now has the factory id '
+            f'{FACTORY_ID}, which {owner} already had: '
+            + ('more than one servo answers there' if at_factory == 'several' else
+               'check with ~/scan')
+            + f', and ~/set_id refuses an id more than one servo answers to. Disconnect {owner} '
+            f'(or power it off), then {give_back}{note}')
+    if at_factory != 'none':
+        return Result.done(f'servo {servo_id} reset to factory settings and now answers at the '
+                           f'factory id {FACTORY_ID}; {give_back}{note}')
+    return Result.done(f'servo {servo_id} acknowledged RESET but no longer answers')
+
+
 def run_to_end(steps: Steps, carry_out: Any) -> Any:
     """Run `steps` to its end, each step carried out by ``carry_out(step)``; its return value."""
     answer: Any = None
@@ -248,4 +320,5 @@ def run_to_end(steps: Steps, carry_out: Any) -> Any:
 
 __all__: Tuple[str, ...] = ('Ask', 'Heard', 'LinkLost', 'PortBack', 'Quiet', 'Rename',
                             'SETTLE_WAIT_S', 'Servos', 'Unsolicited', 'answers',
-                            'how_many_answer', 'run_to_end', 'set_id', 'unknown')
+                            'factory_reset', 'how_many_answer', 'run_to_end', 'set_id',
+                            'unknown')

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 import time
 import traceback
-from typing import Any, Callable, Optional, Sequence, Tuple
+from typing import Any, Callable, Sequence, Tuple
 
 from desheng_servo_ros import id_change as idc
 from desheng_servo_ros import protocol as proto
@@ -19,8 +19,7 @@ from desheng_servo_ros.link import LinkDown, LinkError, LinkTimeout
 from desheng_servo_ros.registers import (by_address, by_name, decode_block, decode_value,
                                          encode_value, RegisterError)
 from desheng_servo_ros.schedule import patient_wait, renamed, set_id_refusal
-from desheng_servo_ros.state import (FACTORY_ID, FIRMWARE, ID, Outcome, Result, RUN_PRESETS,
-                                     TORQUE)
+from desheng_servo_ros.state import FIRMWARE, ID, Outcome, Result, RUN_PRESETS, TORQUE
 from desheng_servo_ros.units import select
 from uav_serial_common.text import clip, few
 
@@ -267,10 +266,6 @@ class ServoServices:
             error.sent = exc.heard.left
             raise error from None
 
-    def _answers(self, servo_id: int) -> str:
-        """PING up to twice, patiently: 'yes', 'garbled' or 'no' (id_change.answers)."""
-        return self._probe(idc.answers(servo_id))
-
     def _how_many_answer(self, servo_id: int, values_differ: bool = True) -> Tuple[str, str]:
         """Return ('none' | 'one' | 'unsure' | 'several', why): id_change.how_many_answer."""
         return self._probe(idc.how_many_answer(servo_id, self.config.baud, values_differ))
@@ -293,68 +288,19 @@ class ServoServices:
             self.log_info(result.message)
         return result
 
-    def _send_unacknowledged(self, send: Callable[[], Any]) -> Optional[LinkError]:
-        """Run `send`; return None if acknowledged, the error if its frame left without one.
-
-        An error before the frame left (the port not open) is raised: nothing was sent.
-        """
-        try:
-            send()
-        except LinkError as exc:
-            if not exc.sent:
-                raise
-            return exc
-        return None
-
     @_service
     def factory_reset(self, servo_id: int, confirm: str) -> Result:
-        """RESET one servo to its factory registers (`confirm` must be ``RESET``)."""
+        """RESET one servo to its factory registers (`confirm` must be ``RESET``).
+
+        The procedure is id_change.factory_reset, the one the bus model searches.
+        """
         if confirm != 'RESET':
             raise ValueError('confirm must be exactly "RESET"; nothing sent')
         if not proto.is_servo_id(servo_id):
             raise ValueError(f'id must be 1..250 (RESET is never broadcast), got {servo_id}')
-        what = f'servo {servo_id} reset to factory settings'
         with self._loop_paused():
-            taken = servo_id != FACTORY_ID and self._answers(FACTORY_ID) != 'no'
-            lost = self._send_unacknowledged(lambda: self.bus.reset(servo_id))
-            try:
-                if lost is not None and not self.bus.wait_port_open(idc.SETTLE_WAIT_S):
-                    return idc.unknown(what, str(lost), f'~/scan tells (a reset servo answers '
-                                                        f'at the factory id {FACTORY_ID})')
-                at_own = self._answers(servo_id) == 'yes'
-                at_factory = 'no' if at_own else self._how_many_answer(FACTORY_ID)[0]
-            except LinkError as exc:
-                return idc.unknown(what, str(exc), '~/scan tells')
-        if lost is not None:
-            if at_own:
-                # A servo that keeps its id on RESET (S23) or one that never got it: the bus
-                # cannot tell them apart.
-                return idc.unknown(what, str(lost), f'it still answers at id {servo_id}; read '
-                                                    'its registers with ~/read_register')
-            if at_factory == 'none':
-                return idc.unknown(what, str(lost), f'neither id {servo_id} nor the factory '
-                                                    f'id {FACTORY_ID} answers now; check with '
-                                                    '~/scan')
-            note = f' (its acknowledgement was lost: {lost})'
-        else:
-            note = ''
-        if at_own:
-            return Result.done(f'servo {servo_id} reset to factory settings (torque off)')
-        give_back = (f'give it its id back with ~/set_id {FACTORY_ID} -> {servo_id}'
-                     + (f' (this driver refuses that while servo_ids lists {servo_id}: run it '
-                        f'without {servo_id} for the change)'
-                        if servo_id in self._configured_ids else ''))
-        if taken:
-            owner = next((s.name for s in self._servos if s.id == FACTORY_ID), 'another servo')
-            message = (f'servo {servo_id} reset to factory settings. WARNING: it now has the '
-                       f'factory id {FACTORY_ID}, which {owner} already had: '
-                       + ('more than one servo answers there' if at_factory == 'several' else
-                          'check with ~/scan')
-                       + f', and ~/set_id refuses an id more than one servo answers to. '
-                       f'Disconnect {owner} (or power it off), then {give_back}')
-            self.log_warning(message)
-            return Result.done(message + note)
-        if at_factory != 'none':
-            return Result.done(f'servo {servo_id} reset to factory settings and now answers at '
-                               f'the factory id {FACTORY_ID}; {give_back}{note}')
-        return Result.done(f'servo {servo_id} acknowledged RESET but no longer answers')
+            result = idc.run_to_end(idc.factory_reset(servo_id, self._configured_ids,
+                                                      self.config.baud), self._carry)
+        if 'WARNING' in result.message:
+            self.log_warning(result.message)
+        return result

@@ -345,6 +345,7 @@ class ServoBusSim:
         self.collisions = collisions
         self._rng = random.Random(seed)
         self.requests_handled = 0
+        self.resets = 0  # RESETs a servo heard and carried out (each servo of an id counts)
         self.requests_ignored = 0
         self.replies_sent = 0
         self.replies_collided = 0
@@ -418,6 +419,7 @@ class ServoBusSim:
         elif instr == Instruction.RESET:
             for s in targets:
                 s.factory_reset(self.reset_keeps_id)
+                self.resets += 1
         elif instr == Instruction.SYNC_WRITE:
             try:
                 address, length, items = proto.parse_sync_write(params)

@@ -649,6 +649,18 @@ def test_safety_16_factory_reset_cut_by_an_unplug_for_good_is_unknown(tmp_path):
         rig.stop()
 
 
+def test_issue22_factory_reset_of_an_id_no_servo_has_is_unknown_at_a_taken_factory_id(rig):
+    # The model's search found it (test_servo_model ..._found_a_reset_of_an_id_no_servo_has_
+    # ...): no servo at 7, so no acknowledgement; 7 silent after, the factory id answering as
+    # before. The driver answered DONE ("reset ... WARNING: it now has the factory id 1").
+    mark = rig.tap.mark()
+    result = rig.core.factory_reset(7, 'RESET')
+    assert result.outcome is Outcome.UNKNOWN, result.message
+    assert 'answers as it did before the RESET' in result.message
+    assert [r for r in rig.tap.requests(mark) if r.instruction == Instruction.RESET]
+    assert sorted(rig.sim.ids) == [1, 2, 3] and rig.sim.resets == 0
+
+
 def test_scan_names_ids_more_than_one_servo_answers_to(rig):
     with rig.dev.runner.locked():
         rig.sim.add_servo(3, allow_duplicate=True, position_ticks=500)

@@ -9,7 +9,8 @@ says) drive the device model
 (``desheng_servo_ros/simulation.ServoBusSim``) over a wire in virtual time: a request reaches
 the servos when its last byte would have, a reply arrives after its own wire time. Random
 interleavings of ``~/command`` (single ones and floods), ``~/write_positions``, ``~/set_id``,
-``~/set_torque``, ``~/scan``, ``~/read_register``, ``~/emergency_stop``, replies dropped,
+``~/factory_reset``, ``~/set_torque``, ``~/scan``, ``~/read_register``, ``~/emergency_stop``,
+replies dropped,
 corrupted or late, garbage on the line, unplugs, servos disconnected and connected, servo power
 cycles and a shutdown; after every step:
 
@@ -27,6 +28,9 @@ cycles and a shutdown; after every step:
 - ``~/set_id`` never makes two joints share an id, and one answered as done never makes two
   servos on the bus share an id (the bus probe's rule, ``schedule.judge_probe``; the bus may hold
   servos not in the servo list and two servos at one id, whose replies collide or come apart);
+- ``~/factory_reset`` answers DONE only when a servo carried out the RESET, REFUSED only when no
+  RESET left, and UNKNOWN only when one did (the procedure is ``id_change.factory_reset``, the
+  driver's);
 - an emergency stop is the next frame on the wire;
 - torque off is the last frame of a shutdown, and nothing follows it.
 
@@ -47,7 +51,7 @@ from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, 
 from desheng_servo_ros.schedule import (COMMAND_SPACING, CommandQueue, IDLE_GUARD_S,
                                         PROBE_READS, probe_quiet_s, REPLY_OVERHEAD,
                                         REPROBE_PERIOD_S, sync_write_frames, TORQUE_OFF_ALL)
-from desheng_servo_ros.state import POSITION
+from desheng_servo_ros.state import Outcome, POSITION
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
 from hypothesis import HealthCheck, settings, strategies as st
@@ -311,6 +315,9 @@ class ServoBusModel(RuleBasedStateMachine):
         # (none at the new id then), but never two.
         self.unplugged: set = set()
         self._answers_seen = 0
+        # ~/factory_reset calls not answered yet: token -> (id, the sim's RESETs, log index)
+        self.resets: dict = {}
+        self._resets_seen = 0
         self.wire.run_until(START + 0.01)
 
     # -- helpers --------------------------------------------------------------------------------
@@ -420,6 +427,18 @@ class ServoBusModel(RuleBasedStateMachine):
         old = (other % 7) + 1
         self.set_id(old, new, ms)
 
+    # One at a time, so that each RESET on the wire is the call's (the services queue).
+    @precondition(lambda self: not self.resets)
+    @rule(servo_id=IDS, ms=st.floats(5.0, 80.0))
+    def factory_reset(self, servo_id: int, ms: float) -> None:
+        token = next(_TOKENS)
+        self.calls.add(token)
+        self.resets[token] = (servo_id, self.wire.sim.resets, len(self.wire.log))
+        self.disturbed.update(self.set_ids)  # a reset servo moves to the factory id
+        configured = tuple(joint.id for joint in self.joints)
+        self.wire.step(Call(self.wire.now, token, 'factory_reset', (servo_id, configured)))
+        self._step(ms)
+
     @rule(ms=st.floats(0.0, 10.0))
     def emergency_stop(self, ms: float) -> None:
         if not self.bus.closed and self.bus.port_open:
@@ -467,7 +486,7 @@ class ServoBusModel(RuleBasedStateMachine):
             self.unplugged.update(self.set_ids)
         else:
             self.wire.sim.add_servo(servo_id)
-            self.disturbed.update(self.set_ids)
+            self.disturbed.update(self.set_ids, self.resets)
 
     @rule(servo_id=IDS, position=st.sampled_from([1000, 2048, 3000]), collisions=st.booleans())
     def connect_a_second_servo_at_an_id(self, servo_id: int, position: int,
@@ -476,7 +495,7 @@ class ServoBusModel(RuleBasedStateMachine):
         # keeps them apart, come one after the other.
         self.wire.sim.add_servo(servo_id, position_ticks=position, allow_duplicate=True)
         self.wire.sim.collisions = collisions
-        self.disturbed.update(self.set_ids)
+        self.disturbed.update(self.set_ids, self.resets)
 
     @rule(servo_id=IDS)
     def power_cycle(self, servo_id: int) -> None:
@@ -582,6 +601,29 @@ class ServoBusModel(RuleBasedStateMachine):
                     f'set_id {old} -> {new} answered done ({answer.text}) with the bus at ids '
                     f'{sorted(ids)}: {ids.count(new)} servos at {new}')
         self._answers_seen = len(answers)
+
+    @invariant()
+    def factory_reset_says_what_the_servo_did(self) -> None:
+        # Never a success not seen, never a refusal of a RESET that left.
+        answers = self.wire.answers
+        for answer in answers[self._resets_seen:]:
+            call = self.resets.pop(answer.token, None)
+            if call is None:
+                continue
+            servo_id, resets_before, k = call
+            reset = proto.encode_reset(servo_id)
+            left = any(send.frame == reset for send in self.wire.log[k:])
+            outcome = answer.result.outcome if answer.result is not None else None
+            said = f'factory_reset {servo_id} answered {outcome} ({answer.text})'
+            if outcome is None:  # the shutdown's answer
+                assert not answer.ok and (not left or 'nothing sent' not in answer.text), said
+                continue
+            assert (outcome == Outcome.REFUSED) == (not left), f'{said}; a RESET left: {left}'
+            # (A servo connected while the call ran, at the factory id after its probe, looks
+            # like the reset one to any probe.)
+            if outcome == Outcome.DONE and answer.token not in self.disturbed:
+                assert self.wire.sim.resets > resets_before, f'{said}; no servo was reset'
+        self._resets_seen = len(answers)
 
     @invariant()
     def an_emergency_stop_is_the_next_frame(self) -> None:
@@ -961,6 +1003,55 @@ def test_round2_22_5_found_two_servos_whose_replies_come_apart_are_not_renamed_a
     state.reads_keep_at_least_half_their_rate()
     state.set_id_done_never_makes_two_servos_share_an_id()
     state.teardown()
+
+
+def test_issue22_found_a_reset_of_an_id_no_servo_has_is_not_done_at_a_taken_factory_id() -> None:
+    # The default search found this as soon as ~/factory_reset was searched: RESET to id 2,
+    # which no servo has (only 1, the factory id, answers). No acknowledgement ("lost"), id 2
+    # silent, the factory id answering (as it did before): the driver answered DONE, "reset
+    # ... WARNING: it now has the factory id 1", a success nobody saw. Now UNKNOWN.
+    state = ServoBusModel()
+    state.start(n=1, rate=50.0, retries=0, telemetry=0.05, extra=False, seed=0, pace=0.0)
+    state.factory_reset(ms=80.0, servo_id=2)
+    for _ in range(20):  # (the probes and the RESET's retries take some 100 ms)
+        state.wait(ms=100.0)
+    (answer,) = [a for a in state.wire.answers if a.result is not None]
+    assert answer.result.outcome == Outcome.UNKNOWN, answer.text
+    assert state.wire.sim.resets == 0
+    state.factory_reset_says_what_the_servo_did()
+    state.teardown()
+
+
+def test_issue22_found_a_reset_of_the_factory_id_that_went_unheard_is_not_done() -> None:
+    # The 3,000-sequence search found this next: RESET to id 1, the factory id itself, where no
+    # servo answered (it was disconnected). No acknowledgement, no PING answered at 1, and then
+    # the factory id probed again as "where the reset servo went": a servo answered there (one
+    # connected meanwhile) and the driver answered DONE, "now answers at the factory id 1",
+    # with no servo reset. For the factory id, where it would go is where it was: UNKNOWN.
+    state = ServoBusModel()
+    state.start(n=1, rate=50.0, retries=0, telemetry=0.05, extra=False, seed=0, pace=0.0)
+    state.disconnect_or_connect_a_servo(servo_id=1)
+    state.factory_reset(ms=5.0, servo_id=1)
+    pings = proto.encode_ping(1)
+    wait_for_virtual(state, lambda: sum(s.frame == pings for s in state.wire.log) >= 2)
+    state.wait(ms=30.0)  # the second PING's patient wait ends unanswered
+    state.disconnect_or_connect_a_servo(servo_id=1)  # connected back
+    for _ in range(20):
+        state.wait(ms=100.0)
+    (answer,) = [a for a in state.wire.answers if a.result is not None]
+    assert answer.result.outcome == Outcome.UNKNOWN, answer.text
+    assert 'id 1 (the factory id) does not answer now' in answer.text
+    assert state.wire.sim.resets == 0
+    state.teardown()
+
+
+def wait_for_virtual(state: 'ServoBusModel', done, ms: float = 1.0, limit_s: float = 5.0) -> None:
+    """Step the model's virtual time until `done()`."""
+    for _ in range(int(limit_s * 1000 / ms)):
+        if done():
+            return
+        state.wait(ms=ms)
+    raise AssertionError('not reached in virtual time')
 
 
 def test_round2_22_5_the_models_probe_waits_after_every_reply_as_the_driver() -> None:
