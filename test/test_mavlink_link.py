@@ -363,7 +363,9 @@ def test_round2_23_handset_return_to_home_reaches_the_autopilot_once(rig):
     pub.publish(Failsafe(action='NONE'))
     pub.publish(Failsafe(action='RETURN_TO_HOME', reason='battery low'))
     wait_for(lambda: len(rtl()) == 2, 10, what='a second RETURN_TO_LAUNCH')
-    rig.ros.node.destroy_publisher(pub)
+    pub.publish(Failsafe(action='NONE'))
+    # (Left to the harness's end: destroyed while its executor waits, a publisher costs a wait
+    # of that executor, campaign s13a runs 7 and 8.)
 
 
 def test_round2_23_parachute_node_works_as_before_without_the_link(rig):

@@ -235,8 +235,14 @@ def test_telemetry_tells_the_torque_switch_current_and_temperature_of_each_servo
 def test_positions_and_velocity_follow_the_servo(rig):
     with rig.dev.runner.locked():
         rig.sim.move_by_hand(1, 3072)
-    snap = rig.cycle()
-    pan = rig.by_id(snap, 1)
+    errors = rig.by_id(rig.core.snapshot(), 1).error_count
+    for _ in range(3):
+        pan = rig.by_id(rig.cycle(), 1)
+        if pan.error_count == errors:
+            break
+        # A READ a device stall failed on a loaded host (campaign s13a, run 5): the next cycle
+        # reads it.
+        errors = pan.error_count
     assert pan.position_ticks == 3072 and pan.position_rad == pytest.approx(math.pi / 2)
     assert pan.velocity == 0.0
 

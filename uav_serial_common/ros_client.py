@@ -8,8 +8,10 @@
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
+import traceback
 from typing import Any, Callable, Dict, List, Optional
 
 import rclpy
@@ -84,14 +86,23 @@ class RosHarness:
         # are in flight, starving the virtual devices that share this process of the GIL.
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self._closing = False
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:  # noqa: BLE001 - shutdown while spinning
-            pass
+        # One wait at a time: an entity destroyed while the executor waited on it (rclpy:
+        # "cannot use Destroyable because destruction was requested") costs that wait, said on
+        # stderr. Spun by executor.spin(), the error ended the thread unseen, and every later
+        # call of the harness timed out (campaign s13a, runs 7 and 8).
+        while not self._closing and self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except Exception:  # noqa: BLE001 - this thread is every call's; it goes on
+                if self._closing or not self.context.ok():
+                    return
+                print(f'RosHarness executor: {traceback.format_exc()}', file=sys.stderr,
+                      flush=True)
 
     def subscribe(self, msg_type: Any, topic: str, latched: bool = False,
                   reliable: bool = True, depth: int = 100) -> MessageLog:
@@ -165,6 +176,7 @@ class RosHarness:
 
     def close(self) -> None:
         """Stop spinning and shut the context down."""
+        self._closing = True
         try:
             self.executor.shutdown(timeout_sec=2.0)
         finally:
