@@ -97,7 +97,7 @@ class RosHarness:
         # call of the harness timed out (campaign s13a, runs 7 and 8).
         while not self._closing and self.context.ok():
             try:
-                self.executor.spin_once(timeout_sec=0.1)
+                self.executor.spin_once()
             except Exception:  # noqa: BLE001 - this thread is every call's; it goes on
                 if self._closing or not self.context.ok():
                     return
