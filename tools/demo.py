@@ -329,14 +329,21 @@ def run_mission(m: Mission, procs: Processes) -> str:
     m.say(f'  armed ✓ ({reply.message})')
 
     m.step(procs, 'sweeping the servos: one synchronized move (SYNC WRITE), then a staged one')
-    names = list(m.joints.name)
+    # The joints configured (servo_ids 1..3, their default names), not those of the last
+    # joint_states: it lists the servos online, and a servo whose read a loaded host's stall
+    # failed can be missing from it for a moment (a CI run beside a busy loop).
+    names = ['servo_1', 'servo_2', 'servo_3']
     for targets, staged in (([0.8, -0.8, 0.4], False), ([0.0, 0.0, 0.0], True)):
         reply = m.call(WritePositions, '/servo_bus/write_positions', WritePositions.Request(
             names=names, positions=targets, move_time_ms=1200, staged=staged))
         if not reply.success:
             raise DemoFailure(f'servo move failed: {reply.message}')
-        m.wait(lambda: all(abs(p - t) < 0.05 for p, t in zip(m.joints.position, targets)),
-               8, f'servos at {targets}')
+
+        def reached(targets: list = targets) -> bool:
+            at = dict(zip(m.joints.name, m.joints.position))
+            return all(name in at and abs(at[name] - t) < 0.05
+                       for name, t in zip(names, targets))
+        m.wait(reached, 8, f'servos at {targets}')
         m.say(f'  {"staged (REG WRITE + ACTION)" if staged else "synchronized"} move to '
               f'{targets} rad reached')
 
