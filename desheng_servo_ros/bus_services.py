@@ -42,7 +42,10 @@ class _Tx:
 
 
 class _Service:
-    """A service call as a sequence of transactions (``~/set_id``: the driver's own procedure)."""
+    """A service call as a sequence of transactions.
+
+    ``~/set_id`` and ``~/factory_reset`` run the driver's own procedures (``id_change``).
+    """
 
     def __init__(self, bus: Any, token: Hashable, name: str,
                  args: Tuple[Any, ...]) -> None:

@@ -91,10 +91,11 @@ class RosHarness:
         self._thread.start()
 
     def _spin(self) -> None:
-        # One wait at a time: an entity destroyed while the executor waited on it (rclpy:
-        # "cannot use Destroyable because destruction was requested") costs that wait, said on
-        # stderr. Spun by executor.spin(), the error ended the thread unseen, and every later
-        # call of the harness timed out (campaign s13a, runs 7 and 8).
+        # One wait at a time: an error of a wait (rclpy raises one for an entity destroyed
+        # while the executor waited on it, "cannot use Destroyable because destruction was
+        # requested") costs that wait, and is said on stderr. Spun by executor.spin(), it ended
+        # this thread unseen, and every later call of the harness timed out (the likely cause
+        # of campaign s13a runs 7 and 8: a publisher destroyed just before).
         while not self._closing and self.context.ok():
             try:
                 self.executor.spin_once()
