@@ -27,7 +27,7 @@ from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.registers import encode_value
 from desheng_servo_ros.schedule import (judge_probe, PROBE_READS, probe_quiet_s,
                                         set_id_refusal)
-from desheng_servo_ros.state import FACTORY_ID, ID, POSITION, Result
+from desheng_servo_ros.state import FACTORY_ID, ID, Outcome, POSITION, Result
 
 # An id change whose frame left without an acknowledgement (lost, or the link dropped) is
 # settled by asking the bus; a link that went down gets this long to come back for that.
@@ -294,13 +294,13 @@ def factory_reset(servo_id: int, configured: Collection[int], baud: int) -> Step
                     f'without {servo_id} for the change)' if servo_id in configured else ''))
     if taken:
         owner = next((s.name for s in (yield Servos()) if s.id == FACTORY_ID), 'another servo')
-        return Result.done(
+        return Result(Outcome.DONE, (
             f'servo {servo_id} reset to factory settings. WARNING: it now has the factory id '
             f'{FACTORY_ID}, which {owner} already had: '
             + ('more than one servo answers there' if at_factory == 'several' else
                'check with ~/scan')
             + f', and ~/set_id refuses an id more than one servo answers to. Disconnect {owner} '
-            f'(or power it off), then {give_back}{note}')
+            f'(or power it off), then {give_back}{note}'), cause='shared_id')
     if at_factory != 'none':
         return Result.done(f'servo {servo_id} reset to factory settings and now answers at the '
                            f'factory id {FACTORY_ID}; {give_back}{note}')

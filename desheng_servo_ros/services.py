@@ -301,6 +301,6 @@ class ServoServices:
         with self._loop_paused():
             result = idc.run_to_end(idc.factory_reset(servo_id, self._configured_ids,
                                                       self.config.baud), self._carry)
-        if 'WARNING' in result.message:
+        if result.cause == 'shared_id':  # done, and the factory id now has two servos
             self.log_warning(result.message)
         return result
