@@ -14,7 +14,10 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
+import subprocess
 import sys
+import time
 from typing import Any
 
 import pytest
@@ -54,6 +57,47 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated in Jazzy; it would warn
     os.environ.setdefault('RCUTILS_COLORIZED_OUTPUT', '0')
     os.environ.setdefault('PYTHONUNBUFFERED', '1')
+    if config.getoption('numprocesses', None) and 'PYTEST_XDIST_WORKER' not in os.environ:
+        _compile_once_before_the_workers(config)
+
+
+TEST_DIR = Path(__file__).resolve().parent
+ROOT = TEST_DIR.parent
+_COMPILED = pytest.StashKey[float]()
+"""How long a cold cache's compile before the workers took (seconds)."""
+
+
+def _stale_test_modules() -> list:
+    """Name the test modules whose rewritten bytecode is missing or older than their source."""
+    from _pytest.assertion.rewrite import get_cache_dir, PYC_TAIL
+    stale = []
+    for source in [TEST_DIR / 'conftest.py', *TEST_DIR.glob('test_*.py')]:
+        pyc = get_cache_dir(source) / (source.stem + PYC_TAIL)
+        if not pyc.exists() or pyc.stat().st_mtime < source.stat().st_mtime:
+            stale.append(source.name)
+    return stale
+
+
+def _compile_once_before_the_workers(config: pytest.Config) -> None:
+    """With a cold bytecode cache, compile once in one process instead of once in each worker.
+
+    Every xdist worker collects every test module, and pytest rewrites each for its asserts
+    (about 5 s of CPU for this suite): started together on a cold cache, all the workers did that
+    same work at once, and their node processes compiled the drivers' modules at once too.
+    """
+    if sys.dont_write_bytecode or not _stale_test_modules():
+        return
+    import compileall
+    started = time.monotonic()
+    # The installed modules (the node processes' path to the sources, --symlink-install).
+    for site in ROOT.glob('install/*/lib/python3*/site-packages'):
+        compileall.compile_dir(str(site), quiet=2, workers=0)
+    # One collection rewrites the test modules and compiles everything they import.
+    subprocess.run([sys.executable, '-m', 'pytest', str(TEST_DIR), '--collect-only', '-q',
+                    '-p', 'no:xdist', '-p', 'no:cacheprovider'],
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=300,
+                   check=False)
+    config.stash[_COMPILED] = time.monotonic() - started
 
 
 CORE_TIER = frozenset({
@@ -75,15 +119,23 @@ with no process, pty or ROS graph (``make test-core``; ``make test`` runs every 
 
 
 LONGEST_FIRST = (
-    'test_demo.py', 'test_fault_campaign.py', 'test_servo_safety.py', 'test_blackbox_report.py',
-    'test_originman_node.py', 'test_mavlink_link.py', 'test_shutdown_noise.py',
-    'test_handset_node.py', 'test_servo_node_faults.py', 'test_executables.py',
-    'test_user_errors.py', 'test_parachute_safety.py', 'test_lint.py',
+    # Run whole on one worker (WHOLE_FILES): one long unit each.
+    'test_blackbox_report.py', 'test_mavlink_link.py', 'test_servo_node_faults.py',
+    'test_parachute_node.py',
+    # By their longest test.
+    'test_demo.py', 'test_servo_safety.py', 'test_originman_node.py', 'test_lint.py',
+    'test_fault_campaign.py', 'test_handset_model.py', 'test_shutdown_noise.py',
+    'test_handset_node.py', 'test_originman_plan.py', 'test_parachute_core.py',
+    'test_parachute_settings_model.py', 'test_settings_model.py', 'test_servo_model.py',
+    'test_parachute_safety.py', 'test_servo_node_rate.py', 'test_parachute_round2_stream.py',
+    'test_servo_core.py', 'test_trigger_model.py', 'test_servo_link.py',
+    'test_parachute_virtual.py', 'test_user_errors.py', 'test_executables.py',
 )
-"""The files with the longest tests (2026-11-28), longest first. `make test` hands tests to its
-workers one at a time, in collection order (``--no-loadscope-reorder``): started first, the
-long tests do not make the tail of the run while the other workers idle. Files not named follow
-in their usual order."""
+"""The files with the longest tests (measured 2026-11-28), longest first. `make test` hands
+tests to its workers one at a time, in collection order (``--no-loadscope-reorder``): started
+first, the long tests do not make the tail of the run while the other workers idle (a model
+search last in the queue kept one worker busy 11 s after the others had finished). Files not
+named follow in their usual order."""
 
 WHOLE_FILES = frozenset({
     'test_blackbox_report.py', 'test_mavlink_link.py', 'test_parachute_node.py',
@@ -133,9 +185,13 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     return TestsAloneFilesWhole(config, log)
 
 
-def pytest_report_header(config: pytest.Config) -> str:
-    """Show the domain id, to tell parallel sessions' logs apart."""
-    return f'ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID")} (localhost discovery)'
+def pytest_report_header(config: pytest.Config) -> list:
+    """Show the domain id, to tell parallel sessions' logs apart; and a cold cache's compile."""
+    lines = [f'ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID")} (localhost discovery)']
+    compiled = config.stash.get(_COMPILED, None)
+    if compiled is not None:
+        lines.append(f'a cold bytecode cache: compiled once before the workers ({compiled:.1f} s)')
+    return lines
 
 
 from uav_serial_common.process import LaunchedProcesses  # noqa: E402

@@ -142,14 +142,20 @@ def test_two_servos_answering_to_one_id_are_reported_as_a_duplicate_id(rig):
     with rig.locked():
         rig.sim.add_servo(2, allow_duplicate=True)
     try:
-        status = rig.diag('/servo_bus: tilt (id 2)',
-                          lambda s: s.level == ERROR and 'duplicate id' in s.message,
-                          start=len(rig.diags))
-        assert '~/set_id' in status.message
-        bus = rig.diag('/servo_bus: bus', lambda s: s.level == ERROR, start=len(rig.diags))
-        assert 'id(s) 2' in bus.message
-        # The servos with ids of their own are not suspected.
-        rig.diag('/servo_bus: pan (id 1)', lambda s: s.level == OK, start=len(rig.diags))
+        # One diagnostics message says it all: the servo's status, the bus's, and the servos
+        # with ids of their own not suspected.
+        def said(array):
+            by_name = {s.name: s for s in array.status}
+            tilt, bus = by_name.get('/servo_bus: tilt (id 2)'), by_name.get('/servo_bus: bus')
+            pan = by_name.get('/servo_bus: pan (id 1)')
+            return (tilt is not None and tilt.level == ERROR and 'duplicate id' in tilt.message
+                    and bus is not None and bus.level == ERROR and pan is not None
+                    and pan.level == OK)
+        array = rig.diags.wait(said, 5.0, what='a duplicate id in the diagnostics',
+                               start=len(rig.diags))
+        by_name = {s.name: s for s in array.status}
+        assert '~/set_id' in by_name['/servo_bus: tilt (id 2)'].message
+        assert 'id(s) 2' in by_name['/servo_bus: bus'].message
         scan = rig.call(ScanBus, 'scan', first_id=1, last_id=5)
         assert scan.success and list(scan.ids) == [1, 2, 3]
         assert 'more than one servo answers to id(s) 2:' in scan.message, scan.message
