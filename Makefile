@@ -7,7 +7,8 @@ PYTEST_ARGS ?=
 TEST_WORKERS ?= 5
 # Compiled modules (and pytest's rewritten test modules) are kept between runs, outside the
 # tree, even where the environment says not to write them: every worker and node process would
-# compile them again (about 4 s of CPU per worker).
+# compile them again (about 4 s of CPU per worker). A cold cache is filled once, before the
+# workers start (test/conftest.py).
 PYCACHE := export PYTHONDONTWRITEBYTECODE= \
 	PYTHONPYCACHEPREFIX=$${XDG_CACHE_HOME:-$$HOME/.cache}/uav_serial_drivers/pycache
 
@@ -29,7 +30,7 @@ lint: build
 	@$(ENV) && python -m pytest test/test_lint.py -p no:cacheprovider $(PYTEST_ARGS)
 
 demo: build
-	@$(ENV) && python tools/demo.py
+	@$(ENV) && $(PYCACHE) && python tools/demo.py
 
 bench: build
 	@$(ENV) && python bench/run_all.py
