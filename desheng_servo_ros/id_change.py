@@ -284,9 +284,12 @@ def factory_reset(servo_id: int, configured: Collection[int], baud: int) -> Step
             return unknown(what, lost, f'id {servo_id} no longer answers, and the factory id '
                                        f'{FACTORY_ID} answers as it did before the RESET; '
                                        '~/scan and ~/read_register tell')
-        note = f' (its acknowledgement was lost: {lost})'
-    else:
-        note = ''
+        # Most likely the reset servo; but the silence before the RESET is no proof: a wire that
+        # lost those PINGs hid a servo that was there all along (the bench-size search).
+        return unknown(what, lost, f'id {servo_id} no longer answers, and the factory id '
+                                   f'{FACTORY_ID} answers now but did not answer before the '
+                                   'RESET: most likely the reset servo; ~/scan and '
+                                   '~/read_register tell')
     if at_own:
         return Result.done(f'servo {servo_id} reset to factory settings (torque off)')
     give_back = (f'give it its id back with ~/set_id {FACTORY_ID} -> {servo_id}'
@@ -300,10 +303,10 @@ def factory_reset(servo_id: int, configured: Collection[int], baud: int) -> Step
             + ('more than one servo answers there' if at_factory == 'several' else
                'check with ~/scan')
             + f', and ~/set_id refuses an id more than one servo answers to. Disconnect {owner} '
-            f'(or power it off), then {give_back}{note}'), cause='shared_id')
+            f'(or power it off), then {give_back}'), cause='shared_id')
     if at_factory != 'none':
         return Result.done(f'servo {servo_id} reset to factory settings and now answers at the '
-                           f'factory id {FACTORY_ID}; {give_back}{note}')
+                           f'factory id {FACTORY_ID}; {give_back}')
     return Result.done(f'servo {servo_id} acknowledged RESET but no longer answers')
 
 

@@ -44,7 +44,8 @@ def search(machine: Type[RuleBasedStateMachine], device: str, steps: int) -> int
     Counted.__name__ = machine.__name__
     run_state_machine_as_test(Counted, settings=settings(
         max_examples=EXAMPLES, stateful_step_count=steps, deadline=None, database=None,
-        report_multiple_bugs=False, suppress_health_check=list(HealthCheck), phases=PHASES))
+        report_multiple_bugs=False, suppress_health_check=list(HealthCheck), phases=PHASES,
+        print_blob=True))
     print(f'model_sequences_{device}={Counted.sequences} '
           f'model_steps_{device}={Counted.steps_run} model_violations=0')
     assert Counted.sequences >= EXAMPLES

@@ -1045,6 +1045,31 @@ def test_issue22_found_a_reset_of_the_factory_id_that_went_unheard_is_not_done()
     state.teardown()
 
 
+def test_issue22_found_a_reset_of_an_id_no_servo_has_is_not_done_when_the_factory_id_went_unheard(
+) -> None:
+    # The bench-size search (20,000 sequences) found this next: RESET to id 2, which no servo
+    # has, on a wire that dropped half the frames. Both PINGs of the factory id before the RESET
+    # went unanswered though servo 1 was there ("free"), no acknowledgement came, id 2 was
+    # silent, and servo 1 answered the probe after: DONE, "now answers at the factory id", with
+    # no servo reset. A silence is no proof on a lossy wire: without its acknowledgement the
+    # RESET's outcome is UNKNOWN, and the answer says what the bus showed.
+    state = ServoBusModel()
+    state.start(n=1, rate=50.0, retries=0, telemetry=0.05, extra=False, seed=0, pace=0.0)
+    state.wire_faults(drop=1.0, corrupt=0.0, late=0.0)
+    state.factory_reset(ms=5.0, servo_id=2)
+    reset = proto.encode_reset(2)
+    wait_for_virtual(state, lambda: any(s.frame == reset for s in state.wire.log))
+    state.wire_faults(drop=0.0, corrupt=0.0, late=0.0)
+    for _ in range(20):
+        state.wait(ms=100.0)
+    (answer,) = [a for a in state.wire.answers if a.result is not None]
+    assert answer.result.outcome == Outcome.UNKNOWN, answer.text
+    assert 'did not answer before the RESET' in answer.text, answer.text
+    assert state.wire.sim.resets == 0
+    state.factory_reset_says_what_the_servo_did()
+    state.teardown()
+
+
 def wait_for_virtual(state: 'ServoBusModel', done, ms: float = 1.0, limit_s: float = 5.0) -> None:
     """Step the model's virtual time until `done()`."""
     for _ in range(int(limit_s * 1000 / ms)):
