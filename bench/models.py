@@ -56,6 +56,17 @@ def run(examples: int, timeout_s: float = 3600.0) -> Dict[str, object]:
         out[f'model_sequences_{device}'] = int(found.group(1)) if found else 0
         if proc.returncode != 0:
             violations += 1
-            out[f'model_failure_{device}'] = proc.stdout[-4000:]
+            out[f'model_failure_{device}'] = _failure(proc.stdout)
     out['model_violations'] = violations
     return out
+
+
+def _failure(output: str) -> str:
+    """Return what a failed run says from its assertion on, and its reproduction blob.
+
+    (The last lines alone are the end of a long sequence, without the assertion.)
+    """
+    start = output.find('\nE ')
+    text = output[start + 1:start + 8001] if start >= 0 else output[-4000:]
+    blob = [line for line in output.splitlines() if 'reproduce_failure' in line]
+    return text + ('\n' + blob[0] if blob and blob[0] not in text else '')
