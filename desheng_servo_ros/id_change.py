@@ -216,6 +216,12 @@ def set_id(old: int, new: int, servos: Sequence[Any], baud: int) -> Steps:
                                      f'answers at id {old}; nothing changed')
             return unknown(what, lost, f'neither id {old} nor {new} answers now; check with '
                                        '~/scan')
+        if lost is not None and (yield from answers(old)) == 'yes':
+            # Both answer: it did not move, and a servo the probe before did not hear (its PINGs
+            # lost) is at the new id. Seen, so not unknown; nothing renamed.
+            return Result.failed(f'servo {old} did not take id {new} ({lost}): it still answers '
+                                 f'at id {old}, and id {new} answers too (a servo the probe '
+                                 'before did not hear); check with ~/scan', 'shared_id')
         # Done only if it is alone there: a servo at the new id whose PING replies were lost
         # would now share it (the same probe as before the change).
         after, why = yield from how_many_answer(new, baud)

@@ -154,3 +154,15 @@ def test_the_write_carries_the_new_id():
                  if isinstance(s, idc.Ask) and s.frame[4] == proto.Instruction.WRITE)
     assert write.frame == proto.encode_write(3, ID.address, bytes([9]))
     assert write.retries is None  # the bus's usual retries
+
+
+def test_a_lost_acknowledgement_with_both_ids_answering_is_a_failure_not_a_rename():
+    # The WRITE never reached servo 3, and a servo at 9 whose PINGs were lost before the change
+    # answers there: the old id still answering tells that nothing moved (it used to be DONE,
+    # "servo 3 now answers at id 9", as soon as 9 answered alone).
+    bus = ScriptedBus({1: 1, 3: 1}, lose_write_ack=True, moves_on_write=False,
+                      after_write=lambda at: at.update({9: 1}))
+    result = set_id(bus)
+    assert (result.outcome, result.cause) == (Outcome.FAILED, 'shared_id'), result.message
+    assert 'still answers at id 3, and id 9 answers too' in result.message
+    assert bus.renamed == []
