@@ -3,8 +3,8 @@ SHELL := /bin/bash
 ENV := source tools/env.sh
 PYTEST_ARGS ?=
 # Tests run side by side in pytest-xdist workers, each with its own ROS domain: most of a
-# test's time is waiting on a device's timing, not CPU, so five workers fit two cores.
-TEST_WORKERS ?= 5
+# test's time is waiting on a device's timing, not CPU, so six workers fit two cores.
+TEST_WORKERS ?= 6
 # Compiled modules (and pytest's rewritten test modules) are kept between runs, outside the
 # tree, even where the environment says not to write them: every worker and node process would
 # compile them again (about 4 s of CPU per worker). A cold cache is filled once, before the
@@ -17,7 +17,7 @@ PYCACHE := export PYTHONDONTWRITEBYTECODE= \
 all: build
 
 build:
-	@flock .build.lock bash tools/bootstrap.sh
+	@$(PYCACHE) && flock .build.lock bash tools/bootstrap.sh
 
 test: build
 	@$(ENV) && $(PYCACHE) && python -m pytest test -p no:cacheprovider -n $(TEST_WORKERS) --dist loadgroup \

@@ -42,6 +42,12 @@ else
     quiet_pip install --quiet -r tools/requirements.txt -c tools/constraints.txt
     log "fixing include paths baked into the wheels' CMake files"
     "$python" tools/fix_wheel_paths.py "$venv_dir"
+    if [ -n "${PYTHONPYCACHEPREFIX:-}" ]; then
+      # What pip does at install time where bytecode may be written, into the cache the tests
+      # and the demo use (make sets it): their first run then compiles only this package.
+      log "compiling the installed modules"
+      "$python" -m compileall -q -j 0 "$venv_dir/lib" > /dev/null 2>&1 || true
+    fi
     echo "$want" > "$stamp"
   fi
   export VIRTUAL_ENV=$venv_dir
