@@ -601,9 +601,10 @@ def test_round2_22_a_late_second_power_up_heartbeat_is_no_second_reboot(tmp_path
     # Found beside a busy loop (issue 22, ten runs): the reader stalled 0.34 s after handling
     # the first power-up heartbeat and before taking the second, which the driver then took for
     # another reboot: a false reboot record, and the report counted three reboots for two. The
-    # simulated module sends its second heartbeat 2 s late (real time), so the test moves the
-    # driver's clock 0.5 s between the two: the stall, made certain.
-    monkeypatch.setattr(simulation, 'POWER_UP_HEARTBEAT_GAP_S', 2.0)
+    # simulated module holds its second heartbeat until the test lets it go, after moving the
+    # driver's clock 0.5 s: the stall, made certain. (A gap of 2 s real time was not enough for
+    # a host beside a busy loop to see the first heartbeat alone: campaign s14b, run 3.)
+    monkeypatch.setattr(simulation, 'POWER_UP_HEARTBEAT_GAP_S', 3600.0)
     sim = VirtualParachute(now=time.monotonic() - 1.0)
     sim.step(time.monotonic())
     runner = create_runner(sim, str(tmp_path / 'vpara'), baud=0).start()
@@ -633,6 +634,8 @@ def test_round2_22_a_late_second_power_up_heartbeat_is_no_second_reboot(tmp_path
         assert sum(r.get('hex') == heartbeat for r in records()) == 1, \
             'the second heartbeat came before the stall: the premise of this test failed'
         clock.advance(0.5)
+        with runner.locked():
+            sim._second_heartbeat_at = time.monotonic()  # due now
         wait_for(lambda: sum(r.get('hex') == heartbeat for r in records()) == 2, 10,
                  what='the second power-up heartbeat in the black box')
         session.preflight_check()  # through the same reader: the second heartbeat was handled
