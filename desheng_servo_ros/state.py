@@ -29,15 +29,22 @@ CURRENT = by_name('current')
 TEMPERATURE = by_name('temperature')
 RUN_PRESETS = tuple(by_name(f'run_preset_{k}') for k in (1, 2, 3))
 FACTORY_ID = ID.default  # S23: RESET gives every servo the table's default id
+LOCK_FLAG = by_name('lock_flag')
 # The read loop's READs. Each cycle reads position + speed of every servo; where a servo's
 # telemetry is due, that READ runs on to the temperature (0x38..0x3F) and a second one takes
-# 0x28..0x2F (torque switch, current). Two 8-byte blocks rather than one of 24 (0x28..0x3F):
-# no READ holds the bus longer than 1.9 ms at 115200 baud (the block of 24 held it 3.3 ms), and
-# a command waits for the READ in flight.
-assert SPEED.address == POSITION.end
+# 0x28..0x30 (torque switch, current, and the lock flag). Two short blocks rather than one of
+# 24 (0x28..0x3F): no READ holds the bus longer than 2 ms at 115200 baud (the block of 24 held
+# it 3.3 ms), and a command waits for the READ in flight.
+# The three are of different lengths because a READ's reply names no address: a late reply of
+# one block, arriving while the next READ of that servo waits, would be taken for the other's
+# (when both were 8 bytes, the current's low byte was once read as the temperature: a fresh
+# clone's run of 2026-11-28). One block's late reply taken for its own next READ is that
+# block, one attempt older.
+assert SPEED.address == POSITION.end and LOCK_FLAG.address == CURRENT.end
 POSITION_READ = (POSITION.address, POSITION.size + SPEED.size)
 WIDE_READ = (POSITION.address, TEMPERATURE.end - POSITION.address)
-STATE_READ = (TORQUE.address, CURRENT.end - TORQUE.address)
+STATE_READ = (TORQUE.address, LOCK_FLAG.end - TORQUE.address)
+assert len({POSITION_READ[1], WIDE_READ[1], STATE_READ[1]}) == 3
 W_TEMPERATURE = TEMPERATURE.address - POSITION.address
 S_CURRENT = CURRENT.address - TORQUE.address
 # What a READ of the loop is for (the plan's entries, the tags of its replies).

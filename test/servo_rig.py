@@ -20,7 +20,7 @@ NODE = '/servo_bus'
 RIG_RESPONSE_TIMEOUT_MS = 250.0
 # The read loop's own READs (position, position to temperature, torque and current): anything
 # else is "on the wire".
-LOOP_READS = {(0x38, 4), (0x38, 8), (0x28, 8)}
+LOOP_READS = {(0x38, 4), (0x38, 8), (0x28, 9)}
 
 
 class Wire:

@@ -200,7 +200,7 @@ def test_a_cycle_reads_every_servo_and_telemetry_is_spread_over_its_period(rig):
     assert [s.online for s in snap.servos] == [True] * 3
     assert all(s.temperature_c == pytest.approx(25, abs=1) for s in snap.servos)
     # The first cycle read the telemetry of each; then they come one third apart, each as the
-    # torque/current block (0x28, 8) and the position READ run on to the temperature (0x38, 8),
+    # torque/current block (0x28, 9) and the position READ run on to the temperature (0x38, 8),
     # last, so that a cycle ends with a position.
     mark = rig.tap.mark()
     for _ in range(3):
@@ -210,7 +210,7 @@ def test_a_cycle_reads_every_servo_and_telemetry_is_spread_over_its_period(rig):
     requests = rig.tap.requests(mark)
     blocks = [(r.servo_id, r.params[0], r.params[1]) for k, r in enumerate(requests)
               if k == 0 or r.raw != requests[k - 1].raw]
-    wide, state = (0x38, 8), (0x28, 8)
+    wide, state = (0x38, 8), (0x28, 9)
     assert blocks == [(1, *state), (1, *wide), (2, 0x38, 4), (3, 0x38, 4),
                       (1, 0x38, 4), (2, *state), (2, *wide), (3, 0x38, 4),
                       (1, 0x38, 4), (2, 0x38, 4), (3, *state), (3, *wide)]

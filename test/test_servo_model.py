@@ -51,7 +51,8 @@ from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, 
 from desheng_servo_ros.schedule import (COMMAND_SPACING, CommandQueue, IDLE_GUARD_S,
                                         PROBE_READS, probe_quiet_s, REPLY_OVERHEAD,
                                         REPROBE_PERIOD_S, sync_write_frames, TORQUE_OFF_ALL)
-from desheng_servo_ros.state import Outcome, POSITION
+from desheng_servo_ros.state import (Outcome, POSITION, POSITION_READ, READ_POSITION,
+                                     READ_STATE, READ_WIDE, STATE_READ, WIDE_READ)
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
 from hypothesis import HealthCheck, settings, strategies as st
@@ -82,6 +83,8 @@ ALLOWANCE_BATCHES = 4
 # between them, and a thread switch there (the model takes less than a reply's wire time, under
 # which a reply that came before the request left cannot pass for its answer).
 HOST_STAMP_S = 0.0002
+# The read loop's READs by what they read (ReadDone.kind).
+LOOP_BLOCKS = {READ_POSITION: POSITION_READ, READ_WIDE: WIDE_READ, READ_STATE: STATE_READ}
 
 
 _TOKENS = itertools.count(1)
@@ -135,6 +138,9 @@ class Wire:
         self.cut = 0  # frames before this index were cut off by an unplug
         self.cycle_ends: list = []  # when the read loop completed a cycle with READs
         self.results: list = []  # ReadDone actions
+        # Per reply frame that reached the wire: the request frames it answered (one but for
+        # coincidence: a retry is the same frame).
+        self.origins: dict = {}
         self.logs: list = []  # Log actions
         self._cycle = False  # a cycle with READs completed in this step
         self.handlers = {Send: self._send, Answer: self._answer,
@@ -256,6 +262,7 @@ class Wire:
         r = self.rng.random()
         late = self.rng.random() < self.late
         for reply in self.sim.feed(send.frame, end):
+            self.origins.setdefault(reply, set()).add(send.frame)
             if r < self.drop:
                 continue
             if r < self.drop + self.corrupt:
@@ -318,6 +325,7 @@ class ServoBusModel(RuleBasedStateMachine):
         # ~/factory_reset calls not answered yet: token -> (id, the sim's RESETs, log index)
         self.resets: dict = {}
         self._resets_seen = 0
+        self._readings_seen = 0
         self.wire.run_until(START + 0.01)
 
     # -- helpers --------------------------------------------------------------------------------
@@ -573,6 +581,23 @@ class ServoBusModel(RuleBasedStateMachine):
             f'over a stretch, commands held the bus {self.worst_debt * 1000:.2f} ms longer '
             f'than READs (allowance {allowance * 1000:.2f} ms; over the run: commands '
             f'{self.command_time * 1000:.2f} ms, READs {self.read_time * 1000:.2f} ms)')
+
+    @invariant()
+    def a_reading_is_the_reply_to_its_own_read(self) -> None:
+        # A reply names its servo and its length, not the address it was read from: a late
+        # reply of one READ of a servo, arriving while the next READ of it waits, must not be
+        # taken for that one's unless it is the same READ (a fresh clone's run of 2026-11-28
+        # read the current's low byte as the temperature when two blocks had one length).
+        for done in self.wire.results[self._readings_seen:]:
+            if done.reply is None:
+                continue
+            frame = proto.encode_read(done.servo_id, *LOOP_BLOCKS[done.kind])
+            origins = self.wire.origins.get(bytes(done.reply.raw), set())
+            assert frame in origins, (
+                f'servo {done.servo_id}: the READ {frame.hex(" ")} took the reply '
+                f'{bytes(done.reply.raw).hex(" ")}, which answered '
+                f'{[o.hex(" ") for o in origins]}')
+        self._readings_seen = len(self.wire.results)
 
     @invariant()
     def every_call_is_answered_once_and_all_by_the_shutdown(self) -> None:
@@ -1002,6 +1027,21 @@ def test_round2_22_5_found_two_servos_whose_replies_come_apart_are_not_renamed_a
     state.one_transaction_at_a_time()
     state.reads_keep_at_least_half_their_rate()
     state.set_id_done_never_makes_two_servos_share_an_id()
+    state.teardown()
+
+
+def test_issue22_found_a_late_reply_of_the_state_read_is_not_taken_for_the_wide_read() -> None:
+    # Found by the reading invariant, added after a fresh clone's run read 40 (a hold current)
+    # as a temperature: the telemetry READs 0x28..0x2F and 0x38..0x3F were both of 8 bytes, and
+    # a reply says only its servo and length. The first one's reply, late, came while the second
+    # waited and was taken for it. The state READ now runs on to 0x30 (9 bytes).
+    state = ServoBusModel()
+    state.start(n=2, rate=50.0, retries=0, telemetry=0.05, extra=False, seed=1, pace=0.0)
+    state.wire_faults(corrupt=0.0, drop=0.0, host_lag=0.0, late=0.5)
+    state.flood(count=13, first=0, spacing_ms=3.0)
+    state.a_reading_is_the_reply_to_its_own_read()
+    kinds = {done.kind for done in state.wire.results if done.reply is not None}
+    assert {READ_STATE, READ_WIDE} <= kinds
     state.teardown()
 
 
