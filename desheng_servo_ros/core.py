@@ -284,6 +284,7 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 self.log_warning(f'scan interrupted: {exc}')
                 continue
             if found:
+                found = self._sweep_again(found)
                 self._set_servos(tuple(ServoRecord(j, k) for k, j in enumerate(servo_list(found))))
                 self._scan_at_start = False
                 self.log_info(f'found servos {found}')
@@ -301,6 +302,23 @@ class ServoBusCore(CommandPath, ServoServices, BusHealth):
                 except LinkError as exc:
                     self.log_warning(f'torque on at start: {s.name} (id {s.id}): {exc}')
         self._startup_done = True
+
+    def _sweep_again(self, found: list) -> list:
+        """Return the servos of a second sweep too: one sweep's miss would be for the whole run.
+
+        A PING's reply lost on the line, or held by a stalled device past the sweep's listening,
+        costs that servo only its first sweep; the start-up's servo list is not scanned again.
+        """
+        try:
+            again = self.bus.scan(ALL_IDS)
+        except LinkError as exc:
+            self.log_warning(f'second sweep of the start-up scan interrupted: {exc}')
+            return found
+        missed = sorted(set(again) - set(found))
+        if missed:
+            self.log_warning(f'servos {missed} answered only the second sweep of the start-up '
+                             'scan (a reply lost or late: check the wiring and the baud rate)')
+        return sorted(set(found) | set(again))
 
     def read_cycle(self) -> BusSnapshot:
         """Run one read cycle now (the read loop held: start(read_loop=False)); the snapshot."""

@@ -63,9 +63,10 @@ class Tap(Wire):
 
 class Rig:
     def __init__(self, tmp_path, ids=(1, 2, 3), servo_ids=(1, 2, 3), loop=False, clock=None,
-                 device_baud=115200, response_delay_s=0.0, **config):
+                 device_baud=115200, response_delay_s=0.0, drop_first=0, **config):
         self.dev = VirtualServoBus(str(tmp_path / 'bus'), list(ids), baud=device_baud,
                                    response_delay_s=response_delay_s, seed=1).start()
+        self.dev.runner.faults.drop_next = drop_first  # the device's first replies are lost
         self.tap = Tap(self.dev.runner)
         self.clock = clock or FakeClock()
         self.log = Log()
@@ -865,6 +866,24 @@ def test_the_start_up_scan_finds_a_slow_servo_and_reads_it(tmp_path):
         snap = rig.core.snapshot()
         assert all(s.online and s.error_count - errors[s.id] <= 3 for s in snap.servos), \
             [(s.id, s.online, s.error_count - errors[s.id]) for s in snap.servos]
+    finally:
+        rig.stop()
+
+
+def test_the_start_up_scan_finds_a_servo_whose_first_answer_was_lost(tmp_path):
+    # The start-up's servo list is final: one PING reply lost on the line (or held by a
+    # stalled device past the sweep's listening: campaign s14c, run 3) cost that servo the
+    # whole run. A second sweep finds it, and says so.
+    rig = Rig(tmp_path, ids=(7, 9), servo_ids=(), drop_first=1, response_timeout_ms=0.0,
+              loop=True, clock=time.monotonic)
+    try:
+        wait_for(lambda: [j.id for j in rig.core.servos] == [7, 9], 20,
+                 what='the start-up scan to find both servos')
+        assert rig.dev.runner.faults.drop_next == 0  # servo 7's first reply was lost
+        assert 'servos [7] answered only the second sweep' in rig.log.text('warning')
+        assert 'found servos [7, 9]' in rig.log.text('info')
+        wait_for(lambda: rig.core.snapshot().servos and
+                 all(s.online for s in rig.core.snapshot().servos), 10, what='both servos read')
     finally:
         rig.stop()
 
