@@ -361,7 +361,7 @@ def servo(observe_s: float = 3.0) -> Dict:
         rig.wait_ready()
         # Each servo's position READ, and its telemetry (the state and the wide READ).
         polled = [_servo_key(Request(i, Instruction.READ, bytes(block), b''))
-                  for i in rig.ids for block in ((0x38, 4), (0x28, 8), (0x38, 8))]
+                  for i in rig.ids for block in ((0x38, 4), (0x28, 9), (0x38, 8))]
         return _run_cases(client, '/servo_bus', servo_cases(), log,
                           _background(log, observe_s, polled))
 
@@ -398,7 +398,12 @@ def originman(observe_s: float = 3.0) -> Dict:
                                                for f in parser.feed(data)]
                            if d == 'rx' else None)
         rig.wait_ready()
-        background = _background(log, observe_s)
+        # Each bus servo's position READ and its telemetry READs (one period, 2 s, apart: a
+        # loaded host once held the third servo's past the window, campaign s14d, run 9).
+        subs = (p.BusSub.READ_POSITION, p.BusSub.READ_VOLTAGE, p.BusSub.READ_TEMPERATURE,
+                p.BusSub.READ_LOAD)
+        polled = [('BusRead', sub, i) for i in rig.parameters['bus_servo_ids'] for sub in subs]
+        background = _background(log, observe_s, polled)
         services = _run_cases(client, '/originman_board', originman_cases(), log, background)
         topics = _run_topic_cases(client, '/originman_board', originman_topic_cases(), log,
                                   background)
