@@ -134,6 +134,7 @@ def test_o41_a_late_reply_is_counted_not_taken(rig):
 def test_o41_one_read_outstanding_per_function_matched_by_sub_and_id(rig):
     board, link, _ = rig
     mark = board.mark()
+    retries = link.serial.stats.retries
     results = {}
 
     def reader(servo_id):
@@ -154,19 +155,22 @@ def test_o41_one_read_outstanding_per_function_matched_by_sub_and_id(rig):
         t.join(10)
     assert results == {1: [500] * 8, 2: [500] * 8, 3: [500] * 8, 9: [None] * 8,
                        'pwm': [1500] * 8}
-    # On the wire, a bus-servo request is always followed by its reply before the next one.
+    # On the wire, a bus-servo request is followed by its reply before the next one, but where
+    # an attempt's wait ran out on a loaded host (campaign s15a, run 3): its retry goes before
+    # the reply, and the request after it before the retry's own reply (two per retry).
 
-    def outstanding() -> int:
-        count = 0
+    def outstanding() -> tuple:
+        count = early = 0
         for side, msg in board.wire_log(mark):
             if side == 'host' and isinstance(msg, p.BusRead):
-                assert count == 0
+                early += count > 0
                 count += 1
             elif side == 'board' and isinstance(msg, p.BusServoReply):
                 count -= 1
-        return count
+        return count, early
     # The board's tap logs a reply once written: the host may have had it a moment before.
-    wait_for(lambda: outstanding() == 0, 2, what='the last reply in the wire log')
+    wait_for(lambda: outstanding()[0] == 0, 2, what='the last reply in the wire log')
+    assert outstanding()[1] <= 2 * (link.serial.stats.retries - retries)
 
 
 def test_o22_frames_from_many_threads_reach_the_board_whole(rig):
