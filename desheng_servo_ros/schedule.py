@@ -41,8 +41,9 @@ REPROBE_PERIOD_S = 1.0
 # take at most 1 / (1 + COMMAND_SPACING) of the bus; a batch that finds that budget unspent goes
 # at once, up to COMMAND_BURST batches ahead of it (a token bucket kept as a time, GCRA), so a
 # command at a normal rate waits only for the READ on the wire. Budget and spacing count from
-# the line: a loaded host that writes a batch late moves them with it. Batches are also at
-# least COMMAND_CYCLE_SHARE of a read cycle apart (at most two per cycle).
+# the line: a loaded host that writes a batch late moves them with it, and the batch after it
+# gets no burst (late_batch). Batches are also at least COMMAND_CYCLE_SHARE of a read cycle
+# apart (at most two per cycle).
 COMMAND_SPACING = 2.0
 COMMAND_BURST = 2.0
 COMMAND_CYCLE_SHARE = 0.5
@@ -299,6 +300,15 @@ class CommandQueue:
         """
         if self.budget_at > since:
             self.budget_at += duration
+
+    def late_batch(self) -> None:
+        """Take a batch written late: the next one waits for the whole budget, no burst ahead.
+
+        The lag is paused (no budget earned from it), but batches written late one after the
+        other each found the budget within the burst again, and went back to back while READs
+        waited: the bus search found commands four batches ahead of READs that way.
+        """
+        self.tolerance = 0.0
 
     def charge(self, ended_at: float, size: int, baud: int, rate_hz: float) -> None:
         """Book a batch of `size` bytes that left the line at `ended_at`."""

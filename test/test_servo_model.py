@@ -1030,6 +1030,28 @@ def test_round2_22_5_found_two_servos_whose_replies_come_apart_are_not_renamed_a
     state.teardown()
 
 
+def test_issue22_found_batches_written_late_one_after_another_went_ahead_of_the_reads() -> None:
+    # Found by a default run of the search (campaign s15b, run 4): a host writing half its
+    # frames late and a flood of commands. Each late batch's lag was paused (no budget earned
+    # from it), but the next batch found the budget within its burst again, so three went back
+    # to back while a READ waited, 4.25 batches ahead (allowance 4). A batch written late now
+    # spends the burst: the next waits for the whole budget.
+    state = ServoBusModel()
+    state.start(n=1, rate=200.0, retries=1, telemetry=0.05, extra=False, seed=227, pace=0.0)
+    state.wire_faults(corrupt=0.0, drop=0.0, host_lag=0.0, late=0.0)
+    state.command(ms=1.0, ticks=0, which=[0])
+    state.wire_faults(corrupt=0.0, drop=0.0, host_lag=0.5, late=0.5)
+    state.flood(count=53, first=0, spacing_ms=1.0)
+    state.command(ms=16.0, ticks=0, which=[0])
+    state.flood(count=5, first=0, spacing_ms=2.0)
+    state.flood(count=26, first=0, spacing_ms=3.0)
+    state.command(ms=0.0, ticks=0, which=[0])
+    state.the_newest_target_reaches_the_wire_within_one_read_cycle()
+    state.reads_keep_at_least_half_their_rate()
+    assert sum(send.kind == 'command' for send in state.wire.log) >= 10  # the flood went out
+    state.teardown()
+
+
 def test_issue22_found_a_late_reply_of_the_state_read_is_not_taken_for_the_wide_read() -> None:
     # Found by the reading invariant, added after a fresh clone's run read 40 (a hold current)
     # as a temperature: the telemetry READs 0x28..0x2F and 0x38..0x3F were both of 8 bytes, and
