@@ -731,8 +731,12 @@ def test_round2_22_6_a_late_reply_from_before_the_check_is_no_second_servo(rig):
         rig.core.bus.transact(proto.encode_ping(1), 1, 0, retries=0)
     assert rig.core.bus.garbled_by_id[1] == garbled
     rig.dev.runner.faults.reply_delay_s = 0.0
-    assert rig.core._how_many_answer(1, values_differ=False)[0] in ('one', 'unsure')
-    assert rig.core._how_many_answer(1, values_differ=False) == ('one', '')
+    # Never 'several'; 'unsure' while the late replies come in, and again where a loaded host
+    # lets one of the five READs go unheard (campaign s15b, run 6): asked again, as set_id's
+    # refusal tells a user to.
+    answer, _ = ask_again(lambda: rig.core._how_many_answer(1, values_differ=False),
+                          lambda a: a[0] == 'unsure', attempts=4)
+    assert answer == ('one', '')
 
 
 def test_scan_names_an_id_whose_two_servos_answer_one_after_the_other(rig):

@@ -25,6 +25,17 @@ def rig(tmp_path, request):
         stop_rig(rig)
 
 
+def last_frame(rig):
+    """Return the last frame the bus got from the node, once its torque off is in.
+
+    The node has ended; the virtual bus's thread, on a loaded host, may not have read its last
+    bytes yet (campaign s15b, run 6: the READ before the torque off seen as the last frame).
+    """
+    wait_for(lambda: any(r.raw == TORQUE_OFF_TO_ALL for r in rig.wire.requests()), 5,
+             what='the torque off at the bus')
+    return rig.wire.requests()[-1].raw
+
+
 def torque(rig):
     with rig.locked():
         return [rig.sim_servo(i).torque_enabled for i in (1, 2, 3)]
@@ -32,8 +43,8 @@ def torque(rig):
 
 def test_sigint_broadcasts_torque_off_as_the_last_frame(rig):
     assert rig.node.stop(signal.SIGINT, timeout=10) == 0
-    assert rig.wire.requests()[-1].raw == TORQUE_OFF_TO_ALL
-    assert torque(rig) == [False] * 3
+    assert last_frame(rig) == TORQUE_OFF_TO_ALL
+    wait_for(lambda: torque(rig) == [False] * 3, 5, what='every servo let go')
 
 
 def ctrl_c_twice(rig):
@@ -51,8 +62,8 @@ def ctrl_c_twice(rig):
 def test_safety_10_ctrl_c_twice_still_sends_the_final_torque_off(rig):
     """``ros2 launch`` delivers Ctrl-C twice; the second must not cut the shutdown short."""
     ctrl_c_twice(rig)
-    assert rig.wire.requests()[-1].raw == TORQUE_OFF_TO_ALL
-    assert torque(rig) == [False] * 3
+    assert last_frame(rig) == TORQUE_OFF_TO_ALL
+    wait_for(lambda: torque(rig) == [False] * 3, 5, what='every servo let go')
 
 
 def test_safety_10_ctrl_c_twice_while_unplugged_ends_and_says_the_torque_stays_on(rig):
