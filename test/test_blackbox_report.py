@@ -282,10 +282,16 @@ def fault_run(bench):
     box = bench.start_driver('fault')
     bench.unplug_and_replug()
     # The module stops hearing light-level queries: the driver's polls go unanswered.
+    # Counted from here: the unplug before may have cost a request or two, and "two timeouts"
+    # since the start then let one lost poll pass for two (this test's most frequent failure
+    # in campaigns, last in s15d run 5). Three: a module process a loaded host stalls past the
+    # 1-s timeout loses some other request too, truly.
     n = len(bench.diagnostics)
+    last = bench.diagnostics.last
+    before = link_counter(last, 'timeouts') if last is not None else 0
     bench.set_params('/virtual_parachute', lost_commands=[p.CMD_LIGHT_LEVEL])
-    bench.diagnostics.wait(lambda m: link_counter(m, 'timeouts') >= 2, 10,
-                           what='two timeouts in the link diagnostic', start=n)
+    bench.diagnostics.wait(lambda m: link_counter(m, 'timeouts') >= before + 3, 10,
+                           what='three more timeouts in the link diagnostic', start=n)
     bench.set_params('/virtual_parachute', lost_commands=[])
     bench.mark('polls answered again')
     # A reply with a bad checksum and a burst of noise: frames the black box never sees.
