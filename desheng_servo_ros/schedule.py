@@ -306,7 +306,8 @@ class CommandQueue:
 
         The lag is paused (no budget earned from it), but batches written late one after the
         other each found the budget within the burst again, and went back to back while READs
-        waited: the bus search found commands four batches ahead of READs that way.
+        waited: the bus search found commands four batches ahead of READs that way. (The live
+        driver's writes are all late by the time they take: there the burst is in effect off.)
         """
         self.tolerance = 0.0
 
