@@ -20,7 +20,7 @@ import json
 import os
 import signal
 import subprocess
-import time
+import threading
 from pathlib import Path
 from typing import Dict, List
 
@@ -58,6 +58,7 @@ def _arm(rig: ParachuteRig) -> None:
 
 def run(rounds: int = 20, wire_rounds: int = 5) -> Dict:
     """Run the kill rounds; return the figures."""
+    from uav_serial_drivers.msg import ParachuteStatus
     from uav_serial_drivers.srv import Deploy
     ok = 0
     wire_request_on_disk = 0
@@ -79,11 +80,16 @@ def run(rounds: int = 20, wire_rounds: int = 5) -> Dict:
             # A fresh participant per round: the killed driver's service lingers in the old
             # one's graph and would let a request go out before the new server is matched.
             client = RosClient(f'bench_kill9_{i}')
+            armed = threading.Event()
+            client.subscribe(ParachuteStatus, '/parachute/status',
+                             lambda m, e=armed: e.set() if m.armed and not m.triggered else None)
             try:
                 rig.wait_ready()
                 _arm(rig)
                 service = client.client(Deploy, '/parachute/deploy')
-                time.sleep(0.5)  # status frames: the driver sees the module armed
+                # The driver sees the module armed (its status frames) before the deploy: a
+                # fixed 0.5 s was not always enough for six test workers on two cores.
+                wait_for(armed.is_set, 10.0, what='the driver seeing the module armed')
                 kill['pid'] = node.pid if wire else None
                 future = service.call_async(Deploy.Request(confirm='DEPLOY'))
                 if not wire:
