@@ -355,13 +355,14 @@ def servo(observe_s: float = 3.0) -> Dict:
             ros_client('bench_bad_inputs_servo') as client:
         log = _FrameLog(_servo_key)
         from desheng_servo_ros.protocol import Instruction, Request, StreamDecoder
+        from desheng_servo_ros.state import LOOP_READS
         decoder = StreamDecoder('request')
         rig.runner.add_tap(lambda d, data, t: [log.add(t, f) for f in decoder.feed(data)]
                            if d == 'rx' else None)
         rig.wait_ready()
         # Each servo's position READ, and its telemetry (the state and the wide READ).
         polled = [_servo_key(Request(i, Instruction.READ, bytes(block), b''))
-                  for i in rig.ids for block in ((0x38, 4), (0x28, 9), (0x38, 8))]
+                  for i in rig.ids for block in LOOP_READS]
         return _run_cases(client, '/servo_bus', servo_cases(), log,
                           _background(log, observe_s, polled))
 

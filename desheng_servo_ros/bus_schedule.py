@@ -275,7 +275,7 @@ class BusSchedule:
             # The bus is held that long for it; an awaited request's hold from the moment it
             # left is booked when it ends (``_held``), so here only the time before that.
             self.commands.pause(send.at, lag if awaited else lag_max)
-            if send.kind == 'command' and lag_max > 0.0:
+            if send.kind == 'command':
                 self.commands.late_batch()
         if send.reply_id is None:
             self._free_at = max(self._free_at, send.deadline + lag_max)

@@ -44,11 +44,13 @@ assert SPEED.address == POSITION.end and LOCK_FLAG.address == CURRENT.end
 POSITION_READ = (POSITION.address, POSITION.size + SPEED.size)
 WIDE_READ = (POSITION.address, TEMPERATURE.end - POSITION.address)
 STATE_READ = (TORQUE.address, LOCK_FLAG.end - TORQUE.address)
-assert len({POSITION_READ[1], WIDE_READ[1], STATE_READ[1]}) == 3
 W_TEMPERATURE = TEMPERATURE.address - POSITION.address
 S_CURRENT = CURRENT.address - TORQUE.address
-# What a READ of the loop is for (the plan's entries, the tags of its replies).
+# What a READ of the loop is for (the plan's entries, the tags of its replies), and its block
+# (address, length) by that tag.
 READ_POSITION, READ_WIDE, READ_STATE = 0, 1, 2
+LOOP_READS = (POSITION_READ, WIDE_READ, STATE_READ)
+assert len({length for _, length in LOOP_READS}) == len(LOOP_READS)
 
 
 ALL_IDS = range(proto.MIN_ID, proto.MAX_ID + 1)
@@ -178,7 +180,7 @@ class ServoRecord:
         self.index = index
         # By READ_POSITION, READ_WIDE, READ_STATE: (frame, reply params).
         self.frames = tuple((proto.encode_read(joint.id, *block), block[1])
-                            for block in (POSITION_READ, WIDE_READ, STATE_READ))
+                            for block in LOOP_READS)
         self.online = False
         self.seen = False
         self.failures = 0

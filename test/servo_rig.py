@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from desheng_servo_ros import state as servo_state
 from desheng_servo_ros.protocol import Instruction, StreamDecoder
 from desheng_servo_ros.virtual_node import VirtualServoBus
 from diagnostic_msgs.msg import DiagnosticArray
@@ -20,7 +21,7 @@ NODE = '/servo_bus'
 RIG_RESPONSE_TIMEOUT_MS = 250.0
 # The read loop's own READs (position, position to temperature, torque and current): anything
 # else is "on the wire".
-LOOP_READS = {(0x38, 4), (0x38, 8), (0x28, 9)}
+LOOP_READS = set(servo_state.LOOP_READS)
 
 
 class Wire:

@@ -51,8 +51,7 @@ from desheng_servo_ros.bus_schedule import (Answer, BusSchedule, Call, Command, 
 from desheng_servo_ros.schedule import (COMMAND_SPACING, CommandQueue, IDLE_GUARD_S,
                                         PROBE_READS, probe_quiet_s, REPLY_OVERHEAD,
                                         REPROBE_PERIOD_S, sync_write_frames, TORQUE_OFF_ALL)
-from desheng_servo_ros.state import (Outcome, POSITION, POSITION_READ, READ_POSITION,
-                                     READ_STATE, READ_WIDE, STATE_READ, WIDE_READ)
+from desheng_servo_ros.state import LOOP_READS, Outcome, POSITION, READ_STATE, READ_WIDE
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
 from hypothesis import HealthCheck, settings, strategies as st
@@ -83,8 +82,6 @@ ALLOWANCE_BATCHES = 4
 # between them, and a thread switch there (the model takes less than a reply's wire time, under
 # which a reply that came before the request left cannot pass for its answer).
 HOST_STAMP_S = 0.0002
-# The read loop's READs by what they read (ReadDone.kind).
-LOOP_BLOCKS = {READ_POSITION: POSITION_READ, READ_WIDE: WIDE_READ, READ_STATE: STATE_READ}
 
 
 _TOKENS = itertools.count(1)
@@ -591,7 +588,7 @@ class ServoBusModel(RuleBasedStateMachine):
         for done in self.wire.results[self._readings_seen:]:
             if done.reply is None:
                 continue
-            frame = proto.encode_read(done.servo_id, *LOOP_BLOCKS[done.kind])
+            frame = proto.encode_read(done.servo_id, *LOOP_READS[done.kind])
             origins = self.wire.origins.get(bytes(done.reply.raw), set())
             assert frame in origins, (
                 f'servo {done.servo_id}: the READ {frame.hex(" ")} took the reply '
