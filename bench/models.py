@@ -24,6 +24,8 @@ MODELS = {
                  'test_round2_6_7_11a_board_plan_invariants_hold_over_random_sequences',
     'servo': 'test/test_servo_model.py::'
              'test_round2_22_servo_bus_safety_invariants_hold_in_every_sequence',
+    'servo_floods': 'test/test_servo_model.py::'
+                    'test_floods_on_a_loaded_host_keep_the_newest_target_and_the_reads_share',
     'parachute': 'test/test_parachute_model.py::'
                  'test_round2_22_3_parachute_deploy_invariants_hold_over_random_sequences',
     'parachute_session': 'test/test_parachute_model.py::'

@@ -82,7 +82,8 @@ class Call(NamedTuple):
     """A service call at `now`: `name` with `args`; its :class:`Answer` carries `token`.
 
     Names: ``emergency_stop``, ``write_positions`` (targets), ``read_register`` (id, address,
-    length), ``set_torque`` (ids, enable), ``scan`` (first, last), ``set_id`` (old, new); and
+    length[, retries]: answered with the reply's bytes of that block), ``set_torque`` (ids,
+    enable), ``scan`` (first, last), ``set_id`` (old, new); and
     the parts a service procedure of the driver is made of: ``transact`` (frame, reply id,
     reply params, retries[, the wait of an attempt]: one request, answered with its reply),
     ``send`` (frames without a

@@ -127,6 +127,9 @@ class BusSchedule:
         self.bytes_in = 0
         self.frames_in = 0
         self.unsolicited: Dict[Tuple[int, int], int] = {}
+        # (id, length) of a service READ left unanswered -> until when its reply may still
+        # come (schedule.own_read keeps the next READs of that servo from its length).
+        self.owed: Dict[Tuple[int, int], float] = {}
         self.last_taken = False  # whether the last reply received ended its transaction
         # Per id, a margin of its own when longer than margin_s (a servo that answers late:
         # the driver's link learns it); None: margin_s for all.
@@ -243,6 +246,7 @@ class BusSchedule:
         else:
             kind = (reply.servo_id, len(reply.params))
             self.unsolicited[kind] = self.unsolicited.get(kind, 0) + 1
+            self.owed.pop(kind, None)  # the late reply it was owed: it came
         return self.poll(now)
 
     def link(self, now: float, up: bool) -> List[Any]:
@@ -276,7 +280,7 @@ class BusSchedule:
             # left is booked when it ends (``_held``), so here only the time before that.
             self.commands.pause(send.at, lag if awaited else lag_max)
             if send.kind == 'command':
-                self.commands.late_batch()
+                self.commands.late_batch(send.deadline + lag_max)
         if send.reply_id is None:
             self._free_at = max(self._free_at, send.deadline + lag_max)
         elif awaited:
@@ -472,7 +476,7 @@ class BusSchedule:
             if self.service.quiet:
                 self.reads.reset(self._pace(now))
         svc = self.service
-        step = svc.next()
+        step = svc.next(now)
         if step is None:
             actions.append(svc.answer())
             self.service = None
@@ -487,6 +491,11 @@ class BusSchedule:
         else:
             actions.append(self._send_noreply(now, step, svc.name))
         return True
+
+    def owed_lengths(self, servo_id: int, now: float) -> List[int]:
+        """Return the lengths of `servo_id`'s READs whose late replies may still come."""
+        self.owed = {k: until for k, until in self.owed.items() if until > now}
+        return [size for (i, size) in self.owed if i == servo_id]
 
     def reply_timeout(self, frame_len: int, nparams: int, reply_id: int) -> float:
         """Return an attempt's usual wait: wire time of request + reply, and the id's margin."""

@@ -13,7 +13,8 @@ from typing import Any, Hashable, Optional, Tuple
 from desheng_servo_ros import id_change as idc
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.bus_events import Answer, QUIET_CALLS
-from desheng_servo_ros.schedule import patient_wait, renamed, sync_write_frames
+from desheng_servo_ros.schedule import (LATE_REPLY_WINDOW_S, OWED_REPLY_S, own_read,
+                                        patient_wait, renamed, sync_write_frames, trimmed)
 from desheng_servo_ros.state import TORQUE
 
 
@@ -64,11 +65,13 @@ class _Service:
         self._garbled = False
         self._cut = False
         self._result: Any = None  # an id_change procedure's Result
-        self._at = 0.0
+        self._at = 0.0  # when its last transaction ended
+        self._now = 0.0  # when its current step began
         self.ready_at = 0.0  # its next step waits until then
 
-    def next(self) -> Any:
-        """Return the next step: a transaction, a frame without a reply, or None (done)."""
+    def next(self, now: float) -> Any:
+        """Return the next step at `now`: a transaction, a frame without a reply, or None."""
+        self._now = now
         try:
             return next(self._steps)
         except StopIteration:
@@ -115,10 +118,10 @@ class _Service:
         elif name == 'hold':
             self.text = 'the read loop holds'
         elif name == 'read_register':
-            servo_id, address, length = args
-            yield self._tx(proto.encode_read(servo_id, address, length), servo_id, length,
-                           bus.max_retries)
-            self.ok = self._reply is not None
+            servo_id, address, length = args[:3]
+            retries = args[3] if len(args) > 3 and args[3] is not None else bus.max_retries
+            self._answer_reply = yield from self._read(servo_id, address, length, retries)
+            self.ok = self._answer_reply is not None
             self.text = 'read' if self.ok else 'no reply'
         elif name == 'set_torque':
             ids, enable = args
@@ -126,11 +129,10 @@ class _Service:
                 yield self._tx(proto.encode_write(servo_id, TORQUE.address,
                                                   b'\x01' if enable else b'\x00'),
                                servo_id, 0, bus.max_retries)
-                yield self._tx(proto.encode_read(servo_id, TORQUE.address, 1), servo_id, 1,
-                               bus.max_retries)
-                back = self._reply is not None and self._reply.params[0] != 0
+                reply = yield from self._read(servo_id, TORQUE.address, 1, bus.max_retries)
+                back = reply is not None and reply.params[0] != 0
                 for s in bus.servos:
-                    if s.id == servo_id and self._reply is not None:
+                    if s.id == servo_id and reply is not None:
                         s.set_torque(back)
                 if back != enable:
                     self.ok = False
@@ -149,6 +151,25 @@ class _Service:
             servo_id, configured = args
             yield from self._run_procedure(idc.factory_reset(servo_id, configured,
                                                              self.bus.baud))
+
+    def _read(self, servo_id: int, address: int, length: int, retries: int) -> Any:
+        """READ `length` bytes at `address` at a length of its own; return its reply or None.
+
+        The length is ``schedule.own_read``'s: no other READ of that servo that may still be
+        answered (the read loop's, one left unanswered) has it. An unanswered one, or one cut
+        off by the link, is owed its reply for OWED_REPLY_S; an answered one, for a second
+        servo's at its id, for LATE_REPLY_WINDOW_S.
+        """
+        bus = self.bus
+        start, size, skip = own_read(address, length, bus.owed_lengths(servo_id, self._now))
+        yield self._tx(proto.encode_read(servo_id, start, size), servo_id, size, retries)
+        # Cut off by an unplug too: a reply the device gave before may still come after. And
+        # answered: a second servo at the id answers after the first (S24).
+        bus.owed[(servo_id, size)] = self._at + (
+            OWED_REPLY_S if self._reply is None else LATE_REPLY_WINDOW_S)
+        if self._reply is None:
+            return None
+        return trimmed(self._reply, skip, length)
 
     def _run_procedure(self, steps: Any) -> Any:
         """Run the driver's ~/set_id or ~/factory_reset (id_change), each step here."""

@@ -324,6 +324,10 @@ class ServoBusLink:
                                                                     servo_id)
         answer = runtime.call('transact', frame, servo_id, reply_params, retries, timeout,
                               flush, timeout=BUS_LOCK_TIMEOUT_S + attempts * wait)
+        return self._reply_of(answer, servo_id, runtime)
+
+    def _reply_of(self, answer: Any, servo_id: int, runtime: Any) -> Reply:
+        """Return the reply of a request's `answer`, or raise what became of it."""
         if answer is None:
             error: LinkError = BusBusy(f'the bus on {self.port} did not carry the request in '
                                        f'{BUS_LOCK_TIMEOUT_S:.0f} s')
@@ -373,9 +377,20 @@ class ServoBusLink:
 
     def read(self, servo_id: int, address: int, length: int,
              retries: Optional[int] = None) -> Reply:
-        """READ ``length`` bytes at ``address``."""
-        return self.transact(proto.encode_read(servo_id, address, length), servo_id, length,
-                             retries)
+        """READ ``length`` bytes at ``address``.
+
+        The schedule sends it at a length of its own (``schedule.own_read``: a reply names no
+        address, so a READ of the length of another READ of that servo could take its late
+        reply) and answers with the bytes asked for.
+        """
+        frame = proto.encode_read(servo_id, address, length)  # (refuses a bad one here)
+        runtime = self._runtime()
+        if retries is None:
+            retries = self.max_retries
+        wait = self.timeout_for(len(frame), length + 2, servo_id)  # (+2: own_read's usual most)
+        answer = runtime.call('read_register', servo_id, address, length, retries,
+                              timeout=BUS_LOCK_TIMEOUT_S + (retries + 1) * wait)
+        return self._reply_of(answer, servo_id, runtime)
 
     def write(self, servo_id: int, address: int, data: bytes = b'') -> Optional[Reply]:
         """WRITE; unicast waits for the acknowledgement, broadcast (254) only for the wire."""

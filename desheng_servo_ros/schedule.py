@@ -26,8 +26,8 @@ import math
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from desheng_servo_ros import protocol as proto
-from desheng_servo_ros.state import (POSITION, READ_POSITION, READ_STATE, READ_WIDE,
-                                     ServoRecord, TORQUE)
+from desheng_servo_ros.state import (LOOP_READS, POSITION, READ_POSITION, READ_STATE,
+                                     READ_WIDE, ServoRecord, TORQUE)
 from desheng_servo_ros.units import Joint
 from uav_serial_common.pty_port import wire_time
 from uav_serial_common.text import few
@@ -42,8 +42,8 @@ REPROBE_PERIOD_S = 1.0
 # at once, up to COMMAND_BURST batches ahead of it (a token bucket kept as a time, GCRA), so a
 # command at a normal rate waits only for the READ on the wire. Budget and spacing count from
 # the line: a loaded host that writes a batch late moves them with it, and the batch after it
-# gets no burst (late_batch). Batches are also at least COMMAND_CYCLE_SHARE of a read cycle
-# apart (at most two per cycle).
+# goes at most one batch ahead (late_batch). Batches are also at least COMMAND_CYCLE_SHARE of
+# a read cycle apart (at most two per cycle).
 COMMAND_SPACING = 2.0
 COMMAND_BURST = 2.0
 COMMAND_CYCLE_SHARE = 0.5
@@ -247,14 +247,15 @@ class CommandQueue:
     ``free_at`` says when the next batch may go (see COMMAND_SPACING).
     """
 
-    __slots__ = ('pending', 'next_at', 'budget_at', 'tolerance', 'received', 'superseded',
-                 'frames_sent')
+    __slots__ = ('pending', 'next_at', 'budget_at', 'tolerance', 'cost', 'received',
+                 'superseded', 'frames_sent')
 
     def __init__(self) -> None:
         self.pending: Dict[int, Tuple[int, int]] = {}
         self.next_at = 0.0
         self.budget_at = 0.0  # when the commands' bus budget is paid (GCRA's TAT)
         self.tolerance = 0.0
+        self.cost = 0.0  # the last batch's budget
         self.received = 0
         self.superseded = 0
         self.frames_sent = 0
@@ -301,23 +302,58 @@ class CommandQueue:
         if self.budget_at > since:
             self.budget_at += duration
 
-    def late_batch(self) -> None:
-        """Take a batch written late: the next one waits for the whole budget, no burst ahead.
+    def late_batch(self, ended: float) -> None:
+        """Take a batch written late, whose last byte left the line by `ended`.
 
-        The lag is paused (no budget earned from it), but batches written late one after the
-        other each found the budget within the burst again, and went back to back while READs
-        waited: the bus search found commands four batches ahead of READs that way. (The live
-        driver's writes are all late by the time they take: there the burst is in effect off.)
+        Its lag is paused (no budget earned from it), but batches written late one after the
+        other each found the budget within the two-batch burst again and went back to back
+        while READs waited (the bus search found commands four batches ahead of READs). So the
+        next batch goes one batch ahead of the budget at most, or a whole batch's budget after
+        this one really ended if that is sooner: the burst granted before is not taken back
+        (a target the host's lag already held waited a whole read cycle more when it was).
         """
-        self.tolerance = 0.0
+        self.tolerance = min(self.tolerance,
+                             max(self.cost, self.budget_at - ended - self.cost))
 
     def charge(self, ended_at: float, size: int, baud: int, rate_hz: float) -> None:
         """Book a batch of `size` bytes that left the line at `ended_at`."""
         wire = wire_time(size, baud)
-        cost = wire * (1.0 + COMMAND_SPACING)
+        self.cost = cost = wire * (1.0 + COMMAND_SPACING)
         self.budget_at = max(self.budget_at, ended_at - wire) + cost
         self.tolerance = COMMAND_BURST * cost
         self.next_at = ended_at + COMMAND_CYCLE_SHARE / rate_hz
+
+
+# A service READ left unanswered may still be answered this long after its last attempt's
+# deadline (ten times a scan's listening): its length is kept from the next READs of that servo.
+OWED_REPLY_S = 1.0
+
+
+def own_read(address: int, length: int, taken: Sequence[int] = ()) -> Tuple[int, int, int]:
+    """Return (address, length, skip): the READ a service sends for `length` bytes at `address`.
+
+    A reply names its servo and its length, not the address it was read from. A service READ
+    of the length of one of the read loop's (or of `taken`: the lengths of that servo's READs
+    whose late replies may still come) would take such a late reply for its own, and the loop
+    would take one of its own (register 0x10 read as a position). So it runs on past its end,
+    or starts before it at the table's end, to a length of its own; its bytes are the reply's
+    from `skip`.
+    """
+    avoid = {n for _, n in LOOP_READS} | set(taken)
+    if length not in avoid:
+        return address, length, 0
+    for size in range(length + 1, proto.MAX_READ_LENGTH + 1):
+        if size not in avoid:
+            start = min(address, 256 - size)
+            return start, size, address - start
+    return address, length, 0  # (every longer length taken: not in practice)
+
+
+def trimmed(reply: proto.Reply, skip: int, length: int) -> proto.Reply:
+    """Return `reply` with the `length` params from `skip` (an :func:`own_read`'s own bytes)."""
+    if skip == 0 and len(reply.params) == length:
+        return reply
+    return proto.Reply(reply.servo_id, reply.status, reply.params[skip:skip + length], reply.raw)
 
 
 def sync_write_frames(targets: Sequence[Target]) -> List[bytes]:

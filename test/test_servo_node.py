@@ -9,6 +9,7 @@ import time
 
 from desheng_servo_ros import protocol as proto
 from desheng_servo_ros.protocol import Instruction
+from desheng_servo_ros.state import LOOP_READS
 import pytest
 from uav_serial_common.process import wait_for
 from servo_rig import start_rig, stop_rig
@@ -216,6 +217,23 @@ def test_read_register_by_name_and_by_address(rig):
     assert resp.success and 'present_position=1234' in resp.text
     with rig.locked():
         rig.sim.move_by_hand(2, 2048)
+
+
+def test_a_register_read_of_a_loop_reads_length_answers_its_own_bytes(rig):
+    # A reply names its servo and its length, not its address: ~/read_register of 8 bytes goes
+    # as a READ of a length the read loop never uses (whose late 8-byte reply, position to
+    # temperature, would otherwise pass for registers 0x10..0x17), and answers the 8 asked for.
+    loop_lengths = {n for _, n in LOOP_READS}
+    for address in (0x10, 0xF8):
+        with rig.locked():
+            expected = list(rig.sim_servo(2).read(address, 8))
+        mark = rig.wire.mark()
+        resp = rig.call(ReadRegister, 'read_register', id=2, address=address, length=8)
+        assert resp.success, resp.message
+        assert list(resp.data) == expected
+        reads = [tuple(r.params) for r in rig.wire.commands(mark)
+                 if r.instruction == Instruction.READ and r.servo_id == 2]
+        assert reads and not {n for _, n in reads} & loop_lengths, reads
 
 
 def test_write_register_by_name_reads_back(rig):
