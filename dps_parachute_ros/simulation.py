@@ -242,6 +242,11 @@ class VirtualParachute(ClockedModel):
         return self._pending is not None
 
     @property
+    def pending_since(self) -> float | None:
+        """When the pending trigger request was made (the module's clock), or None."""
+        return None if self._pending is None else self._pending[0]
+
+    @property
     def failed_attempts(self) -> int:
         """Unsuccessful trigger attempts in a row since the last success or boot (P11)."""
         return self._failed
