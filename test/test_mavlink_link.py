@@ -240,8 +240,8 @@ def test_round2_23_module_request_stops_the_motors_inside_its_window(fresh):
     rig = fresh
     rig.arm()
     # Late, but well inside motor_stop_wait_s (0.3 s): at 0.2 s a loaded host's stalls took the
-    # ACK past it (campaign s15d, run 6).
-    rig.autopilot_param('ack_delay_s', 0.1)
+    # ACK past it (campaign s15d, run 6), and at 0.1 s once more (s16d, run 8).
+    rig.autopilot_param('ack_delay_s', 0.05)
     rig.autopilot_param('answer', 'late')
     start, mark, wire = len(rig.requests), rig.hub.mark(), rig.wire.mark()
     gates = len(gate_records(rig))
