@@ -127,8 +127,9 @@ class BusSchedule:
         self.bytes_in = 0
         self.frames_in = 0
         self.unsolicited: Dict[Tuple[int, int], int] = {}
-        # (id, length) of a service READ left unanswered -> until when its reply may still
-        # come (schedule.own_read keeps the next READs of that servo from its length).
+        # (id, length) of a service READ whose reply may still come (left unanswered, cut off,
+        # or answered, for a second servo's) -> until when; schedule.own_read keeps the next
+        # READs of that servo from its length.
         self.owed: Dict[Tuple[int, int], float] = {}
         self.last_taken = False  # whether the last reply received ended its transaction
         # Per id, a margin of its own when longer than margin_s (a servo that answers late:
