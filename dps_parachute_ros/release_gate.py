@@ -117,7 +117,8 @@ class ReleaseGate:
             ok, message = None, f'gate call failed: {exc!r}'
         wait_ms = (self._clock() - t0) * 1000.0
         self._record('decision', what='release gate', route=route, called=True,
-                     answered=ok is not None, success=ok, message=message, wait_ms=wait_ms)
+                     answered=ok is not None, success=ok, message=message, wait_ms=wait_ms,
+                     timeout_ms=timeout * 1000.0)
         if ok:
             self._log('warn', f'release gate for the {route}: {message} ({wait_ms:.0f} ms); '
                               'releasing')

@@ -380,6 +380,9 @@ def test_round2_23_release_gate_never_outlives_the_modules_window_nor_stops_a_re
     t_request = g.t - 0.4  # a trigger request 0.4 s old
     gate.before_release('trigger request', t_request)
     assert g.timeouts[-1] == pytest.approx(1.0 - WINDOW_MARGIN_S - 0.4)
+    # The record says how long the gate was given and waited (the tests' proof of a full wait).
+    assert g.records[-1]['timeout_ms'] == pytest.approx(g.timeouts[-1] * 1000.0)
+    assert g.records[-1]['wait_ms'] == pytest.approx(g.timeouts[-1] * 1000.0)
     assert g.t - t_request <= 1.0 - WINDOW_MARGIN_S + 1e-9
     gate.before_release('trigger request', g.t - 0.9)  # no time left: not called
     assert len(g.timeouts) == 2 and g.records[-1]['called'] is False
