@@ -124,19 +124,7 @@ class _Service:
             self.ok = self._answer_reply is not None
             self.text = 'read' if self.ok else 'no reply'
         elif name == 'set_torque':
-            ids, enable = args
-            for servo_id in ids:
-                yield self._tx(proto.encode_write(servo_id, TORQUE.address,
-                                                  b'\x01' if enable else b'\x00'),
-                               servo_id, 0, bus.max_retries)
-                reply = yield from self._read(servo_id, TORQUE.address, 1, bus.max_retries)
-                back = reply is not None and reply.params[0] != 0
-                for s in bus.servos:
-                    if s.id == servo_id and reply is not None:
-                        s.set_torque(back)
-                if back != enable:
-                    self.ok = False
-            self.text = 'torque'
+            self._result = yield from self._torque(*args)
         elif name == 'scan':
             first, last = args
             found = []
@@ -151,6 +139,33 @@ class _Service:
             servo_id, configured = args
             yield from self._run_procedure(idc.factory_reset(servo_id, configured,
                                                              self.bus.baud))
+
+    def _torque(self, ids: Tuple[int, ...], enable: bool) -> Any:
+        """WRITE torque on or off to each of `ids`, each read back; return (id, reply) pairs.
+
+        The reply is that of the READ of the torque register (None: no answer). It is read
+        back even when the WRITE's acknowledgement was lost, since the servo may have done it.
+        A cut link ends the call: whether the servo took the frame that had left is unknown.
+        """
+        bus = self.bus
+        value = b'\x01' if enable else b'\x00'
+        read_back = []
+        for servo_id in ids:
+            yield self._tx(proto.encode_write(servo_id, TORQUE.address, value), servo_id, 0,
+                           bus.max_retries)
+            reply = None
+            if not self._cut:
+                reply = yield from self._read(servo_id, TORQUE.address, 1, bus.max_retries)
+            if self._cut:
+                self.ok, self.text = False, 'the link went down; its request had left'
+                return read_back
+            if reply is not None:
+                for s in bus.servos:
+                    if s.id == servo_id:
+                        s.set_torque(reply.params[0] != 0)
+            read_back.append((servo_id, reply))
+        self.text = f'torque {"on" if enable else "off"} written and read back'
+        return read_back
 
     def _read(self, servo_id: int, address: int, length: int, retries: int) -> Any:
         """READ `length` bytes at `address` at a length of its own; return its reply or None.

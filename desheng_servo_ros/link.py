@@ -342,16 +342,18 @@ class ServoBusLink:
         error.sent = not answer.text.startswith('shutting down') or 'had left' in answer.text
         raise error
 
-    def call(self, name: str, *args: Any) -> Any:
+    def call(self, name: str, *args: Any, busy_s: float = 0.0) -> Any:
         """Step a call of the schedule and return its answer, done (ok) or raised.
 
         ``LinkDown`` when the port is not open (nothing sent) or the answer says it did not
-        happen; ``BusBusy`` when no answer came in time.
+        happen; ``BusBusy`` when no answer came in time: BUS_LOCK_TIMEOUT_S, and `busy_s` more
+        for the call's own transactions.
         """
-        answer = self._runtime().call(name, *args, timeout=BUS_LOCK_TIMEOUT_S)
+        timeout = BUS_LOCK_TIMEOUT_S + busy_s
+        answer = self._runtime().call(name, *args, timeout=timeout)
         if answer is None:
             error: LinkError = BusBusy(f'the bus on {self.port} did not take {name} in '
-                                       f'{BUS_LOCK_TIMEOUT_S:.0f} s')
+                                       f'{timeout:.1f} s')
             error.sent = True  # it may have left meanwhile
             raise error
         if not answer.ok:
@@ -399,6 +401,18 @@ class ServoBusLink:
             self.send(frame)
             return None
         return self.transact(frame, servo_id, 0)
+
+    def torque(self, ids: Sequence[int], enable: bool) -> List[Tuple[int, Optional[Reply]]]:
+        """Switch torque of `ids`, each WRITE read back; return (id, reply) of each READ.
+
+        The reply is None when the servo did not answer the READ (``BusSchedule``'s
+        ``set_torque``: the model searches this very call).
+        """
+        attempts = self.max_retries + 1
+        frame = len(proto.encode_write(1, 0, b'\x00'))  # = a READ's, 8 bytes
+        busy = sum(attempts * (self.timeout_for(frame, 0, i) + self.timeout_for(frame, 3, i))
+                   for i in ids)
+        return self.call('set_torque', tuple(ids), enable, busy_s=busy).result
 
     def reg_write(self, servo_id: int, address: int, data: bytes) -> Reply:
         """REG WRITE (staged until ACTION); the servo acknowledges it (S13)."""

@@ -81,19 +81,16 @@ class ServoServices:
     def set_torque(self, ids: Sequence[int], enable: bool) -> Result:
         """Switch torque of `ids` (empty = all), each verified by reading it back."""
         chosen = select(self.servos, ids)
-        by_id = {s.id: s for s in self._servos}
-        value = b'\x01' if enable else b'\x00'
+        # One call of the schedule for all: it records each servo's torque as read back.
+        read_back = dict(self.bus.torque([j.id for j in chosen], enable))
         failed, read_other = [], False
         for joint in chosen:
             who = f'{joint.name} (id {joint.id})'
-            try:
-                self.bus.write(joint.id, TORQUE.address, value)
-                back = self.bus.read(joint.id, TORQUE.address, TORQUE.size).params[0] != 0
-            except LinkTimeout:
+            reply = read_back.get(joint.id)
+            if reply is None:
                 failed.append(f'{who} did not answer')
                 continue
-            if joint.id in by_id:
-                by_id[joint.id].set_torque(back)
+            back = reply.params[0] != 0
             if back != enable:
                 read_other = True
                 failed.append(f'{who} reads back torque {"on" if back else "off"}')

@@ -18,7 +18,7 @@ from desheng_servo_ros.core import (CHECK_PERIOD_S, ERROR, OK, OFFLINE_AFTER_FAI
 from desheng_servo_ros.link import FORGET_AFTER_REPLIES, LinkTimeout
 from desheng_servo_ros.protocol import Instruction
 from desheng_servo_ros.simulation import HOLD_CURRENT_MA, IDLE_CURRENT_MA
-from desheng_servo_ros.state import Outcome, POSITION
+from desheng_servo_ros.state import Outcome, POSITION, TORQUE
 from desheng_servo_ros.units import Joint, resolve_targets, select, Units
 from desheng_servo_ros.virtual_node import VirtualServoBus
 import pytest
@@ -440,6 +440,36 @@ def test_safety_17_a_command_flood_is_coalesced_and_the_newest_target_wins(rig):
     syncs = [r for r in rig.tap.requests(mark) if r.instruction == Instruction.SYNC_WRITE]
     assert len(syncs) < 100, len(syncs)
     assert rig.core.commands_superseded >= 1000 * 2 - 2 * len(syncs)
+
+
+def test_set_torque_says_what_each_servo_reads_back(rig):
+    # The read-back is the answer: a WRITE whose acknowledgement was lost but that the servo
+    # took is done; a servo that reads back the other state failed; a silent one is unknown.
+    on_request(rig, proto.encode_write(1, TORQUE.address, b'\x01'), lambda: lose_the_reply(rig))
+    decoder = proto.StreamDecoder('request')
+    written = []
+
+    def undo_on_the_next_read(direction, data, t):
+        for request in decoder.feed(data) if direction == 'rx' else ():
+            if request.servo_id != 2:
+                continue
+            if request.instruction == Instruction.WRITE:
+                written.append(t)
+            elif request.instruction == Instruction.READ and written:
+                rig.sim.servo(2).write(TORQUE.address, b'\x00')  # (the device's thread)
+    rig.dev.runner.add_tap(undo_on_the_next_read)
+    with rig.dev.runner.locked():
+        rig.sim.remove_servo(3)
+    result = rig.core.set_torque([1, 2, 3], True)
+    assert result.outcome is Outcome.FAILED, result
+    assert '(id 2) reads back torque off' in result.message, result.message
+    assert '(id 3) did not answer' in result.message
+    assert '(id 1)' not in result.message and rig.sim.servo(1).torque_enabled
+    torque = {s.id: s.torque_enabled for s in rig.core.snapshot().servos}
+    assert (torque[1], torque[2]) == (True, False)  # as read back
+    result = rig.core.set_torque([3], False)
+    assert (result.outcome, result.cause) == (Outcome.UNKNOWN, 'no_reply'), result
+    assert rig.core.set_torque([1, 2], False).outcome is Outcome.DONE
 
 
 def test_a_service_move_supersedes_a_queued_command_and_emergency_stop_drops_them(rig):

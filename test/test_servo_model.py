@@ -52,7 +52,8 @@ from desheng_servo_ros.schedule import (COMMAND_CYCLE_SHARE, COMMAND_SPACING, Co
                                         IDLE_GUARD_S, own_read, PROBE_READS, probe_quiet_s,
                                         REPLY_OVERHEAD, REPROBE_PERIOD_S, sync_write_frames,
                                         TORQUE_OFF_ALL, trimmed)
-from desheng_servo_ros.state import LOOP_READS, Outcome, POSITION, READ_STATE, READ_WIDE
+from desheng_servo_ros.state import (LOOP_READS, Outcome, POSITION, READ_STATE, READ_WIDE,
+                                     TORQUE)
 from desheng_servo_ros.simulation import ServoBusSim
 from desheng_servo_ros.units import Joint
 from hypothesis import given, HealthCheck, settings, strategies as st
@@ -331,6 +332,7 @@ class ServoBusModel(RuleBasedStateMachine):
         self._resets_seen = 0
         self._readings_seen = 0
         self.register_reads: dict = {}  # token of a ~/read_register -> (id, address, length)
+        self.torque_calls: set = set()  # tokens of ~/set_torque
         self._register_answers_seen = 0
         self.wire.run_until(START + 0.01)
 
@@ -391,7 +393,10 @@ class ServoBusModel(RuleBasedStateMachine):
 
     @rule(enable=st.booleans(), ms=st.floats(0.0, 30.0))
     def set_torque(self, enable: bool, ms: float) -> None:
-        self._call('set_torque', self._ids(), enable)
+        token = next(_TOKENS)
+        self.calls.add(token)
+        self.torque_calls.add(token)
+        self.wire.step(Call(self.wire.now, token, 'set_torque', (tuple(self._ids()), enable)))
         self._step(ms)
 
     @rule(servo_id=IDS, block=REGISTER_BLOCKS, ms=st.floats(0.0, 30.0))
@@ -618,23 +623,31 @@ class ServoBusModel(RuleBasedStateMachine):
         # And a ~/read_register's bytes are those of the register asked for: a READ of a block
         # of a loop READ's length took that READ's late reply as its own, and the loop one of
         # its own (a position read from 0x10).
+        # The same for the read-back of each servo of a ~/set_torque (the torque it records).
         for answer in self.wire.answers[self._register_answers_seen:]:
+            if answer.token in self.torque_calls:
+                for servo_id, reply in answer.result or ():
+                    if reply is not None:
+                        self._assert_read_of(servo_id, TORQUE.address, 1, reply, '~/set_torque')
             asked = self.register_reads.get(answer.token)
-            if asked is None or answer.reply is None:
-                continue
-            servo_id, address, length = asked
-            raw = bytes(answer.reply.raw)
-            (whole,) = proto.StreamDecoder('reply').feed(raw)
-            size = len(whole.params)
-            origins = self.wire.origins.get(raw, set())
-            starts = [a for a in range(max(0, address + length - size), address + 1)
-                      if a + size <= 256 and proto.encode_read(servo_id, a, size) in origins]
-            assert starts, (
-                f'servo {servo_id}: ~/read_register of {length} at 0x{address:02X} took the '
-                f'reply {raw.hex(" ")}, which answered {[o.hex(" ") for o in origins]}')
-            skip = address - starts[0]
-            assert bytes(answer.reply.params) == whole.params[skip:skip + length]
+            if asked is not None and answer.reply is not None:
+                self._assert_read_of(*asked, answer.reply, '~/read_register')
         self._register_answers_seen = len(self.wire.answers)
+
+    def _assert_read_of(self, servo_id: int, address: int, length: int, reply: proto.Reply,
+                        what: str) -> None:
+        """Assert `reply` answered a READ of `servo_id` that covers the block asked for."""
+        raw = bytes(reply.raw)
+        (whole,) = proto.StreamDecoder('reply').feed(raw)
+        size = len(whole.params)
+        origins = self.wire.origins.get(raw, set())
+        starts = [a for a in range(max(0, address + length - size), address + 1)
+                  if a + size <= 256 and proto.encode_read(servo_id, a, size) in origins]
+        assert starts, (
+            f'servo {servo_id}: {what} of {length} at 0x{address:02X} took the reply '
+            f'{raw.hex(" ")}, which answered {[o.hex(" ") for o in origins]}')
+        skip = address - starts[0]
+        assert bytes(reply.params) == whole.params[skip:skip + length]
 
     @invariant()
     def every_call_is_answered_once_and_all_by_the_shutdown(self) -> None:
