@@ -118,6 +118,16 @@ def answered_late(rig):
         raise
 
 
+def bus_read_everything(rig):
+    """Wait until the virtual bus has read every byte the driver wrote (before stopping it).
+
+    On a loaded host its thread was still behind the driver's last write, the shutdown's
+    torque off, when the test stopped it (campaign s17c, run 1).
+    """
+    wait_for(lambda: rig.dev.runner.bytes_in == rig.core.bus.link.stats.bytes_out, 5,
+             what='the bus reading every byte the driver wrote')
+
+
 @pytest.fixture
 def rig(tmp_path):
     rig = Rig(tmp_path)
@@ -1116,9 +1126,12 @@ def test_round2_22_torque_off_is_the_last_frame_even_while_a_service_runs(tmp_pa
         caller.start()
         wait_for(lambda: len(rig.tap.requests(mark)) > 20, 10, what='the scan under way')
     finally:
-        rig.core.stop()
-        caller.join(10)
-        rig.dev.stop()
+        try:
+            rig.core.stop()
+            caller.join(10)
+            bus_read_everything(rig)
+        finally:
+            rig.dev.stop()
     stop = proto.encode_write(proto.BROADCAST_ID, 0x28, b'\x00')
     wire = [r.raw for r in rig.tap.requests(mark)]
     assert wire[-1] == stop, [w.hex() for w in wire[-3:]]
@@ -1159,8 +1172,11 @@ def test_round2_22_2_the_live_driver_puts_on_the_wire_only_what_the_schedule_sen
         assert {n for n in mine if n.startswith('servo-')} == {'servo-bus-timer'}, mine
         assert f'serial-reader {rig.dev.path}' in mine, mine
     finally:
-        rig.core.stop()
-        rig.dev.stop()
+        try:
+            rig.core.stop()
+            bus_read_everything(rig)
+        finally:
+            rig.dev.stop()
     wire = [r.raw for r in rig.tap.requests(mark)]
     # The bus got every frame the schedule sent, and only those, in its order, after the few
     # sent before the hook; the last one torque off.
