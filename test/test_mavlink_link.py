@@ -12,6 +12,7 @@ import random
 
 from dps_parachute_ros import protocol as p
 from mavlink_rig import GCS, Hub, MavlinkRig, motor_stops, sent_motor_stops
+from parachute_mavlink_ros.node import PARAMS
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -23,7 +24,7 @@ from uav_serial_drivers.srv import Deploy
 
 DEPLOY_FRAME = p.encode_deploy()
 CONFIRM_FRAME = p.encode_trigger_confirm()
-MOTOR_STOP_WAIT_MS = 300.0
+MOTOR_STOP_WAIT_MS = 1000.0 * next(s.default for s in PARAMS if s.name == 'motor_stop_wait_s')
 """parachute_mavlink's motor_stop_wait_s: the rig keeps the default."""
 FAILSAFE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                           reliability=ReliabilityPolicy.RELIABLE)

@@ -102,20 +102,26 @@ def answered_late(rig):
     Not the driver's count of replies per id: a late reply that comes just as a request goes
     out is discarded with the stale input, so that count can stay short on a loaded host.
     """
-    bus, runner, sim = rig.core.bus, rig.dev.runner, rig.sim
+    bus, sim = rig.core.bus, rig.sim
 
     def read():
-        return (bus.link.stats.bytes_out == runner.bytes_in
+        return (bus_caught_up(rig)
                 and sim.requests_handled + sim.requests_ignored == len(rig.tap.requests())
                 and rig.tap.replies == sim.replies_sent and not bus.link.unread_input())
     try:
         wait_for(read, 10.0, what='every request answered, late')
     except WaitTimeout:
+        runner = rig.dev.runner
         print('sent', bus.link.stats, 'by id', bus.requests_by_id[:4], 'replies',
               bus.replies_by_id[:4], '; device in', runner.bytes_in, 'out', runner.bytes_out,
               'handled', sim.requests_handled, 'ignored', sim.requests_ignored, 'replies',
               sim.replies_sent, 'written', rig.tap.replies)
         raise
+
+
+def bus_caught_up(rig):
+    """Return whether the virtual bus has read every byte the driver wrote."""
+    return rig.dev.runner.bytes_in == rig.core.bus.link.stats.bytes_out
 
 
 def bus_read_everything(rig):
@@ -124,8 +130,7 @@ def bus_read_everything(rig):
     On a loaded host its thread was still behind the driver's last write, the shutdown's
     torque off, when the test stopped it (campaign s17c, run 1).
     """
-    wait_for(lambda: rig.dev.runner.bytes_in == rig.core.bus.link.stats.bytes_out, 5,
-             what='the bus reading every byte the driver wrote')
+    wait_for(lambda: bus_caught_up(rig), 5, what='the bus reading every byte the driver wrote')
 
 
 @pytest.fixture
